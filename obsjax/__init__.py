@@ -1,0 +1,1 @@
+"""obsjax: differentiable state observers in JAX."""

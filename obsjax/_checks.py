@@ -1,0 +1,82 @@
+"""Input validation shared by the whole package (names the matrix, the expected and the found shape)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def as_float_array(x, name: str) -> jax.Array:
+    """Convert to a floating JAX array (float64 under x64), naming ``name`` on failure."""
+    try:
+        arr = jnp.asarray(x)
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"`{name}` must be array-like, got {type(x).__name__}: {e}") from None
+    if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+        return arr
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        arr = arr.astype(jnp.result_type(float))
+    return arr
+
+
+def matrix(x, name: str, shape: tuple[int | None, int | None]) -> jax.Array:
+    """Validate a 2-D matrix of the given shape (``None`` = any); 1-D input is refused."""
+    arr = as_float_array(x, name)
+    if arr.ndim != 2:
+        raise ValueError(
+            f"`{name}` must be a 2-D matrix of shape {_fmt(shape)}, got an array with "
+            f"{arr.ndim} dimension(s) and shape {tuple(arr.shape)}."
+        )
+    for k, (want, got) in enumerate(zip(shape, arr.shape)):
+        if want is not None and want != got:
+            raise ValueError(
+                f"`{name}` must have shape {_fmt(shape)}, got {tuple(arr.shape)} "
+                f"(dimension {k} is {got}, expected {want})."
+            )
+    return arr
+
+
+def vector(x, name: str, size: int | None) -> jax.Array:
+    arr = as_float_array(x, name)
+    if arr.ndim == 0:
+        arr = arr.reshape(1)
+    if arr.ndim != 1:
+        raise ValueError(
+            f"`{name}` must be a vector of length {size if size is not None else 'k'}, "
+            f"got shape {tuple(arr.shape)}."
+        )
+    if size is not None and arr.shape[0] != size:
+        raise ValueError(f"`{name}` must have length {size}, got length {arr.shape[0]}.")
+    return arr
+
+
+def is_concrete(x) -> bool:
+    """True when every leaf of ``x`` has a concrete value (not a jit tracer)."""
+    leaves = jax.tree_util.tree_leaves(x)
+    for leaf in leaves:
+        if isinstance(leaf, jax.core.Tracer):
+            try:
+                jax.core.concrete_or_error(None, leaf)
+            except Exception:  # noqa: BLE001
+                return False
+    return True
+
+
+def concrete_value(x):
+    """Concrete numpy value of ``x`` or ``None`` when it is traced (inside jit)."""
+    try:
+        return np.asarray(jax.core.concrete_or_error(None, x))
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def positive(value, name: str):
+    """Trace-time check that a gain is > 0 when its value is known; ``None`` passes."""
+    v = concrete_value(value)
+    if v is not None and not np.all(v > 0):
+        raise ValueError(f"`{name}` must be > 0, got {v.tolist()}.")
+
+
+def _fmt(shape) -> str:
+    return "(" + ", ".join("k" if s is None else str(s) for s in shape) + ")"
