@@ -1,0 +1,676 @@
+"""Monte-Carlo studies of an observer: chunked, vmapped, sharded over devices, resumable."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import inspect
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+
+from .._checks import as_float_array
+from .._config import require_x64
+from .._simulate import _check_ts, num_segments, simulate
+from ..observers._base import AbstractObserver
+from ..systems._noise import AbstractNoise, BandLimitedNoise, realise_band_limited
+from ..systems._plants import AbstractSystem
+from ._noisy import NoisyOutput
+
+_CHECKPOINT_VERSION = 1
+DEFAULT_QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Samplers
+# ----------------------------------------------------------------------------------------------------------
+
+
+def _n_positional(fn) -> int:
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return 1
+    count = 0
+    for p in sig.parameters.values():
+        if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD):
+            count += 1
+        elif p.kind == p.VAR_POSITIONAL:
+            return 99
+    return count
+
+
+class _Fixed:
+    """A constant 'sampler' (an array given in place of a callable); hashable through its bytes."""
+
+    def __init__(self, value, name):
+        arr = np.asarray(as_float_array(value, name))
+        if arr.ndim != 1:
+            raise ValueError(f"`{name}` given as an array must be a vector (n,), got shape {arr.shape}.")
+        self.value = arr
+        self._key = (arr.shape, arr.tobytes())
+
+    def __call__(self, key, *args):
+        return jnp.asarray(self.value)
+
+    def __hash__(self):
+        return hash(self._key)
+
+    def __eq__(self, other):
+        return isinstance(other, _Fixed) and other._key == self._key
+
+    def name(self) -> str:  # used in the checkpoint fingerprint
+        return "fixed:" + hashlib.sha256(self.value.tobytes()).hexdigest()[:16]
+
+
+def _sampler(s, name):
+    if s is None:
+        raise ValueError(f"`{name}` is required: a callable key -> (n,) array, or a fixed (n,) array.")
+    if callable(s):
+        return s
+    return _Fixed(s, name)
+
+
+def _fn_name(fn) -> str:
+    if fn is None:
+        return "None"
+    if isinstance(fn, _Fixed):
+        return fn.name()
+    return f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', type(fn).__name__)}"
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The result
+# ----------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MonteCarloResult:
+    """Outcome of :func:`obsjax.monte_carlo` (host NumPy arrays; a plain container, not a pytree).
+
+    - `ts`: (T,) save times.
+    - `error_norm`: (N, T) ‖x̃(t)‖ of every completed trajectory (NaN rows for failed ones).
+    - `status`: (N,) int, 0 = success, 1 = solver failure, 2 = non-finite values (see
+      :func:`obsjax.simulate`); −1 marks trajectories not yet computed (an interrupted, resumable run).
+    - `quantiles`: the quantile levels of `bands`.
+    - `bands`: (Q, T) quantiles of ‖x̃(t)‖ over the *successful* trajectories at each save time.
+    - `convergence_time`: (N,) first save time (relative to ``ts[0]``) after which ‖x̃‖ stays at or below
+      the convergence threshold; ``inf`` if it never settles within the horizon, NaN for failures.
+    - `ise`: (N,) ∫‖x̃‖² dt on the save grid (trapezoid), NaN for failures.
+    - `conv_tol`, `conv_relative`: the convergence threshold (relative to ‖x̃(t0)‖ when ``conv_relative``).
+    - `n`: requested number of trajectories; `n_done`: number computed so far (``complete`` when equal).
+    - `elapsed`: wall-clock seconds spent computing in this call (excludes chunks loaded from a
+      checkpoint); `n_computed`: trajectories computed in this call.
+
+    Failures are *counted* (`n_failed`, `failure_fraction`), never averaged into the statistics.
+    """
+
+    ts: np.ndarray
+    error_norm: np.ndarray
+    status: np.ndarray
+    quantiles: tuple
+    bands: np.ndarray
+    convergence_time: np.ndarray
+    ise: np.ndarray
+    conv_tol: float
+    conv_relative: bool
+    n: int
+    n_done: int
+    elapsed: float
+    n_computed: int
+
+    @property
+    def complete(self) -> bool:
+        return self.n_done == self.n
+
+    @property
+    def n_failed(self) -> int:
+        return int(np.sum(self.status > 0))
+
+    @property
+    def failure_fraction(self) -> float:
+        """Failed trajectories ÷ computed trajectories."""
+        return self.n_failed / max(self.n_done, 1)
+
+    @property
+    def ok(self) -> np.ndarray:
+        """(N,) mask of the successful trajectories."""
+        return self.status == 0
+
+    @property
+    def converged_fraction(self) -> float:
+        """Share of the successful trajectories that settle below the threshold within the horizon."""
+        ct = self.convergence_time[self.ok]
+        return float(np.mean(np.isfinite(ct))) if ct.size else float("nan")
+
+    @property
+    def throughput(self) -> float:
+        """Trajectories per second computed in this call."""
+        return self.n_computed / self.elapsed if self.elapsed > 0 else float("nan")
+
+    def band(self, q: float) -> np.ndarray:
+        """The q-quantile of ‖x̃(t)‖ over successful trajectories, (T,)."""
+        return _quantiles(self.error_norm[self.ok], (q,))[0]
+
+    def convergence_quantiles(self, qs: Sequence[float] = (0.5, 0.95)) -> np.ndarray:
+        """Quantiles of the convergence time over successful trajectories (``inf`` counts as slowest)."""
+        ct = self.convergence_time[self.ok]
+        if ct.size == 0:
+            return np.full(len(qs), np.nan)
+        return np.quantile(ct, qs, method="lower")
+
+    def summary(self, cvar_alpha: float = 0.95) -> dict:
+        """Headline numbers: counts, final-error quantiles, convergence-time quantiles, ISE mean and CVaR."""
+        ok = self.ok
+        fin = self.error_norm[ok, -1]
+        ise = self.ise[ok]
+        k = max(1, int(math.ceil((1 - cvar_alpha) * ise.size))) if ise.size else 0
+        cq = self.convergence_quantiles((0.5, 0.95))
+        return {
+            "n": self.n_done,
+            "failed": self.n_failed,
+            "failure_fraction": self.failure_fraction,
+            "final_median": float(np.median(fin)) if fin.size else float("nan"),
+            "final_p95": float(np.quantile(fin, 0.95)) if fin.size else float("nan"),
+            "conv_median": float(cq[0]),
+            "conv_p95": float(cq[1]),
+            "converged_fraction": self.converged_fraction,
+            "ise_mean": float(np.mean(ise)) if ise.size else float("nan"),
+            f"ise_cvar{int(round(cvar_alpha * 100))}": float(np.mean(np.sort(ise)[-k:])) if k else float("nan"),
+        }
+
+    def plot(self, axes=None, label: str | None = None, color=None):
+        """Quantile bands of ‖x̃(t)‖ (log scale: median, 25–75 % and 5–95 % shaded, or the outermost
+        levels available) and the histogram of convergence times.  Returns the matplotlib figure."""
+        import matplotlib.pyplot as plt
+
+        if axes is None:
+            fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+        else:
+            fig = axes[0].figure
+        ax0, ax1 = axes
+        ts = self.ts
+        qs = list(self.quantiles)
+        color = color or "C0"
+        pairs = [(qs[i], qs[-1 - i]) for i in range(len(qs) // 2)]
+        for j, (lo, hi) in enumerate(pairs):
+            ax0.fill_between(
+                ts, self.bands[qs.index(lo)], self.bands[qs.index(hi)], color=color,
+                alpha=0.15 + 0.15 * j, lw=0, label=None if label is None and j else f"{lo:.0%}–{hi:.0%}",
+            )
+        if 0.5 in qs:
+            ax0.plot(ts, self.bands[qs.index(0.5)], color=color, lw=1.8, label=label or "median")
+        ax0.set_yscale("log")
+        ax0.set_xlabel("t")
+        ax0.set_ylabel("‖x̃(t)‖")
+        ax0.set_title(f"N = {self.n_done}, failed {self.n_failed} ({self.failure_fraction:.2%})")
+        ax0.legend(fontsize=8)
+        ct = self.convergence_time[self.ok]
+        finite = ct[np.isfinite(ct)]
+        if finite.size:
+            ax1.hist(finite, bins=min(50, max(5, int(np.sqrt(finite.size)))), color=color, alpha=0.6,
+                     label=label)
+        thr = f"{self.conv_tol:g}·‖x̃(t0)‖" if self.conv_relative else f"{self.conv_tol:g}"
+        ax1.set_xlabel(f"convergence time (‖x̃‖ ≤ {thr} thereafter)")
+        ax1.set_ylabel("count")
+        ax1.set_title(f"not converged within horizon: {1 - self.converged_fraction:.2%}")
+        fig.tight_layout()
+        return fig
+
+    def __repr__(self) -> str:
+        s = self.summary()
+        state = "" if self.complete else f", INCOMPLETE {self.n_done}/{self.n}"
+        return (
+            f"MonteCarloResult(n={s['n']}{state}, failed={s['failed']} ({s['failure_fraction']:.2%}), "
+            f"final ‖x̃‖ median={s['final_median']:.3e} p95={s['final_p95']:.3e}, "
+            f"convergence time median={s['conv_median']:.3g} p95={s['conv_p95']:.3g})"
+        )
+
+
+def _quantiles(norms: np.ndarray, qs) -> np.ndarray:
+    if norms.shape[0] == 0:
+        return np.full((len(qs), norms.shape[1]), np.nan)
+    return np.quantile(norms, qs, axis=0)
+
+
+def _convergence_time(ts, norms, tol, relative):
+    """First save time after which every later norm is ≤ threshold (inf if the last one is above)."""
+    thr = tol * norms[:, :1] if relative else tol
+    above = norms > thr
+    T = ts.shape[0]
+    any_above = above.any(axis=1)
+    last = T - 1 - np.argmax(above[:, ::-1], axis=1)
+    idx = np.where(any_above, last + 1, 0)
+    out = np.where(idx < T, ts[np.minimum(idx, T - 1)] - ts[0], np.inf)
+    return out
+
+
+def _trapz_sq(ts, norms):
+    sq = norms**2
+    return np.sum(0.5 * (sq[:, 1:] + sq[:, :-1]) * np.diff(ts), axis=1)
+
+
+def summarise(ts, error_norm, status, *, quantiles=DEFAULT_QUANTILES, conv_tol=0.05, conv_relative=True,
+              n=None, elapsed=0.0, n_computed=0) -> MonteCarloResult:
+    """Build a :class:`MonteCarloResult` from per-trajectory error norms (N, T) and statuses (N,)."""
+    ts = np.asarray(ts, dtype=float)
+    norms = np.array(error_norm, dtype=float, copy=True)
+    status = np.asarray(status).astype(np.int32)
+    done = status >= 0
+    bad = status != 0
+    norms[bad] = np.nan
+    ok = status == 0
+    ct = np.full(status.shape, np.nan)
+    ise = np.full(status.shape, np.nan)
+    if ok.any():
+        ct[ok] = _convergence_time(ts, norms[ok], conv_tol, conv_relative)
+        ise[ok] = _trapz_sq(ts, norms[ok])
+    return MonteCarloResult(
+        ts=ts,
+        error_norm=norms,
+        status=status,
+        quantiles=tuple(float(q) for q in quantiles),
+        bands=_quantiles(norms[ok], quantiles),
+        convergence_time=ct,
+        ise=ise,
+        conv_tol=float(conv_tol),
+        conv_relative=bool(conv_relative),
+        n=int(status.shape[0] if n is None else n),
+        n_done=int(done.sum()),
+        elapsed=float(elapsed),
+        n_computed=int(n_computed),
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The batched kernel: one chunk of trajectories (vmap), sharded across a device mesh with shard_map
+# ----------------------------------------------------------------------------------------------------------
+
+
+class _Config(eqx.Module):
+    """Everything static about a study (hashable: the jit cache key of the chunk kernel)."""
+
+    static: object
+    ts: tuple
+    x0_sampler: Callable
+    xhat0_sampler: Callable
+    xhat0_takes_x0: bool
+    param_sampler: Callable | None
+    sim_kwargs: tuple
+    max_segments: int | None
+    key_impl: str | None
+    mesh: object
+
+
+def _one(dyn, cfg: _Config, key, i):
+    plant, observer, noise = eqx.combine(dyn, cfg.static)
+    k = jr.fold_in(key, i)
+    kx, kh, kn, kp = jr.split(k, 4)
+    if cfg.param_sampler is not None:
+        plant = cfg.param_sampler(kp, plant)
+    x0 = jnp.asarray(cfg.x0_sampler(kx), dtype=float)
+    xhat0 = cfg.xhat0_sampler(kh, x0) if cfg.xhat0_takes_x0 else cfg.xhat0_sampler(kh)
+    xhat0 = jnp.asarray(xhat0, dtype=float)
+    ts = np.asarray(cfg.ts)
+    if isinstance(noise, BandLimitedNoise):
+        # Realise the path here, from the static grid (simulate cannot read ts[0], ts[-1] inside jit).
+        plant = NoisyOutput(plant, realise_band_limited(noise, kn, cfg.ts[0], cfg.ts[-1], plant.m))
+        noise = None
+    traj = simulate(
+        plant, observer, x0, xhat0, ts, noise=noise, key=kn if noise is not None else None, throw=False,
+        max_segments=cfg.max_segments, **dict(cfg.sim_kwargs),
+    )
+    return traj.error_norm, traj.status
+
+
+def _wrap_key(key_data, impl):
+    return jr.wrap_key_data(key_data) if impl is None else jr.wrap_key_data(key_data, impl=impl)
+
+
+@eqx.filter_jit
+def _chunk_kernel(dyn, key_data, idx, cfg: _Config):
+    def local(d, kd, ii):
+        key = _wrap_key(kd, cfg.key_impl)
+        return jax.vmap(lambda i: _one(d, cfg, key, i))(ii)
+
+    if cfg.mesh is None:
+        return local(dyn, key_data, idx)
+    from jax.sharding import PartitionSpec as P
+
+    # Each device integrates its own slice: no collective inside the adaptive while loops, so a shard
+    # waits only for its own slowest trajectory (automatic sharding of the vmapped solve would synchronise
+    # the batch at every step).
+    sharded = jax.shard_map(
+        local, mesh=cfg.mesh, in_specs=(P(), P(), P("batch")), out_specs=(P("batch"), P("batch")),
+        check_vma=False,
+    )
+    return sharded(dyn, key_data, idx)
+
+
+def _hashable_kwargs(kw: dict) -> tuple:
+    items = []
+    for k, v in sorted(kw.items()):
+        try:
+            hash(v)
+        except TypeError:
+            raise ValueError(
+                f"`simulate_kwargs[{k!r}]` must be hashable (a number, a diffrax solver, ...), got "
+                f"{type(v).__name__}."
+            ) from None
+        items.append((k, v))
+    return tuple(items)
+
+
+def _fingerprint(dyn, ts, n, chunk_size, key_data, names) -> str:
+    h = hashlib.sha256()
+    h.update(f"v{_CHECKPOINT_VERSION}|n={n}|chunk={chunk_size}|".encode())
+    h.update(np.asarray(ts, dtype=float).tobytes())
+    h.update(np.asarray(key_data).tobytes())
+    for leaf in jax.tree_util.tree_leaves(dyn):
+        a = np.asarray(leaf)
+        h.update(str(a.shape).encode() + str(a.dtype).encode())
+        h.update(a.tobytes())
+    h.update("|".join(names).encode())
+    return h.hexdigest()
+
+
+def _atomic_savez(path, **arrays):
+    tmp = path + ".tmp.npz"
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def _resolve_devices(devices):
+    if devices is None:
+        devices = jax.devices()
+    elif isinstance(devices, int):
+        all_devs = jax.devices()
+        if not 1 <= devices <= len(all_devs):
+            raise ValueError(f"`devices` asks for {devices} devices, but {len(all_devs)} are available.")
+        devices = all_devs[:devices]
+    devices = list(devices)
+    if not devices:
+        raise ValueError("`devices` must name at least one device.")
+    return devices
+
+
+def monte_carlo(
+    plant,
+    observer,
+    key,
+    n,
+    *,
+    x0_sampler,
+    xhat0_sampler,
+    ts,
+    noise=None,
+    param_sampler=None,
+    chunk_size=1024,
+    checkpoint: str | os.PathLike | None = None,
+    devices=None,
+    quantiles=DEFAULT_QUANTILES,
+    conv_tol=0.05,
+    conv_relative=True,
+    progress=True,
+    max_chunks=None,
+    simulate_kwargs=None,
+) -> MonteCarloResult:
+    """Monte-Carlo study of an observer: N trajectories with random initial states, initial estimates,
+    measurement noise and (optionally) plant parameters.
+
+    Trajectory i draws everything from ``fold_in(key, i)`` (split into keys for x0, x̂0, the noise and the
+    plant parameters), so the result does not depend on the chunk size, the number of devices or on
+    interruptions: a sharded, chunked or resumed study equals a single uninterrupted one.
+
+    **Execution.**  The N trajectories are processed in chunks of ``chunk_size`` (device memory stays
+    bounded by one chunk; the host keeps only ‖x̃(t)‖ on the save grid, N × T floats, so use a coarse
+    ``ts`` for N = 10⁶).  Within a chunk the trajectories are vmapped; with several devices the chunk is
+    split across a 1-D device mesh with ``jax.shard_map``, each device running its own vmapped adaptive
+    solve, so that a shard waits only for its own slowest trajectory (automatic sharding of a vmapped
+    adaptive solve would synchronise every step of the while loop across devices).  One compiled kernel
+    serves every chunk (the last one is padded) and every later study with the same structure, whatever
+    the gain values.  A tqdm bar runs over the chunks.
+
+    **Checkpoints.**  With ``checkpoint=<directory>``, each finished chunk is written there as
+    ``chunk_<k>.npz`` (atomically, after the chunk completes) beside a ``meta.json`` fingerprint of the
+    study (gains, plant leaves, ts, key, N, chunk size, sampler names).  Calling ``monte_carlo`` again with
+    the same arguments loads the finished chunks and computes only the rest; a checkpoint of a different
+    study raises ``ValueError``.  ``max_chunks`` bounds the chunks computed in one call (a time-boxed
+    run); the result then has ``complete == False``.
+
+    **Several hosts.**  Call ``jax.distributed.initialize()`` in every process before ``monte_carlo``;
+    ``jax.devices()`` then lists the devices of all hosts and the mesh spans them.  Every process runs
+    the same script with the same arguments; each device computes its slice of each chunk, and the
+    per-trajectory results are gathered to every process (``process_allgather``) before the host-side
+    statistics, so every process returns the same result (write checkpoints from one process only, e.g.
+    ``checkpoint=path if jax.process_index() == 0 else None``).
+
+    **Arguments:**
+
+    - `plant`: the true plant (the truth; the observer carries its own model).
+    - `observer`: any :class:`obsjax.AbstractObserver`.
+    - `key`: a JAX PRNG key.
+    - `n`: number of trajectories.
+    - `x0_sampler`: ``key -> (n_x,)`` initial plant state (or a fixed array).
+    - `xhat0_sampler`: ``key -> (n_x,)`` or ``(key, x0) -> (n_x,)`` initial estimate (or a fixed array).
+    - `ts`: (T,) save times (the statistics live on this grid).
+    - `noise`: measurement noise (:class:`obsjax.noise.WhiteNoise` or ``BandLimitedNoise``), an
+      independent realisation per trajectory.
+    - `param_sampler`: ``(key, plant) -> plant``: draws the true plant of each trajectory (model
+      uncertainty); the returned plant must have the same structure (e.g. ``eqx.tree_at`` on its leaves).
+    - `chunk_size`: trajectories per chunk (rounded up to a multiple of the number of devices).
+    - `checkpoint`: directory for resumable per-chunk results, or ``None``.
+    - `devices`: ``None`` (all of ``jax.devices()``), a number of devices, or a list of devices.
+    - `quantiles`: levels of the ‖x̃(t)‖ bands.
+    - `conv_tol`, `conv_relative`: the convergence time is the first save time after which
+      ‖x̃(t)‖ ≤ conv_tol · ‖x̃(t0)‖ (or ≤ conv_tol when ``conv_relative=False``) for the rest of the horizon.
+    - `progress`: show a tqdm progress bar over chunks.
+    - `max_chunks`: compute at most this many new chunks in this call.
+    - `simulate_kwargs`: extra keyword arguments of :func:`obsjax.simulate` (``solver``, ``rtol``,
+      ``atol``, ``dt0``, ``adaptive``, ``max_steps``); ``throw`` is always ``False`` (failures are counted
+      from the per-trajectory ``status``).
+
+    **Returns:** a :class:`MonteCarloResult`.
+
+    **Example:**::
+
+        plant = obsjax.LTI([[-2., 1.], [0., -1.]], [[0.], [1.]], [[1., 0.]])
+        obs = obsjax.Luenberger.from_poles(plant, [-3., -3.])
+        res = obsjax.monte_carlo(
+            plant, obs, jax.random.PRNGKey(0), 10_000,
+            x0_sampler=lambda k: jax.random.normal(k, (2,)),
+            xhat0_sampler=lambda k: jnp.zeros(2),
+            ts=jnp.linspace(0., 5., 26), chunk_size=2048,
+        )
+        res.plot()
+    """
+    require_x64("obsjax.monte_carlo")
+    if not isinstance(plant, AbstractSystem):
+        raise ValueError(f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}.")
+    if not isinstance(observer, AbstractObserver):
+        raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
+    if noise is not None and not isinstance(noise, AbstractNoise):
+        raise ValueError(f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}.")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"`n` (the number of trajectories) must be a positive integer, got {n!r}.")
+    n = int(n)
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"`chunk_size` must be a positive integer, got {chunk_size!r}.")
+    if max_chunks is not None and (not isinstance(max_chunks, (int, np.integer)) or max_chunks < 0):
+        raise ValueError(f"`max_chunks` must be a non-negative integer or None, got {max_chunks!r}.")
+    if not conv_tol > 0:
+        raise ValueError(f"`conv_tol` must be > 0, got {conv_tol}.")
+    qs = tuple(float(q) for q in quantiles)
+    if not qs or any(not 0.0 <= q <= 1.0 for q in qs) or list(qs) != sorted(qs):
+        raise ValueError(f"`quantiles` must be increasing levels in [0, 1], got {quantiles!r}.")
+    if param_sampler is not None and not callable(param_sampler):
+        raise ValueError(f"`param_sampler` must be a callable (key, plant) -> plant, got {type(param_sampler).__name__}.")
+    ts_arr = np.asarray(_check_ts(ts), dtype=float)
+    x0_sampler = _sampler(x0_sampler, "x0_sampler")
+    xhat0_sampler = _sampler(xhat0_sampler, "xhat0_sampler")
+    takes_x0 = isinstance(xhat0_sampler, _Fixed) or _n_positional(xhat0_sampler) >= 2
+
+    sim_kwargs = dict(simulate_kwargs or {})
+    for bad in ("throw", "noise", "key", "max_segments"):
+        if bad in sim_kwargs:
+            raise ValueError(f"`simulate_kwargs` must not contain {bad!r}: monte_carlo sets it.")
+    sim_kw = _hashable_kwargs(sim_kwargs)
+
+    # Key handling: raw key data travels through jit/shard_map; the implementation is static.
+    if jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
+        key_impl = str(jr.key_impl(key))
+        key_data = jr.key_data(key)
+    else:
+        key_data = jnp.asarray(key)
+        if key_data.dtype != jnp.uint32 or key_data.ndim != 1:
+            raise ValueError(
+                f"`key` must be a JAX PRNG key (jax.random.key or PRNGKey), got dtype {key_data.dtype} "
+                f"and shape {tuple(key_data.shape)}."
+            )
+        key_impl = None
+
+    # Reset observers: the number of segments is computed once from the concrete period.
+    T = observer.reset_period
+    max_segments = None if T is None else num_segments(T, ts_arr[0], ts_arr[-1])
+
+    devices = _resolve_devices(devices)
+    D = len(devices)
+    chunk = int(math.ceil(chunk_size / D) * D)
+    mesh = None
+    if D > 1:
+        mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
+
+    dyn, static = eqx.partition((plant, observer, noise), eqx.is_array)
+    cfg = _Config(
+        static=static,
+        ts=tuple(float(t) for t in ts_arr),
+        x0_sampler=x0_sampler,
+        xhat0_sampler=xhat0_sampler,
+        xhat0_takes_x0=takes_x0,
+        param_sampler=param_sampler,
+        sim_kwargs=sim_kw,
+        max_segments=max_segments,
+        key_impl=key_impl,
+        mesh=mesh,
+    )
+    try:
+        hash(cfg)
+    except TypeError as e:
+        raise ValueError(
+            f"the static part of the study (samplers, plant callables, simulate_kwargs) must be hashable: {e}"
+        ) from None
+
+    n_chunks = int(math.ceil(n / chunk))
+    T_len = ts_arr.shape[0]
+    norms = np.full((n, T_len), np.nan)
+    status = np.full((n,), -1, dtype=np.int32)
+    done = np.zeros(n_chunks, dtype=bool)
+
+    ckpt = None
+    if checkpoint is not None:
+        ckpt = os.fspath(checkpoint)
+        names = [_fn_name(x0_sampler), _fn_name(xhat0_sampler), _fn_name(param_sampler),
+                 type(plant).__name__, type(observer).__name__, type(noise).__name__, repr(sim_kw)]
+        fp = _fingerprint(dyn, ts_arr, n, chunk, key_data, names)
+        os.makedirs(ckpt, exist_ok=True)
+        meta_path = os.path.join(ckpt, "meta.json")
+        if os.path.exists(meta_path):
+            with open(meta_path) as fh:
+                meta = json.load(fh)
+            if meta.get("fingerprint") != fp:
+                raise ValueError(
+                    f"checkpoint directory {ckpt!r} holds a different study (gains, plant, ts, key, n, "
+                    "chunk size, samplers or number of devices differ): delete it or choose another path."
+                )
+            for c in range(n_chunks):
+                path = os.path.join(ckpt, f"chunk_{c:06d}.npz")
+                if os.path.exists(path):
+                    with np.load(path) as data:
+                        lo, hi = c * chunk, min((c + 1) * chunk, n)
+                        norms[lo:hi] = data["error_norm"]
+                        status[lo:hi] = data["status"]
+                    done[c] = True
+        else:
+            with open(meta_path, "w") as fh:
+                json.dump({"fingerprint": fp, "n": n, "chunk_size": chunk, "n_chunks": n_chunks,
+                           "version": _CHECKPOINT_VERSION}, fh)
+
+    todo = [c for c in range(n_chunks) if not done[c]]
+    if max_chunks is not None:
+        todo = todo[: int(max_chunks)]
+
+    sharding_in = None
+    if mesh is not None:
+        sharding_in = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    multi = jax.process_count() > 1
+
+    it = todo
+    bar = None
+    if progress and todo:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(todo, desc="monte_carlo", unit="chunk", leave=False)
+        it = bar
+    t_start = time.perf_counter()
+    computed = 0
+    for c in it:
+        lo, hi = c * chunk, min((c + 1) * chunk, n)
+        idx = np.minimum(np.arange(lo, lo + chunk), n - 1).astype(np.int32)  # pad with the last index
+        if sharding_in is not None:
+            idx_dev = jax.make_array_from_callback((chunk,), sharding_in, lambda s: idx[s])
+        else:
+            idx_dev = jnp.asarray(idx)
+        en, st = _chunk_kernel(dyn, key_data, idx_dev, cfg)
+        if multi:
+            from jax.experimental import multihost_utils
+
+            en, st = multihost_utils.process_allgather((en, st), tiled=True)
+        en = np.asarray(jax.block_until_ready(en))[: hi - lo]
+        st = np.asarray(st)[: hi - lo]
+        norms[lo:hi] = en
+        status[lo:hi] = st
+        computed += hi - lo
+        if ckpt is not None:
+            _atomic_savez(os.path.join(ckpt, f"chunk_{c:06d}.npz"), error_norm=en, status=st)
+        if bar is not None:
+            bar.set_postfix(failed=int(np.sum(status > 0)))
+    elapsed = time.perf_counter() - t_start
+    if bar is not None:
+        bar.close()
+    return summarise(
+        ts_arr, norms, status, quantiles=qs, conv_tol=conv_tol, conv_relative=conv_relative, n=n,
+        elapsed=elapsed, n_computed=computed,
+    )
+
+
+def comparison_table(results: dict, cvar_alpha: float = 0.95) -> str:
+    """A plain-text table comparing several :class:`MonteCarloResult` (label -> result)."""
+    cols = ["n", "failed", "final_median", "final_p95", "conv_median", "conv_p95", "converged_fraction",
+            "ise_mean", f"ise_cvar{int(round(cvar_alpha * 100))}"]
+    heads = ["N", "failed", "‖x̃(tf)‖ med", "‖x̃(tf)‖ p95", "t_conv med", "t_conv p95", "converged",
+             "ISE mean", f"ISE CVaR{int(round(cvar_alpha * 100))}"]
+    rows = []
+    for label, res in results.items():
+        s = res.summary(cvar_alpha)
+        row = [label]
+        for c in cols:
+            v = s[c]
+            if c in ("n", "failed"):
+                row.append(f"{int(v)}")
+            elif c == "converged_fraction":
+                row.append(f"{v:.1%}")
+            else:
+                row.append(f"{v:.3g}" if np.isfinite(v) else str(v))
+        rows.append(row)
+    widths = [max(len(r[i]) for r in rows + [["observer"] + heads]) for i in range(len(heads) + 1)]
+    fmt = lambda r: "  ".join(x.rjust(w) if i else x.ljust(w) for i, (x, w) in enumerate(zip(r, widths)))  # noqa: E731
+    line = "-" * (sum(widths) + 2 * len(widths) - 2)
+    return "\n".join([fmt(["observer"] + heads), line] + [fmt(r) for r in rows])

@@ -1,0 +1,71 @@
+"""Band-limited measurement noise folded into the plant's output map (a realised path per trajectory).
+
+``NoisyOutput(plant, path)`` is the plant with y = h(t, x, u) + v(t) for a realised noise path v, exactly what
+:func:`obsjax.simulate` does with ``noise=BandLimitedNoise`` (``realise_band_limited`` draws the same path from
+the same key), but with the path realised *before* tracing.  Inside ``jit`` the save grid ``ts`` is traced,
+so ``simulate`` cannot draw the path itself there; studies and tuning over a batch of noise realisations
+build these plants on the host instead (the path's samples are array leaves, so a batch of them vmaps).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+
+from ..systems._noise import BandLimitedNoise, SampledNoise, realise_band_limited
+from ..systems._plants import AbstractSystem
+
+
+class NoisyOutput(AbstractSystem):
+    """The plant ``plant`` measured through additive noise: y = h(t, x, u) + v(t).
+
+    **Arguments:** `plant` (any obsjax plant); `path` (a realised noise path, callable t -> (m,)).
+    """
+
+    plant: AbstractSystem
+    path: SampledNoise
+
+    @property
+    def n(self) -> int:
+        return self.plant.n
+
+    @property
+    def m(self) -> int:
+        return self.plant.m
+
+    @property
+    def p(self) -> int:
+        return self.plant.p
+
+    @property
+    def jump_ts(self):
+        return getattr(self.plant, "jump_ts", None)
+
+    def f(self, t, x, u):
+        return self.plant.f(t, x, u)
+
+    def h(self, t, x, u):
+        return self.plant.h(t, x, u) + self.path(t)
+
+
+def with_noise(plant: AbstractSystem, noise: BandLimitedNoise, key, t0: float, t1: float) -> NoisyOutput:
+    """One realisation (the path ``simulate(..., noise=noise, key=key)`` would draw on [t0, t1])."""
+    if not isinstance(noise, BandLimitedNoise):
+        raise ValueError(f"`noise` must be a BandLimitedNoise here, got {type(noise).__name__}.")
+    return NoisyOutput(plant, realise_band_limited(noise, key, float(t0), float(t1), plant.m))
+
+
+def noisy_batch(plant: AbstractSystem, noise: BandLimitedNoise, key, batch: int, t0: float, t1: float):
+    """A batch of ``batch`` noisy plants (leading axis on every array leaf) for ``tune(plant_batched=True)``.
+
+    The plant's own array leaves are broadcast along the batch; noise path b is drawn from
+    ``jr.split(key, batch)[b]``.
+    """
+    if not isinstance(noise, BandLimitedNoise):
+        raise ValueError(f"`noise` must be a BandLimitedNoise here, got {type(noise).__name__}.")
+    keys = jr.split(key, batch)
+    paths = [realise_band_limited(noise, k, float(t0), float(t1), plant.m) for k in keys]
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *paths)
+    bplant = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (batch,) + jnp.shape(a)), plant)
+    return NoisyOutput(bplant, stacked)

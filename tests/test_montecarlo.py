@@ -1,0 +1,358 @@
+"""Tests of obsjax.monte_carlo: closed forms, chunk/shard/resume invariance, failure accounting."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.linalg
+
+import obsjax
+from obsjax.montecarlo import summarise
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# Module-level samplers: the compiled chunk kernel is cached on them, so tests reuse one compilation.
+A = np.array([[-2.0, 1.0], [0.0, -1.0]])
+PLANT = obsjax.LTI(A, [[0.0], [1.0]], [[1.0, 0.0]])
+OBS = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0])
+TS = np.linspace(0.0, 3.0, 16)
+
+
+def x0_normal(key):
+    return jr.normal(key, (2,))
+
+
+def xhat0_zero(key):
+    return jnp.zeros(2)
+
+
+def run(n=40, chunk_size=16, **kw):
+    kw.setdefault("x0_sampler", x0_normal)
+    kw.setdefault("xhat0_sampler", xhat0_zero)
+    kw.setdefault("ts", TS)
+    kw.setdefault("progress", False)
+    return obsjax.monte_carlo(kw.pop("plant", PLANT), kw.pop("observer", OBS), jr.PRNGKey(7), n,
+                              chunk_size=chunk_size, **kw)
+
+
+def _x0_of(i, key=jr.PRNGKey(7)):
+    return np.asarray(x0_normal(jr.split(jr.fold_in(key, i), 4)[0]))
+
+
+@pytest.fixture(scope="module")
+def base():
+    return run()
+
+
+def test_matches_closed_form_error(base):
+    # Luenberger on the exact model: x̃(t) = exp((A − LC) t) x̃(0) with x̃(0) = x̂0 − x0 = −x0 (thesis (2.7)).
+    F = np.asarray(OBS.observer_matrix)
+    ref = np.empty((40, TS.size))
+    for i in range(40):
+        e0 = -_x0_of(i)
+        ref[i] = [np.linalg.norm(scipy.linalg.expm(F * t) @ e0) for t in TS]
+    np.testing.assert_allclose(base.error_norm, ref, rtol=2e-5, atol=1e-7)
+    # bands are the empirical quantiles of the closed-form norms
+    np.testing.assert_allclose(base.bands, np.quantile(ref, base.quantiles, axis=0), rtol=2e-5, atol=1e-7)
+    assert base.complete and base.n_failed == 0 and base.failure_fraction == 0.0
+
+
+def test_chunk_size_does_not_change_result(base):
+    other = run(chunk_size=24)  # 40 = 24 + 16 (padded last chunk)
+    np.testing.assert_array_equal(other.status, base.status)
+    np.testing.assert_allclose(other.error_norm, base.error_norm, rtol=0, atol=1e-12)
+
+
+def test_convergence_time_closed_form():
+    # ‖x̃(t)‖ = ‖x̃0‖ e^{−λ t}: it stays below 5 % of ‖x̃0‖ from t* = ln(20)/λ on, i.e. from the first
+    # save time ≥ t*; a decay too slow for the horizon never converges (inf).
+    ts = np.linspace(0.0, 4.0, 81)
+    lam = np.array([1.0, 2.0, 0.5])
+    norms = np.exp(-np.outer(lam, ts)) * np.array([[3.0], [1.0], [2.0]])
+    res = summarise(ts, norms, np.zeros(3, dtype=int), conv_tol=0.05)
+    tstar = np.log(20.0) / lam
+    expect = np.array([ts[np.argmax(ts >= t - 1e-12)] if t <= ts[-1] else np.inf for t in tstar])
+    np.testing.assert_allclose(res.convergence_time, expect)
+    assert np.isinf(res.convergence_time[2])  # ln 20 / 0.5 = 6 > 4
+    # absolute threshold
+    res_abs = summarise(ts, norms, np.zeros(3, dtype=int), conv_tol=0.1, conv_relative=False)
+    t_abs = np.log(np.array([3.0, 1.0, 2.0]) / 0.1) / lam
+    expect = np.array([ts[np.argmax(ts >= t - 1e-12)] if t <= ts[-1] else np.inf for t in t_abs])
+    np.testing.assert_allclose(res_abs.convergence_time, expect)
+
+
+def test_resume_after_interruption_equals_uninterrupted(base, tmp_path):
+    ck = tmp_path / "ck"
+    part = run(checkpoint=ck, max_chunks=2)  # stop after 2 of 3 chunks
+    assert not part.complete and part.n_done == 32 and part.n_computed == 32
+    assert np.all(part.status[32:] == -1)
+    assert sorted(os.listdir(ck)) == ["chunk_000000.npz", "chunk_000001.npz", "meta.json"]
+    resumed = run(checkpoint=ck)
+    assert resumed.complete and resumed.n_computed == 8  # only the missing chunk was computed
+    np.testing.assert_array_equal(resumed.status, base.status)
+    np.testing.assert_array_equal(resumed.error_norm, base.error_norm)
+    np.testing.assert_array_equal(resumed.bands, base.bands)
+    # a further call loads everything and computes nothing
+    again = run(checkpoint=ck)
+    assert again.n_computed == 0
+    np.testing.assert_array_equal(again.error_norm, base.error_norm)
+
+
+def test_checkpoint_of_other_study_raises(tmp_path):
+    ck = tmp_path / "ck"
+    run(n=16, checkpoint=ck)
+    other = obsjax.Luenberger.from_poles(PLANT, [-4.0, -4.0])
+    with pytest.raises(ValueError, match="different study"):
+        run(n=16, checkpoint=ck, observer=other)
+
+
+# ---- failures: counted, never averaged --------------------------------------------------------------------
+
+BLOWUP = obsjax.Nonlinear(lambda t, x, u: x**2, lambda t, x, u: x, n=1, m=1)
+SCALAR_MODEL = obsjax.LTI([[0.0]], None, [[1.0]])
+SCALAR_OBS = obsjax.Luenberger(SCALAR_MODEL, L=[[1.0]])
+
+
+def x0_uniform(key):
+    return jr.uniform(key, (1,), minval=0.0, maxval=1.0)
+
+
+def test_failures_are_counted_not_averaged():
+    # ẋ = x² blows up at t = 1/x0: every trajectory with x0 > 1/t1 must fail, every other must succeed.
+    ts = np.linspace(0.0, 2.0, 11)
+    res = obsjax.monte_carlo(
+        BLOWUP, SCALAR_OBS, jr.PRNGKey(3), 48, x0_sampler=x0_uniform, xhat0_sampler=np.zeros(1), ts=ts,
+        chunk_size=16, progress=False, simulate_kwargs={"max_steps": 2048},
+    )
+    x0 = np.array([float(x0_uniform(jr.split(jr.fold_in(jr.PRNGKey(3), i), 4)[0])[0]) for i in range(48)])
+    expect_fail = x0 > 1.0 / ts[-1]
+    assert 0 < expect_fail.sum() < 48
+    np.testing.assert_array_equal(res.status > 0, expect_fail)
+    assert res.n_failed == expect_fail.sum()
+    assert res.failure_fraction == pytest.approx(expect_fail.mean())
+    assert np.all(np.isfinite(res.bands))
+    assert np.all(np.isnan(res.error_norm[expect_fail]))
+    assert np.all(np.isnan(res.convergence_time[expect_fail]))
+    # the statistics are those of the successful trajectories alone
+    ok_norms = res.error_norm[~expect_fail]
+    np.testing.assert_allclose(res.bands, np.quantile(ok_norms, res.quantiles, axis=0))
+    assert res.summary()["failed"] == expect_fail.sum()
+    # survivors against the closed form x(t) = x0 / (1 − x0 t), x̂ from x̂' = y − x̂ (L = 1, model ẋ = 0)
+    i = int(np.flatnonzero(~expect_fail)[0])
+    sol = scipy.integrate.solve_ivp(
+        lambda t, s: [s[0] ** 2, s[0] - s[1]], (0, 2), [x0[i], 0.0], t_eval=ts, rtol=1e-10, atol=1e-12
+    )
+    np.testing.assert_allclose(res.error_norm[i], np.abs(sol.y[1] - sol.y[0]), rtol=1e-4, atol=1e-6)
+
+
+# ---- a resetting observer and sampled plants ---------------------------------------------------------------
+
+
+class _ResettingGain(obsjax.AbstractObserver):
+    """Scalar test observer with a reset: x̂' = a x̂ + k(t)(y − x̂), k' = −k, k(jT⁺) = k0."""
+
+    a: jax.Array
+    k0: jax.Array
+    T: jax.Array
+
+    def init(self, t0, xhat0, y0):
+        return (jnp.asarray(xhat0), self.k0)
+
+    def vector_field(self, t, z, y, u):
+        xh, k = z
+        return (self.a * xh + k * (y - xh), -k)
+
+    def estimate(self, t, z, y):
+        return z[0]
+
+    @property
+    def reset_period(self):
+        return self.T
+
+    def reset(self, t, z):
+        return (z[0], self.k0)
+
+
+SCALAR_PLANT = obsjax.LTI([[0.5]], None, [[1.0]])
+RESET_OBS = _ResettingGain(jnp.array(0.5), jnp.array(4.0), jnp.array(0.5))
+
+
+def scale_a(key, plant):
+    # model uncertainty: true a ~ U(0.3, 0.7)
+    return eqx.tree_at(lambda p: p.A, plant, jr.uniform(key, (1, 1), minval=0.3, maxval=0.7))
+
+
+def test_resetting_observer_with_sampled_plants_against_scipy():
+    ts = np.linspace(0.0, 2.0, 9)
+    key = jr.PRNGKey(11)
+    res = obsjax.monte_carlo(
+        SCALAR_PLANT, RESET_OBS, key, 6, x0_sampler=x0_uniform, xhat0_sampler=np.zeros(1), ts=ts,
+        param_sampler=scale_a, chunk_size=4, progress=False, simulate_kwargs={"rtol": 1e-9, "atol": 1e-11},
+    )
+    for i in range(6):
+        kx, _, _, kp = jr.split(jr.fold_in(key, i), 4)
+        a_true = float(scale_a(kp, SCALAR_PLANT).A[0, 0])
+        x = float(x0_uniform(kx)[0])
+        s = np.array([x, 0.0, 4.0])
+        errs = [abs(s[1] - s[0])]
+        for j in range(4):  # segments of T = 0.5, reset k = k0 at each
+            s[2] = 4.0
+            sol = scipy.integrate.solve_ivp(
+                lambda t, v: [a_true * v[0], 0.5 * v[1] + v[2] * (v[0] - v[1]), -v[2]],
+                (0.5 * j, 0.5 * (j + 1)), s, t_eval=[0.5 * j + 0.25, 0.5 * (j + 1)], rtol=1e-11, atol=1e-13,
+            )
+            errs += list(np.abs(sol.y[1] - sol.y[0]))
+            s = sol.y[:, -1].copy()
+        np.testing.assert_allclose(res.error_norm[i], errs, rtol=1e-6, atol=1e-9)
+
+
+# ---- plots --------------------------------------------------------------------------------------------------
+
+
+def test_plot_and_summary(base):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    fig = base.plot(label="Luenberger")
+    assert len(fig.axes) == 2 and fig.axes[0].get_yscale() == "log"
+    s = base.summary()
+    assert s["n"] == 40 and s["failed"] == 0
+    table = obsjax.montecarlo.comparison_table({"a": base, "b": base})
+    assert table.count("\n") == 3 and "ISE" in table
+
+
+# ---- bad input: one test per ValueError ---------------------------------------------------------------------
+
+
+def test_bad_n():
+    with pytest.raises(ValueError, match="`n`"):
+        run(n=0)
+
+
+def test_bad_chunk_size():
+    with pytest.raises(ValueError, match="`chunk_size`"):
+        run(chunk_size=0)
+
+
+def test_missing_sampler():
+    with pytest.raises(ValueError, match="`x0_sampler` is required"):
+        run(x0_sampler=None)
+
+
+def test_sampler_array_of_wrong_rank():
+    with pytest.raises(ValueError, match="`xhat0_sampler` given as an array"):
+        run(xhat0_sampler=np.zeros((2, 2)))
+
+
+def test_bad_key():
+    with pytest.raises(ValueError, match="`key`"):
+        obsjax.monte_carlo(PLANT, OBS, 3, 4, x0_sampler=x0_normal, xhat0_sampler=xhat0_zero, ts=TS)
+
+
+def test_bad_quantiles():
+    with pytest.raises(ValueError, match="`quantiles`"):
+        run(quantiles=(0.9, 0.1))
+
+
+def test_bad_conv_tol():
+    with pytest.raises(ValueError, match="`conv_tol`"):
+        run(conv_tol=0.0)
+
+
+def test_simulate_kwargs_throw_refused():
+    with pytest.raises(ValueError, match="must not contain 'throw'"):
+        run(simulate_kwargs={"throw": True})
+
+
+def test_bad_plant():
+    with pytest.raises(ValueError, match="`plant`"):
+        run(plant="not a plant")
+
+
+def test_bad_observer():
+    with pytest.raises(ValueError, match="`observer`"):
+        run(observer=PLANT)
+
+
+def test_too_many_devices():
+    with pytest.raises(ValueError, match="`devices`"):
+        run(devices=len(jax.devices()) + 1)
+
+
+def test_bad_max_chunks():
+    with pytest.raises(ValueError, match="`max_chunks`"):
+        run(max_chunks=-1)
+
+
+def test_bad_param_sampler():
+    with pytest.raises(ValueError, match="`param_sampler`"):
+        run(param_sampler=3)
+
+
+def test_bad_ts():
+    with pytest.raises(ValueError, match="`ts`"):
+        run(ts=np.array([1.0, 0.0]))
+
+
+# ---- sharding over 4 host devices (subprocess, so the rest of the suite keeps one device) -------------------
+
+_SHARD_SCRIPT = textwrap.dedent(
+    """
+    import os, sys
+    sys.path.insert(0, {root!r})
+    import jax, jax.numpy as jnp, jax.random as jr, numpy as np
+    import obsjax
+    from tests.test_montecarlo import PLANT, OBS, x0_normal, xhat0_zero, SCALAR_PLANT, RESET_OBS, x0_uniform, scale_a
+    assert len(jax.devices()) == 4, jax.devices()
+    ts = np.linspace(0.0, 3.0, 16)
+    noise = obsjax.noise.BandLimitedNoise(0.05, dt=0.05)
+    kw = dict(x0_sampler=x0_normal, xhat0_sampler=xhat0_zero, ts=ts, noise=noise, chunk_size=24, progress=False)
+    one = obsjax.monte_carlo(PLANT, OBS, jr.PRNGKey(5), 50, devices=1, **kw)
+    four = obsjax.monte_carlo(PLANT, OBS, jr.PRNGKey(5), 50, devices=4, **kw)
+    assert np.array_equal(one.status, four.status)
+    d1 = float(np.max(np.abs(one.error_norm - four.error_norm)))
+    kw2 = dict(x0_sampler=x0_uniform, xhat0_sampler=np.zeros(1), ts=np.linspace(0, 2, 9), param_sampler=scale_a,
+               chunk_size=8, progress=False)
+    r1 = obsjax.monte_carlo(SCALAR_PLANT, RESET_OBS, jr.PRNGKey(6), 20, devices=1, **kw2)
+    r4 = obsjax.monte_carlo(SCALAR_PLANT, RESET_OBS, jr.PRNGKey(6), 20, devices=4, **kw2)
+    d2 = float(np.max(np.abs(r1.error_norm - r4.error_norm)))
+    print("MAXDIFF", d1, d2, one.n_failed, r4.n_failed)
+    """
+)
+
+
+def test_sharded_equals_unsharded():
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
+    env["JAX_PLATFORMS"] = "cpu"
+    out = subprocess.run(
+        [sys.executable, "-c", _SHARD_SCRIPT.format(root=ROOT)], env=env, capture_output=True, text=True,
+        timeout=300, cwd=ROOT,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    line = [ln for ln in out.stdout.splitlines() if ln.startswith("MAXDIFF")][0]
+    d1, d2, f1, f4 = line.split()[1:]
+    assert float(d1) <= 1e-12 and float(d2) <= 1e-12
+    assert int(f1) == 0 and int(f4) == 0
+    print(line)
+
+
+def test_band_limited_noise_is_simulates_realisation():
+    # Trajectory i of the study sees the path simulate(noise=..., key=k_noise_i) draws (run outside jit).
+    noise = obsjax.noise.BandLimitedNoise(0.2, dt=0.1)
+    res = run(n=3, chunk_size=4, noise=noise)
+    for i in range(3):
+        kx, kh, kn, _ = jr.split(jr.fold_in(jr.PRNGKey(7), i), 4)
+        traj = obsjax.simulate(PLANT, OBS, x0_normal(kx), xhat0_zero(kh), TS, noise=noise, key=kn)
+        np.testing.assert_allclose(res.error_norm[i], traj.error_norm, rtol=1e-10, atol=1e-12)
+    assert not np.allclose(res.error_norm, run(n=3, chunk_size=4).error_norm)
