@@ -1,3 +1,7 @@
+"""Analysis: observability, transition matrices, gramians, persistence of excitation, bounds, rates."""
+
+from ._lti import is_observable as is_observable
+from ._lti import obsv as obsv
 from ._ltv import PersistentExcitation as PersistentExcitation
 from ._ltv import UniformObservability as UniformObservability
 from ._ltv import chen_yen_bound as chen_yen_bound
