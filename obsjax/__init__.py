@@ -32,3 +32,8 @@ from .tuning._tune import tune as tune
 __version__ = "0.1.0"
 from .montecarlo import MonteCarloResult as MonteCarloResult
 from .montecarlo import monte_carlo as monte_carlo
+from .observers._least_squares import LeastSquaresReset as LeastSquaresReset
+from .observers._least_squares import LeastSquaresState as LeastSquaresState
+from .observers._least_squares import chen_yen_example as chen_yen_example
+from .observers._kalman_bucy import KalmanBucy as KalmanBucy
+from .observers._kalman_bucy import KalmanBucyState as KalmanBucyState

@@ -1,0 +1,407 @@
+"""Analysis of linear time-varying systems (Chen & Yen 1999, (2)-(7), (16)-(19), Theorem).
+
+All integrals are computed with diffrax (Dopri8, tight tolerances); a plant's declared ``jump_ts`` are passed
+to ``ClipStepSizeController`` so piecewise-constant parameters are integrated exactly.
+
+**A note on (4) and the Lemma.**  As printed, (4) references the gramian to the *start* of the window,
+W_o(k) = ∫ Φᵀ(τ, kT-T) Cᵀ C Φ(τ, kT-T) dτ over [kT-T, kT] (Rugh's definition).  The observer's regressor on
+that window is w_o(τ) = Φᵀ(τ, kT-T) Cᵀ(τ) (12), so the regressor gramian (16) W_o^z(k) = ∫ w_o w_oᵀ is then
+*identical* to W_o(k).  The Appendix's identity W_o^z = Φᵀ(kT, kT-T) W_o Φ(kT, kT-T), on which the Lemma's
+bound α1 m1² ≤ W_o^z rests, holds for the gramian referenced to the *end* of the window,
+W_o^end(k) = ∫ Φᵀ(τ, kT) Cᵀ C Φ(τ, kT) dτ.  With α1 taken from the start-referenced (4) the Lemma can fail
+when m1 > 1.  :func:`observability_gramian` therefore offers both references (default: (4) as printed), and
+:func:`uniform_observability_constants` / :func:`chen_yen_bound` use the end reference, which makes the
+Lemma, and so the Theorem's per-period contraction factor, a valid bound.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import concrete_value
+
+_RTOL, _ATOL = 1e-10, 1e-12
+_SOLVER = diffrax.Dopri8
+
+
+def _controller(plant, rtol, atol):
+    pid = diffrax.PIDController(rtol=rtol, atol=atol)
+    jumps = getattr(plant, "jump_ts", None) if plant is not None else None
+    if jumps:
+        return diffrax.ClipStepSizeController(pid, jump_ts=jnp.asarray(jumps, dtype=float))
+    return pid
+
+
+def _solve(rhs, plant, t0, t1, y0, saveat, rtol, atol, max_steps):
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(rhs),
+        _SOLVER(),
+        t0,
+        t1,
+        None,
+        y0,
+        saveat=saveat,
+        stepsize_controller=_controller(plant, rtol, atol),
+        max_steps=max_steps,
+    )
+    return sol.ys
+
+
+def _check_plant(plant):
+    if not (hasattr(plant, "A_of") and hasattr(plant, "C_of")):
+        raise ValueError(
+            f"`plant` must be an obsjax.LTV or obsjax.LTI (with A_of, C_of), got {type(plant).__name__}."
+        )
+
+
+def _pos_float(x, name):
+    v = concrete_value(jnp.asarray(x))
+    if v is None:
+        raise ValueError(f"`{name}` must be a concrete number (not traced), got a tracer.")
+    if v.ndim != 0 or not np.isfinite(v) or v <= 0:
+        raise ValueError(f"`{name}` must be a positive finite scalar, got {v.tolist()}.")
+    return float(v)
+
+
+def transition_matrix(plant, t, tau, *, rtol=_RTOL, atol=_ATOL, max_steps=65536):
+    """State transition matrix Φ(t, τ) of ẋ = A(t)x (Chen & Yen (2), (11)).
+
+    Solves ∂Φ(s, τ)/∂s = A(s) Φ(s, τ), Φ(τ, τ) = I from s = τ to s = t (t < τ integrates backwards).
+
+    **Arguments:**
+
+    - `plant`: an :class:`obsjax.LTV` or :class:`obsjax.LTI` (anything with ``A_of(t)``); its ``jump_ts``
+      are stepped onto exactly.
+    - `t`, `tau`: scalar times (may be traced; the function is jit/vmap/grad compatible).
+    - `rtol`, `atol`, `max_steps`: solver settings (Dopri8).
+
+    **Returns:** the (n, n) matrix Φ(t, τ).
+
+    **Example:**
+
+        Phi = obsjax.analysis.transition_matrix(obsjax.chen_yen_example(), 10.0, 0.0)
+    """
+    _check_plant(plant)
+    return _transition(plant, jnp.asarray(t, dtype=float), jnp.asarray(tau, dtype=float), rtol, atol,
+                       max_steps)
+
+
+@eqx.filter_jit
+def _transition(plant, t, tau, rtol, atol, max_steps):
+    n = plant.n
+
+    def rhs(s, Phi, args):
+        return plant.A_of(s) @ Phi
+
+    eye = jnp.eye(n)
+    # diffrax refuses t0 == t1 only under some controllers; guard the trivial case.
+    same = t == tau
+    t_end = jnp.where(same, tau + 1.0, t)
+    Phi = _solve(rhs, plant, tau, t_end, eye, diffrax.SaveAt(t1=True), rtol, atol, max_steps)[0]
+    return jnp.where(same, eye, Phi)
+
+
+def _period(plant, a, T, n_grid, rtol, atol, max_steps):
+    """Φ(s, a) on a grid of [a, a+T] and G(a+T) = ∫_a^{a+T} Φᵀ(τ, a) Cᵀ C Φ(τ, a) dτ."""
+    n = plant.n
+
+    def rhs(s, y, args):
+        Phi, _ = y
+        w = Phi.T @ plant.C_of(s).T  # regressor w_o(s) of (12)
+        return plant.A_of(s) @ Phi, w @ w.T
+
+    ts = a + T * jnp.linspace(0.0, 1.0, n_grid)
+    y0 = (jnp.eye(n), jnp.zeros((n, n)))
+    Phis, Gs = _solve(rhs, plant, a, a + T, y0, diffrax.SaveAt(ts=ts), rtol, atol, max_steps)
+    G = Gs[-1]
+    return Phis, 0.5 * (G + G.T)
+
+
+@eqx.filter_jit
+def _periods(plant, starts, T, n_grid, rtol, atol):
+    """For each period start a: (max_s ‖Φ(s, a)‖ on the grid, Φ(a+T, a), W_o^z) — compiled once per plant."""
+
+    def one(a):
+        Phis, Wz = _period(plant, a, T, n_grid, rtol, atol, 65536)
+        return jnp.max(jnp.linalg.norm(Phis, ord=2, axis=(1, 2))), Phis[-1], Wz
+
+    return jax.vmap(one)(starts)
+
+
+def _window(k, T, t0):
+    k = int(k)
+    if k < 1:
+        raise ValueError(f"`k` must be an integer >= 1 (window [kT - T, kT]), got {k}.")
+    return t0 + (k - 1) * T
+
+
+def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL, atol=_ATOL):
+    """Observability gramian W_o(k) of Chen & Yen (4) on the window [t0 + kT - T, t0 + kT].
+
+        reference="start":  W_o(k) = ∫ Φᵀ(τ, kT-T) Cᵀ(τ) C(τ) Φ(τ, kT-T) dτ      ((4) as printed)
+        reference="end":    W_o(k) = ∫ Φᵀ(τ, kT)   Cᵀ(τ) C(τ) Φ(τ, kT)   dτ
+
+    The end reference is the one for which the Appendix's identity W_o^z = Φᵀ W_o Φ and the Lemma (16)
+    hold (see the module docstring).  The pair is uniformly observable (Definition 1, (3)) when
+    α1 I ≤ W_o(k) ≤ α2 I for all k.
+
+    **Arguments:** `plant` (LTV/LTI), `k` (integer ≥ 1), `T` (> 0), `t0` (time origin), `reference`.
+
+    **Returns:** the symmetric (n, n) matrix W_o(k).
+
+    **Example:**
+
+        W = obsjax.analysis.observability_gramian(obsjax.chen_yen_example(), k=1, T=2.0)
+    """
+    _check_plant(plant)
+    T = _pos_float(T, "T")
+    if reference not in ("start", "end"):
+        raise ValueError(f"`reference` must be 'start' or 'end', got {reference!r}.")
+    a = _window(k, T, float(t0))
+    _, PhiT, G = _periods(plant, jnp.asarray([a]), jnp.asarray(T), 2, rtol, atol)
+    PhiT, G = PhiT[0], G[0]
+    if reference == "start":
+        return G
+    Phi_inv = jnp.linalg.inv(PhiT)  # Φ(kT-T, kT)
+    W = Phi_inv.T @ G @ Phi_inv
+    return 0.5 * (W + W.T)
+
+
+def regressor_gramian(plant, k, T, *, t0=0.0, rtol=_RTOL, atol=_ATOL):
+    """Gramian of the observer's regressor, W_o^z(k) of Chen & Yen (16).
+
+        W_o^z(k) = ∫_{kT-T}^{kT} w_o(τ) w_o(τ)ᵀ dτ,     w_o(τ) = Φᵀ(τ, kT-T) Cᵀ(τ)   (12).
+
+    It is the increment of P⁻¹/γ of the least-squares observer over one period (proof of the Theorem),
+    and equals Φᵀ(kT, kT-T) W_o^end(k) Φ(kT, kT-T) (Appendix).
+
+    **Returns:** the symmetric (n, n) matrix W_o^z(k).
+
+    **Example:**
+
+        Wz = obsjax.analysis.regressor_gramian(obsjax.chen_yen_example(), k=1, T=0.25)
+    """
+    _check_plant(plant)
+    T = _pos_float(T, "T")
+    a = _window(k, T, float(t0))
+    return _periods(plant, jnp.asarray([a]), jnp.asarray(T), 2, rtol, atol)[2][0]
+
+
+class UniformObservability(NamedTuple):
+    """Per-period constants of Chen & Yen on the periods [t_k, t_k + T), t_k = t0 + kT.
+
+    - `t_start`: (K,) period starts.
+    - `mu`: (K,) max over the period of ‖Φ(t, t_k)‖ (2) (sampled on `n_grid` points, ends included).
+    - `alpha1`, `alpha2`: (K,) extreme eigenvalues of the (end-referenced) gramian W_o of the period (3).
+    - `m1`, `m2`: (K,) extreme singular values of Φ(t_k + T, t_k) (17).
+    - `eta1`, `eta2`: (K,) extreme eigenvalues of the regressor gramian W_o^z (16), i.e. the PE
+      constants (7) of w_o.
+
+    The paper's constants are the extremes over k: μ = max mu, α1 = min alpha1, m1 = min m1, etc.
+    """
+
+    t_start: jax.Array
+    mu: jax.Array
+    alpha1: jax.Array
+    alpha2: jax.Array
+    m1: jax.Array
+    m2: jax.Array
+    eta1: jax.Array
+    eta2: jax.Array
+
+
+def _pad(starts):
+    # pad the batch of periods to a power of two so that changing the horizon or T rarely recompiles
+    K = starts.shape[0]
+    size = max(64, 1 << (K - 1).bit_length())
+    return jnp.concatenate([starts, jnp.full((size - K,), starts[-1])])
+
+
+def _n_periods(T, horizon):
+    K = int(np.floor(horizon / T + 1e-9))
+    if K < 1:
+        raise ValueError(f"`horizon` ({horizon}) must hold at least one period T = {T}.")
+    return K
+
+
+def uniform_observability_constants(
+    plant, T, horizon, *, t0=0.0, n_grid=129, rtol=_RTOL, atol=_ATOL
+) -> UniformObservability:
+    """The constants μ (2), α1, α2 (3), m1, m2 (17) and η1, η2 (16) of each period in a horizon.
+
+    The periods are [t0 + kT, t0 + (k+1)T) for k = 0 … K-1, K = ⌊horizon / T⌋.  μ is the maximum of
+    ‖Φ(t, kT)‖ over `n_grid` equally spaced points of the period.  α1, α2 bound the gramian referenced to
+    the end of the period (see the module docstring), so that α1 m1² ≤ η1 (Lemma) holds.
+
+    **Arguments:** `plant` (LTV/LTI), `T` (> 0), `horizon` (> 0, ≥ T), `t0`, `n_grid` (≥ 2).
+
+    **Returns:** :class:`UniformObservability` with (K,) arrays.
+
+    **Example:**
+
+        c = obsjax.analysis.uniform_observability_constants(obsjax.chen_yen_example(), 0.25, 10.0)
+        mu, alpha1, m1 = c.mu.max(), c.alpha1.min(), c.m1.min()
+    """
+    _check_plant(plant)
+    T = _pos_float(T, "T")
+    horizon = _pos_float(horizon, "horizon")
+    if int(n_grid) < 2:
+        raise ValueError(f"`n_grid` must be >= 2, got {n_grid}.")
+    K = _n_periods(T, horizon)
+    starts = float(t0) + T * jnp.arange(K, dtype=float)
+
+    mu, PhiT, Wz = _periods(plant, _pad(starts), jnp.asarray(T), int(n_grid), rtol, atol)
+    mu, PhiT, Wz = mu[:K], PhiT[:K], Wz[:K]
+    sv = jnp.linalg.svd(PhiT, compute_uv=False)
+    Pinv = jnp.linalg.inv(PhiT)
+    W_end = jnp.swapaxes(Pinv, 1, 2) @ Wz @ Pinv
+    ew = jnp.linalg.eigvalsh(0.5 * (W_end + jnp.swapaxes(W_end, 1, 2)))
+    ez = jnp.linalg.eigvalsh(Wz)
+    return UniformObservability(
+        starts, mu, ew[:, 0], ew[:, -1], sv[:, -1], sv[:, 0], ez[:, 0], ez[:, -1]
+    )
+
+
+def chen_yen_bound(plant, gamma, p0, T, horizon, *, t0=0.0, n_grid=129) -> jax.Array:
+    """Contraction factor of Chen & Yen's Theorem for each period of a horizon.
+
+        ‖x̃(t_k + T)‖ ≤ ρ_k ‖x̃(t_k)‖,      ρ_k = μ_k / (1 + γ p0 α1_k m1_k²)      ((19)-(22))
+
+    with μ_k, α1_k, m1_k of the period [t_k, t_k + T) from :func:`uniform_observability_constants`.  The
+    Theorem's hypothesis is ρ_k < 1 for all k; then ‖x̃(t_K)‖ ≤ Π ρ_k ‖x̃(t0)‖ (22).
+
+    **Arguments:** `plant` (the observer's model), `gamma`, `p0`, `T` (> 0), `horizon`, `t0`, `n_grid`.
+
+    **Returns:** (K,) array of ρ_k, K = ⌊horizon / T⌋.
+
+    **Example:**
+
+        rho = obsjax.analysis.chen_yen_bound(obsjax.chen_yen_example(), 20.0, 0.1, 0.25, 10.0)
+    """
+    g = _pos_float(gamma, "gamma")
+    p = _pos_float(p0, "p0")
+    c = uniform_observability_constants(plant, T, horizon, t0=t0, n_grid=n_grid)
+    return c.mu / (1.0 + g * p * c.alpha1 * c.m1**2)
+
+
+@dataclasses.dataclass(frozen=True)
+class PersistentExcitation:
+    """Result of :func:`is_persistently_exciting`: ``bool(result)`` is `excited`.
+
+    - `excited`: η1 > tol, i.e. (7) holds on every window of the horizon.
+    - `eta1`, `eta2`: smallest and largest eigenvalue of ∫ w wᵀ over the windows (7).
+    - `per_window`: (K, 2) array of (λ_min, λ_max) per window.
+    """
+
+    excited: bool
+    eta1: float
+    eta2: float
+    per_window: np.ndarray
+
+    def __bool__(self):
+        return bool(self.excited)
+
+
+def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, atol=_ATOL):
+    """Persistent excitation (Chen & Yen Definition 2, (7)) of a regressor over a horizon.
+
+        η1 I ≤ ∫_{kT-T}^{kT} w(τ) wᵀ(τ) dτ ≤ η2 I     for every window in [t0, t0 + horizon].
+
+    **Arguments:**
+
+    - `w`: a callable t -> (n, m) (or (n,)) regressor, or an LTV/LTI plant, in which case the observer's
+      regressor w_o = Φᵀ(t, kT) Cᵀ(t) of (12) is used (the Lemma: uniform observability ⇒ PE).
+    - `T`: window length (> 0); `horizon`: total time (K = ⌊horizon / T⌋ windows); `t0`: origin.
+    - `tol`: η1 must exceed `tol` (relative to max(1, η2)) for the regressor to count as exciting.
+
+    **Returns:** :class:`PersistentExcitation` (truthy when exciting) with η1, η2 and per-window values.
+
+    **Example:**
+
+        pe = obsjax.analysis.is_persistently_exciting(lambda t: jnp.array([jnp.sin(t), jnp.cos(t)]),
+                                                      T=2 * jnp.pi, horizon=20.0)
+        assert pe and abs(pe.eta1 - jnp.pi) < 1e-8
+    """
+    T = _pos_float(T, "T")
+    horizon = _pos_float(horizon, "horizon")
+    K = _n_periods(T, horizon)
+    starts = float(t0) + T * jnp.arange(K, dtype=float)
+    if hasattr(w, "A_of") and hasattr(w, "C_of"):
+        Gs = _periods(w, _pad(starts), jnp.asarray(T), 2, rtol, atol)[2][:K]
+
+    elif callable(w):
+        plant = None
+        try:
+            w0 = jnp.asarray(w(jnp.asarray(float(t0))))
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"`w` must be a callable of t returning an (n, m) array; it failed: {e}")
+        if w0.ndim not in (1, 2):
+            raise ValueError(f"`w(t)` must return an (n,) or (n, m) array, got shape {tuple(w0.shape)}.")
+        n = w0.shape[0]
+
+        def wm(t):
+            return jnp.asarray(w(t)).reshape(n, -1)
+
+        def gram(a):
+            def rhs(s, G, args):
+                ws = wm(s)
+                return ws @ ws.T
+
+            G = _solve(rhs, None, a, a + T, jnp.zeros((n, n)), diffrax.SaveAt(t1=True), rtol, atol,
+                       65536)[0]
+            return 0.5 * (G + G.T)
+
+        Gs = jax.jit(jax.vmap(gram))(starts)
+    else:
+        raise ValueError(f"`w` must be a callable of t or an LTV/LTI plant, got {type(w).__name__}.")
+
+    eig = np.asarray(jnp.linalg.eigvalsh(Gs))
+    per = np.stack([eig[:, 0], eig[:, -1]], axis=1)
+    eta1, eta2 = float(per[:, 0].min()), float(per[:, 1].max())
+    return PersistentExcitation(eta1 > tol * max(1.0, eta2), eta1, eta2, per)
+
+
+def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
+    """Exponential decay rate λ of ‖x̃(t)‖ ≈ c e^{-λ t}, by least squares on log ‖x̃‖.
+
+    **Arguments:**
+
+    - `trajectory`: an :class:`obsjax.Trajectory` (uses ``ts`` and ``error``) or a pair ``(ts, error)``
+      with error of shape (T, n) (or (T,) of norms already).
+    - `t_min`, `t_max`: fit window (default: the whole trajectory).
+    - `floor`: samples with ‖x̃‖ ≤ floor (converged to round-off) are left out of the fit.
+
+    **Returns:** scalar λ (positive for a decaying error); jit/vmap compatible.
+
+    **Example:**
+
+        lam = obsjax.analysis.decay_rate(traj, t_min=2.0)
+    """
+    if isinstance(trajectory, tuple):
+        ts, err = trajectory
+    else:
+        ts, err = trajectory.ts, trajectory.error
+    ts = jnp.asarray(ts, dtype=float)
+    err = jnp.asarray(err, dtype=float)
+    if err.shape[0] != ts.shape[0]:
+        raise ValueError(f"`error` must have {ts.shape[0]} rows (one per time), got shape {err.shape}.")
+    nrm = jnp.linalg.norm(err, axis=-1) if err.ndim == 2 else jnp.abs(err)
+    mask = nrm > floor
+    if t_min is not None:
+        mask = mask & (ts >= t_min)
+    if t_max is not None:
+        mask = mask & (ts <= t_max)
+    wgt = mask.astype(float)
+    logn = jnp.log(jnp.where(mask, nrm, 1.0))
+    sw = jnp.sum(wgt)
+    tbar = jnp.sum(wgt * ts) / sw
+    lbar = jnp.sum(wgt * logn) / sw
+    slope = jnp.sum(wgt * (ts - tbar) * (logn - lbar)) / jnp.sum(wgt * (ts - tbar) ** 2)
+    return -slope

@@ -1,0 +1,218 @@
+"""Chen & Yen's least-squares observer with covariance reset for LTV systems.
+
+Source: M.-S. Chen and J.-Y. Yen, "Application of the least squares algorithm to the observer design for
+linear time-varying systems", IEEE TAC 44(9), 1999 (``seeds/000_feec7a3e030c3a73.txt``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._checks import as_float_array, positive
+from ..systems._plants import LTV
+from ._base import AbstractObserver
+
+
+def _safe_sqrt(t):
+    # sqrt with a zero (instead of infinite) derivative at t = 0: the example's C(t) uses sqrt(t), and the
+    # first reset instant t = 0 * T carries a zero tangent with respect to T; inf * 0 would be NaN.
+    pos = t > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, t, 1.0)), 0.0)
+
+
+def _example_A(t):
+    c, s = jnp.cos(t), jnp.sin(t)
+    return jnp.array(
+        [
+            [-1.0 + 1.5 * c * c, 1.0 - 1.5 * s * c],
+            [-1.0 + 1.5 * s * c, -1.0 + 1.5 * s * s],
+        ]
+    )
+
+
+def _example_C(t):
+    r = _safe_sqrt(t)
+    return jnp.array([[jnp.cos(r) + jnp.sin(r), 3.0 * jnp.cos(r) ** 2]])
+
+
+def chen_yen_example(B=None) -> LTV:
+    """The LTV plant of Chen & Yen's example (Section III), shared by tests, demo and notebooks.
+
+        A(t) = [[-1 + 1.5 cos²t,      1 - 1.5 sin t cos t],
+                [-1 + 1.5 sin t cos t, -1 + 1.5 sin²t     ]],
+        C(t) = [cos √t + sin √t,  3 cos² √t].
+
+    The (2, 1) entry is taken as printed, ``-1 + 1.5 sin t cos t`` (the textbook Markus-Yamabe matrix has
+    ``-1 - 1.5 sin t cos t``, whose solutions grow like e^{t/2}: ‖x(10)‖ ≈ 742 from [5, -5]).  With the
+    printed matrix the open loop is unstable but mildly so, ‖x(10)‖ = 11.63 from x(0) = [5, -5], as in
+    the paper and in REFERENCE.md.  ``√t`` is implemented with a zero derivative at t = 0 so that
+    gradients with respect to the reset period T stay finite.
+
+    **Arguments:**
+
+    - `B`: optional callable t -> (2, p) input matrix (the paper's example has no input).
+
+    **Returns:** an :class:`obsjax.LTV` with n = 2 states and m = 1 output.
+
+    **Example:**
+
+        plant = chen_yen_example()
+        obs = LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.25)
+    """
+    return LTV(_example_A, _example_C, B=B)
+
+
+class LeastSquaresState(NamedTuple):
+    """State of :class:`LeastSquaresReset`.
+
+    - `xhat`: (n,) estimate x̂(t).
+    - `Phi`: (n, n) open-loop transition matrix Φ(t, kT) of the model since the last reset, (11).
+    - `Qinv`: (n, n) information matrix (γ P(t))⁻¹ = P⁻¹(t) / γ, with P = P_o of (15).
+    """
+
+    xhat: jax.Array
+    Phi: jax.Array
+    Qinv: jax.Array
+
+
+def _scalar_gain(x, name):
+    arr = as_float_array(x, name)
+    if arr.ndim != 0:
+        if arr.size == 1:
+            arr = arr.reshape(())
+        else:
+            raise ValueError(f"`{name}` must be a scalar, got an array of shape {tuple(arr.shape)}.")
+    positive(arr, name)
+    # a strongly typed float64 scalar, so observers built from ints or Python floats share one jit trace
+    return jnp.asarray(arr, dtype=jnp.result_type(float))
+
+
+def _check_model(model):
+    for attr in ("A_of", "C_of", "B_of"):
+        if not hasattr(model, attr):
+            raise ValueError(
+                f"`model` must be an obsjax.LTV or obsjax.LTI plant (with A_of, B_of, C_of), got "
+                f"{type(model).__name__}."
+            )
+
+
+class LeastSquaresReset(AbstractObserver):
+    r"""Least-squares observer with covariance reset (Chen & Yen 1999, (8), (11), (13), (15)).
+
+    For the LTV model ẋ = A(t)x + B(t)u, y = C(t)x (Chen & Yen (1)), on each interval [kT, (k+1)T):
+
+        dx̂/dt = A(t) x̂ + B(t) u + L(t) (y - C(t) x̂),                          (8)
+        L(t)  = γ Φ(t, kT) P(t) Φᵀ(t, kT) Cᵀ(t),                                 (13)
+        ∂Φ(t, kT)/∂t = A(t) Φ(t, kT),            Φ(kT, kT) = I,                  (11)
+        dP/dt = -γ P w wᵀ P,   w = Φᵀ(t, kT) Cᵀ(t),   P(kT⁺) = p0 I,             (15)
+
+    and at every t = t0 + kT the observer resets Φ = I and P = p0 I (x̂ is continuous).  The error
+    x̃ = x̂ - x obeys (9) and contracts by μ / (1 + γ p0 α1 m1²) per period (Theorem; see
+    :func:`obsjax.analysis.chen_yen_bound`).
+
+    **State and numerics.**  The state (:class:`LeastSquaresState`) holds x̂, Φ and the information matrix
+    Qinv = (γP)⁻¹ = P⁻¹/γ instead of P.  The proof of the Theorem gives d(P⁻¹)/dt = γ w wᵀ, so
+
+        d Qinv / dt = w wᵀ,      Qinv(kT⁺) = I / (γ p0),      L = Φ Qinv⁻¹ Φᵀ Cᵀ.
+
+    This is linear in Qinv (no Riccati quadratic term, no stiffness from it), its solution
+    Qinv(t) = I/(γp0) + ∫ w wᵀ is a sum of a positive definite and positive semidefinite terms, so it stays
+    symmetric positive definite (and its eigenvalues only grow) whatever the solver's local error, whereas
+    integrating (15) directly can lose definiteness when γ p0 ‖w‖² T is large.  The gain needs one small
+    (n × n) symmetric solve per evaluation.  P itself is recovered by :meth:`covariance`.
+
+    **γ and p0 enter only through their product.**  With Q = γP the law reads L = Φ Q Φᵀ Cᵀ,
+    dQ/dt = -Q w wᵀ Q, Q(kT⁺) = γ p0 I: the estimate depends on γ and p0 only through γ·p0 (tests check
+    it).  Tuning both is redundant: under :func:`obsjax.tune`'s positive (log) parametrisation the two
+    gradients are equal, so tune γ (or p0) and T, or read the product as the gain.
+
+    **Arguments:**
+
+    - `model`: the observer's model of the plant, an :class:`obsjax.LTV` (or :class:`obsjax.LTI`); A(t),
+      B(t) (inputs supported) and C(t) are read from it.
+    - `gamma`: least-squares gain γ > 0 (differentiable leaf).
+    - `p0`: reset value p0 > 0 of P (differentiable leaf).
+    - `T`: reset period T > 0 (differentiable leaf; the reset instants move with it).
+
+    A non-positive γ, p0 or T raises ``ValueError`` (or fails via ``eqx.error_if`` when traced).
+
+    **Example:** Fig. 1 of the paper::
+
+        plant = obsjax.chen_yen_example()
+        obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.25)
+        traj = obsjax.simulate(plant, obs, jnp.zeros(2), jnp.array([5.0, -5.0]), jnp.linspace(0, 10, 201))
+    """
+
+    model: eqx.Module
+    gamma: jax.Array
+    p0: jax.Array
+    T: jax.Array
+
+    def __init__(self, model, gamma, p0, T):
+        _check_model(model)
+        self.model = model
+        self.gamma = _scalar_gain(gamma, "gamma")
+        self.p0 = _scalar_gain(p0, "p0")
+        self.T = _scalar_gain(T, "T")
+
+    @property
+    def n(self) -> int:
+        return self.model.n
+
+    @property
+    def reset_period(self):
+        return self.T
+
+    def check(self) -> "LeastSquaresReset":
+        """Value checks that survive jit: γ, p0, T > 0 (``eqx.error_if``)."""
+        gamma = eqx.error_if(self.gamma, self.gamma <= 0, "`gamma` must be > 0.")
+        p0 = eqx.error_if(self.p0, self.p0 <= 0, "`p0` must be > 0.")
+        T = eqx.error_if(self.T, self.T <= 0, "`T` (the reset period) must be > 0.")
+        return eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), self, (gamma, p0, T))
+
+    def prepare(self) -> "LeastSquaresReset":
+        return self.check()
+
+    def _reset_state(self, xhat):
+        n = self.model.n
+        eye = jnp.eye(n, dtype=jnp.result_type(xhat, self.gamma))
+        return LeastSquaresState(xhat, eye, eye / (self.gamma * self.p0))
+
+    def init(self, t0, xhat0, y0):
+        return self._reset_state(jnp.asarray(xhat0))
+
+    def reset(self, t, z):
+        """Covariance reset at t = kT: Φ(kT, kT) = I (11), P(kT⁺) = p0 I (15); x̂ unchanged."""
+        return self._reset_state(z.xhat)
+
+    def _injection(self, t, z):
+        # Returns L(t) of (13) and w = Φᵀ Cᵀ.
+        C = self.model.C_of(t)
+        w = z.Phi.T @ C.T
+        Qinv = 0.5 * (z.Qinv + z.Qinv.T)
+        L = z.Phi @ jnp.linalg.solve(Qinv, w)
+        return L, w, C
+
+    def gain(self, t, z):
+        """Observer gain L(t) = γ Φ P Φᵀ Cᵀ of (13), shape (n, m)."""
+        return self._injection(t, z)[0]
+
+    def covariance(self, z):
+        """P(t) of (15) recovered from the state: P = Qinv⁻¹ / γ."""
+        return jnp.linalg.inv(0.5 * (z.Qinv + z.Qinv.T)) / self.gamma
+
+    def vector_field(self, t, z, y, u):
+        A = self.model.A_of(t)
+        L, w, C = self._injection(t, z)
+        dxhat = A @ z.xhat + L @ (y - C @ z.xhat)
+        if u is not None and self.model.p > 0:
+            dxhat = dxhat + self.model.B_of(t) @ u
+        return LeastSquaresState(dxhat, A @ z.Phi, w @ w.T)
+
+    def estimate(self, t, z, y):
+        return z.xhat
+
