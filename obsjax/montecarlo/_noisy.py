@@ -20,11 +20,20 @@ from ..systems._plants import AbstractSystem
 class NoisyOutput(AbstractSystem):
     """The plant ``plant`` measured through additive noise: y = h(t, x, u) + v(t).
 
+    The path is piecewise linear with kinks every ``dt``: an adaptive solver spends many (rejected) steps
+    on them (44 against 380 trajectories/s on Chen & Yen's example with dt = 0.05, declaring the kinks as
+    jump times does not help), so noisy studies are best run with fixed steps aligned with the noise grid
+    (``simulate_kwargs=dict(adaptive=False, dt0=dt/4)``: 2100 trajectories/s on the same problem).
+
     **Arguments:** `plant` (any obsjax plant); `path` (a realised noise path, callable t -> (m,)).
     """
 
     plant: AbstractSystem
     path: SampledNoise
+
+    @property
+    def jump_ts(self):
+        return getattr(self.plant, "jump_ts", None)
 
     @property
     def n(self) -> int:
