@@ -1,0 +1,138 @@
+"""Hassan thesis, chapters 2-3: the Luenberger family on example (2.8) and the closed-loop eigenvalues.
+
+- Example (2.8): A = [[-2, 1], [0, -1]], B = [0, 1]ᵀ, C = [1, 0], identity observer with both poles at -3,
+  G = [3, 4]ᵀ and A - GC = [[-5, 1], [-4, -1]]; the simulated error x̂ - x against exp((A - GC) t) x̃(0).
+- Reduced-order observer (2.13)-(2.16) for the same plant, pole -3: G = 2 (A22 - G A12 = -1 - G).
+- Section 2.5: with u = K x̂ the composite system (2.22) has the eigenvalues of A + BK and of F
+  (Theorem 4); the eigenvalues of the simulated closed loop's matrix and the trajectories with the
+  true-state and observer-based feedback.
+
+``reproduce(outdir)`` writes the PNGs and returns their paths.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+A = np.array([[-2.0, 1.0], [0.0, -1.0]])
+B = np.array([[0.0], [1.0]])
+C = np.array([[1.0, 0.0]])
+#: state feedback of the closed-loop example: eig(A + BK) = {-1 ± 1j}
+K_POLES = (-1.0 + 1.0j, -1.0 - 1.0j)
+
+
+def example_28():
+    """The plant (2.8) and its identity observer with poles {-3, -3} (G = [3, 4]ᵀ)."""
+    import obsjax
+
+    plant = obsjax.LTI(A, B, C)
+    return plant, obsjax.Luenberger.from_poles(plant, [-3.0, -3.0])
+
+
+def feedback_gain():
+    """State feedback K with eig(A + BK) = K_POLES (pole placement on the dual pair (Aᵀ, Bᵀ))."""
+    import obsjax
+
+    L = np.asarray(obsjax.design.place(A.T, B.T, np.array(K_POLES)))
+    return -np.real(L).T  # eig(Aᵀ − L Bᵀ) = eig(A − B Lᵀ) = eig(A + BK) with K = −Lᵀ
+
+
+def composite_matrix(K, F, G, T, E, D):
+    """Composite matrix (2.22) of plant and observer under u = E z + D y."""
+    return np.block([[A + B @ D @ C, B @ E], [G @ C + T @ B @ D @ C, F + T @ B @ E]])
+
+
+def reproduce(outdir: str) -> list[str]:
+    import jax.numpy as jnp
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import scipy.linalg
+
+    import obsjax
+
+    os.makedirs(outdir, exist_ok=True)
+    paths = []
+    plant, obs = example_28()
+    G = np.asarray(obs.gain)
+    F = np.asarray(obs.observer_matrix)
+    ts = np.linspace(0.0, 4.0, 201)
+    x0, xh0 = np.array([1.0, -1.0]), np.zeros(2)
+    u = obsjax.signals.multisine([1.0], [0.5])
+    traj = obsjax.simulate(plant, obs, x0, xh0, ts, u=u, rtol=1e-9, atol=1e-11)
+    e_ref = np.stack([scipy.linalg.expm(F * t) @ (xh0 - x0) for t in ts])
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    for i in range(2):
+        ax[0].plot(ts, np.asarray(traj.x[:, i]), f"C{i}", label=f"x{i + 1}")
+        ax[0].plot(ts, np.asarray(traj.xhat[:, i]), f"C{i}--", label=f"x̂{i + 1}")
+    ax[0].set_title(f"Example (2.8): identity observer, G = [{G[0, 0]:.3g}, {G[1, 0]:.3g}]ᵀ")
+    ax[0].set_xlabel("t")
+    ax[0].legend(fontsize=8)
+    ax[1].semilogy(ts, np.linalg.norm(np.asarray(traj.error), axis=1), label="‖x̂ − x‖ simulated")
+    ax[1].semilogy(ts, np.linalg.norm(e_ref, axis=1), "k:", label="‖exp((A − GC)t) x̃(0)‖")
+    ax[1].set_title("A − GC = [[-5, 1], [-4, -1]], eigenvalues {-3, -3}")
+    ax[1].set_xlabel("t")
+    ax[1].legend(fontsize=8)
+    fig.tight_layout()
+    p = os.path.join(outdir, "hassan_2_8_identity_observer.png")
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    paths.append(p)
+
+    # Reduced-order observer (2.13)-(2.16), pole -3 -> G = 2 (C = [1, 0] so w = x2).
+    red = obsjax.ReducedOrder.from_poles(plant, [-3.0], Dc=[[0.0, 1.0]])
+    Gr = float(np.asarray(red.gain)[0, 0])
+    tr = obsjax.simulate(plant, red, x0, xh0, ts, u=u, rtol=1e-9, atol=1e-11)
+    w_err_ref = np.exp(-3.0 * ts) * (xh0[1] - x0[1])
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    ax[0].plot(ts, np.asarray(tr.x[:, 1]), label="x2")
+    ax[0].plot(ts, np.asarray(tr.xhat[:, 1]), "--", label="x̂2 (reduced order)")
+    ax[0].set_title(f"Reduced-order observer (2.15)-(2.16): G = {Gr:.4g}")
+    ax[0].set_xlabel("t")
+    ax[0].legend(fontsize=8)
+    ax[1].semilogy(ts, np.abs(np.asarray(tr.error[:, 1])), label="|x̂2 − x2| simulated")
+    ax[1].semilogy(ts, np.abs(w_err_ref), "k:", label="|x̃2(0)| e^{-3t}")
+    ax[1].set_title("A22 − G A12 = −1 − G = −3")
+    ax[1].set_xlabel("t")
+    ax[1].legend(fontsize=8)
+    fig.tight_layout()
+    p = os.path.join(outdir, "hassan_reduced_order.png")
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    paths.append(p)
+
+    # Closed loop (section 2.5): identity observer T = I, E = K, D = 0.
+    K = feedback_gain()
+    M = composite_matrix(K, F, G, np.eye(2), K, np.zeros((1, 1)))
+    eig_comp = np.linalg.eigvals(M)
+    eig_sep = np.concatenate([np.linalg.eigvals(A + B @ K), np.linalg.eigvals(F)])
+    x0c = np.array([1.0, 1.0])
+    tc = np.linspace(0.0, 8.0, 321)
+    ctrl = lambda t, xhat: jnp.asarray(K) @ xhat  # noqa: E731
+    cl = obsjax.simulate(plant, obs, x0c, np.zeros(2), tc, controller=ctrl, rtol=1e-9, atol=1e-11)
+    ref = np.stack([scipy.linalg.expm(M * t) @ np.concatenate([x0c, np.zeros(2)]) for t in tc])
+    full = np.stack([scipy.linalg.expm((A + B @ K) * t) @ x0c for t in tc])
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    ax[0].plot(eig_comp.real, eig_comp.imag, "o", ms=10, mfc="none", label="eig of composite (2.22)")
+    ax[0].plot(eig_sep.real, eig_sep.imag, "x", ms=8, label="eig(A + BK) ∪ eig(A − GC)")
+    ax[0].axvline(0, color="k", lw=0.5)
+    ax[0].set_xlabel("Re")
+    ax[0].set_ylabel("Im")
+    ax[0].set_title("Theorem 4: the observer adjoins its eigenvalues")
+    ax[0].legend(fontsize=8)
+    ax[1].plot(tc, np.asarray(cl.x[:, 0]), label="x1, u = K x̂ (simulated)")
+    ax[1].plot(tc, ref[:, 0], "k:", label="x1, exp(M t) of (2.22)")
+    ax[1].plot(tc, full[:, 0], "C2--", label="x1, u = K x (state feedback)")
+    ax[1].set_xlabel("t")
+    ax[1].set_title("observer-based feedback, x̂(0) = 0")
+    ax[1].legend(fontsize=8)
+    fig.tight_layout()
+    p = os.path.join(outdir, "hassan_closed_loop_eigenvalues.png")
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    paths.append(p)
+    return paths
