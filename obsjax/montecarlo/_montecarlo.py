@@ -204,7 +204,7 @@ class MonteCarloResult:
         for j, (lo, hi) in enumerate(pairs):
             ax0.fill_between(
                 ts, self.bands[qs.index(lo)], self.bands[qs.index(hi)], color=color,
-                alpha=0.15 + 0.15 * j, lw=0, label=None if label is None and j else f"{lo:.0%}–{hi:.0%}",
+                alpha=0.15 + 0.15 * j, lw=0, label=None if label is not None else f"{lo:.0%}–{hi:.0%}",
             )
         if 0.5 in qs:
             ax0.plot(ts, self.bands[qs.index(0.5)], color=color, lw=1.8, label=label or "median")
