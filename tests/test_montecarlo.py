@@ -360,3 +360,54 @@ def test_band_limited_noise_is_simulates_realisation():
     F = np.asarray(OBS.observer_matrix)  # the noise-free error differs: the noise is really there
     clean = [np.linalg.norm(scipy.linalg.expm(F * t) @ _x0_of(0)) for t in TS]
     assert np.max(np.abs(res.error_norm[0] - clean)) > 1e-3
+
+
+# ---- noisy plants for tuning, and the CLI's reproduce dispatcher ---------------------------------------------
+
+
+def test_noisy_batch_paths_are_the_split_keys_paths():
+    from obsjax.montecarlo import noisy_batch, with_noise
+
+    noise = obsjax.noise.BandLimitedNoise(0.3, dt=0.1)
+    key = jr.PRNGKey(4)
+    batch = noisy_batch(PLANT, noise, key, 3, 0.0, 2.0)
+    assert batch.plant_arrays.A.shape == (3, 2, 2)
+    for b, k in enumerate(jr.split(key, 3)):
+        one = with_noise(PLANT, noise, k, 0.0, 2.0)
+        np.testing.assert_array_equal(batch.path.values[b], one.path.values)
+        x = jnp.array([0.3, -0.2])
+        # y = C x + v(t), v the linear interpolation of the samples
+        v = np.interp(0.55, 0.1 * np.arange(one.path.values.shape[0]), np.asarray(one.path.values[:, 0]))
+        np.testing.assert_allclose(one.h(0.55, x, jnp.zeros(1)), [0.3 + v], rtol=1e-12)
+        assert one.n == 2 and one.m == 1 and one.p == 1
+
+
+def test_noisy_output_refuses_other_noise():
+    from obsjax.montecarlo import with_noise
+
+    with pytest.raises(ValueError, match="BandLimitedNoise"):
+        with_noise(PLANT, obsjax.noise.WhiteNoise(0.1), jr.PRNGKey(0), 0.0, 1.0)
+
+
+def test_reproduce_aliases_and_missing_modules(capsys, tmp_path):
+    from obsjax import cli
+
+    assert cli.resolve_document("chen-yen") == ("chen_yen",)
+    assert cli.resolve_document("Hassan") == ("luenberger", "adaptive")
+    assert cli.resolve_document("lovass-nagy") == ("lovass_nagy",)
+    assert cli.resolve_document("huang-zhu") == ("huang_zhu",)
+    assert cli.resolve_document("byrski-fuksa") == ("byrski_fuksa",)
+    assert cli.resolve_document("004_381b28a6a8360c24.txt") == ("byrski_fuksa",)
+    assert cli.resolve_document("luenberger") == ("luenberger",)
+    with pytest.raises(ValueError, match="unknown document"):
+        cli.resolve_document("no-such-paper")
+    assert "luenberger" in cli.available_reproductions()
+    rc = cli.run_reproductions(["definitely_absent_module"], str(tmp_path))
+    assert rc == 0 and "[skip] definitely_absent_module" in capsys.readouterr().out
+
+
+def test_cli_reproduce_unknown_document_exits():
+    from obsjax import cli
+
+    with pytest.raises(SystemExit):
+        cli.main(["reproduce", "no-such-paper"])

@@ -48,15 +48,15 @@ class NoisyOutput(AbstractSystem):
 
     @property
     def n(self) -> int:
-        return self.plant_static.n
+        return self.plant.n
 
     @property
     def m(self) -> int:
-        return self.plant_static.m
+        return self.plant.m
 
     @property
     def p(self) -> int:
-        return self.plant_static.p
+        return self.plant.p
 
     @property
     def jump_ts(self):
@@ -69,14 +69,14 @@ class NoisyOutput(AbstractSystem):
         return self.plant.h(t, x, u) + self.path(t)
 
 
-def with_noise(plant: AbstractSystem, noise: BandLimitedNoise, key, t0: float, t1: float) -> NoisyOutput:
+def with_noise(plant, noise, key, t0, t1) -> NoisyOutput:
     """One realisation (the path ``simulate(..., noise=noise, key=key)`` would draw on [t0, t1])."""
     if not isinstance(noise, BandLimitedNoise):
         raise ValueError(f"`noise` must be a BandLimitedNoise here, got {type(noise).__name__}.")
     return NoisyOutput(plant, realise_band_limited(noise, key, float(t0), float(t1), plant.m))
 
 
-def noisy_batch(plant: AbstractSystem, noise: BandLimitedNoise, key, batch: int, t0: float, t1: float):
+def noisy_batch(plant, noise, key, batch, t0, t1):
     """A batch of ``batch`` noisy plants (leading axis on every array leaf) for ``tune(plant_batched=True)``.
 
     The plant's own array leaves are broadcast along the batch; noise path b is drawn from
