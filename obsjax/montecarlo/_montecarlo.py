@@ -383,7 +383,7 @@ def _fingerprint(dyn, ts, n, chunk_size, key_data, names) -> str:
 
 
 def _atomic_savez(path, **arrays):
-    tmp = path + ".tmp.npz"
+    tmp = f"{path}.tmp{jax.process_index()}.npz"  # one temporary per process (several hosts, shared disk)
     np.savez(tmp, **arrays)
     os.replace(tmp, path)
 
@@ -450,8 +450,10 @@ def monte_carlo(
     ``jax.devices()`` then lists the devices of all hosts and the mesh spans them.  Every process runs
     the same script with the same arguments; each device computes its slice of each chunk, and the
     per-trajectory results are gathered to every process (``process_allgather``) before the host-side
-    statistics, so every process returns the same result (write checkpoints from one process only, e.g.
-    ``checkpoint=path if jax.process_index() == 0 else None``).
+    statistics, so every process returns the same result.  For resumable multi-host studies give every
+    process the same ``checkpoint`` directory on a shared file system (each writes the same chunk files,
+    atomically), so that all processes skip the same chunks on resume.  (This path follows JAX's
+    multi-process API; it is tested here only with several devices in one process.)
 
     **Arguments:**
 
