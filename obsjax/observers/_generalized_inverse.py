@@ -30,10 +30,15 @@ def _time_grid(horizon, num):
     return np.linspace(t0, t1, int(num))
 
 
+@eqx.filter_jit
+def _solvability_on_grid(obs, ts):
+    return jax.vmap(obs.solvability)(ts)
+
+
 def _check_over(obs, ts, what):
     """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time."""
     ts = jnp.asarray(ts, dtype=float)
-    res, scale, det = jax.vmap(obs.solvability)(ts)
+    res, scale, det = _solvability_on_grid(obs, ts)
     res, scale, det = (concrete_value(v) for v in (res, scale, det))
     if res is None or scale is None or det is None:
         return  # traced (inside jit/grad): the caller checks with concrete values
@@ -48,13 +53,17 @@ def _check_over(obs, ts, what):
             f"{obs.rtol:.1e}) at t = {ts[j]:.6g}; G·C = Ṫ + T·Ā − F·T has no solution G there. "
             f"Choose T(t) with obsjax.design.lovass_nagy_T or change F."
         )
-    tscale = np.maximum(np.abs(det).max(), 1e-300)
+    # det T is continuous: a sign change between grid points means T is singular in between.
     k = int(np.argmin(np.abs(det)))
-    if not np.all(np.isfinite(det)) or np.abs(det[k]) <= 1e-10 * max(tscale, 1.0):
-        raise ValueError(
-            f"{what}: `T` must be invertible over the horizon (det T ≠ 0), found det T = {det[k]:.3e} "
-            f"at t = {ts[k]:.6g}."
-        )
+    flips = np.nonzero(np.sign(det[:-1]) * np.sign(det[1:]) < 0)[0]
+    tiny = np.abs(det[k]) <= 1e-12 * max(float(np.abs(det).max()), 1.0)
+    if not np.all(np.isfinite(det)) or tiny or flips.size:
+        if flips.size and not tiny:
+            j = int(flips[0])
+            where = f"changes sign between t = {ts[j]:.6g} and t = {ts[j + 1]:.6g} ({det[j]:.3e} → {det[j + 1]:.3e})"
+        else:
+            where = f"= {det[k]:.3e} at t = {ts[k]:.6g}"
+        raise ValueError(f"{what}: `T` must be invertible over the horizon (det T ≠ 0), found det T {where}.")
 
 
 class GeneralizedInverse(AbstractObserver):
