@@ -32,3 +32,6 @@ from .tuning._tune import tune as tune
 __version__ = "0.1.0"
 from .observers._generalized_inverse import GeneralizedInverse as GeneralizedInverse
 from .observers._generalized_inverse import GeneralizedInverseReduced as GeneralizedInverseReduced
+from .observers._minmax import MinMaxLuenberger as MinMaxLuenberger
+from .observers._minmax import minmax_algorithm as minmax_algorithm
+from .observers._minmax import minmax_initial_state as minmax_initial_state
