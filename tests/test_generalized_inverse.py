@@ -50,7 +50,9 @@ def S_ex(t):
 
 
 def reduced_plant():
-    return LTV(lambda t: A_ex(t), lambda t: jnp.hstack([jnp.eye(2), jnp.zeros((2, 2))]), lambda t: B_ex)
+    return LTV(
+        lambda t: A_ex(t), lambda t: jnp.hstack([jnp.eye(2), jnp.zeros((2, 2))]), lambda t: B_ex
+    )
 
 
 def u_sin(t):
@@ -71,8 +73,15 @@ def simulate_pair(plant, vf_obs, x0, z0, ts, u, *, rtol=1e-10, atol=1e-12, dt=No
     else:
         ctrl, dt0 = diffrax.ConstantStepSize(), dt
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(vf), diffrax.Tsit5(), ts[0], ts[-1], dt0, (x0, z0),
-        saveat=diffrax.SaveAt(ts=ts), stepsize_controller=ctrl, max_steps=100_000,
+        diffrax.ODETerm(vf),
+        diffrax.Tsit5(),
+        ts[0],
+        ts[-1],
+        dt0,
+        (x0, z0),
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=ctrl,
+        max_steps=100_000,
     )
     return sol.ys
 
@@ -144,7 +153,9 @@ def test_lovass_nagy_T_closed_form_for_the_slides_example():
 def test_lovass_nagy_T_condition_with_finite_difference_derivative():
     """M (I − C⁺C) = 0 with Ṫ from central differences (not the autodiff used inside)."""
     F = jnp.array([[-3.0, 1.0], [0.0, -4.0]])
-    T = lovass_nagy_T(lambda t: A_ex(t)[2:, 2:], A12, F, lambda t: jnp.stack([1.0 + 0.2 * t, jnp.sin(t)]))
+    T = lovass_nagy_T(
+        lambda t: A_ex(t)[2:, 2:], A12, F, lambda t: jnp.stack([1.0 + 0.2 * t, jnp.sin(t)])
+    )
     h = 1e-5
     for t in [0.2, 1.3, 4.0]:
         Td = (np.asarray(T(t + h)) - np.asarray(T(t - h))) / (2 * h)
@@ -156,8 +167,12 @@ def test_lovass_nagy_T_condition_with_finite_difference_derivative():
 def test_lovass_nagy_T_rank_deficient_K():
     """Full-state design with y = [x1, x2]: K = (I − NNᵀ) A N = A12 block has rank 1 < 2."""
     with pytest.raises(ValueError, match="K = .* full column rank 2"):
-        lovass_nagy_T(A_ex, jnp.hstack([jnp.eye(2), jnp.zeros((2, 2))]), -jnp.eye(4),
-                      lambda t: jnp.ones((4, 2)))
+        lovass_nagy_T(
+            A_ex,
+            jnp.hstack([jnp.eye(2), jnp.zeros((2, 2))]),
+            -jnp.eye(4),
+            lambda t: jnp.ones((4, 2)),
+        )
 
 
 def test_lovass_nagy_T_bad_S_shape():
@@ -176,8 +191,9 @@ def reduced_run():
     ts = jnp.linspace(0.0, 5.0, 51)
     # the slides give z0: choose x̂0 = [y0; T(0)⁻¹ z0] so that init gives z(0) = z0
     xhat0 = jnp.concatenate([x0[:2], jnp.linalg.solve(obs.T_of(0.0), z0)])
-    sim = eqx.filter_jit(lambda o, x0, xh0: obsjax.simulate(plant, o, x0, xh0, ts, u=u_sin, rtol=1e-10,
-                                                            atol=1e-12))
+    sim = eqx.filter_jit(
+        lambda o, x0, xh0: obsjax.simulate(plant, o, x0, xh0, ts, u=u_sin, rtol=1e-10, atol=1e-12)
+    )
     traj = sim(obs, x0, xhat0)
     assert np.allclose(obs.z_of(0.0, traj.z[0], traj.y[0]), z0)
     return plant, obs, ts, traj.x, traj.z, z0, traj
@@ -185,7 +201,7 @@ def reduced_run():
 
 def test_reduced_defining_property_exact(reduced_run):
     """z − T w = expm(F t)(z0 − T0 w0) (with F = −5I: e^{−5t}), to solver tolerance, under an input."""
-    plant, obs, ts, xs, ps, z0, traj = reduced_run
+    _plant, obs, ts, xs, ps, z0, _traj = reduced_run
     zs = jax.jit(jax.vmap(obs.z_of))(ts, ps, xs[:, :2])
     Ts = jax.jit(jax.vmap(obs.T_of))(ts)
     e = np.asarray(zs - jnp.einsum("tij,tj->ti", Ts, xs[:, 2:]))
@@ -197,7 +213,7 @@ def test_reduced_defining_property_exact(reduced_run):
 
 def test_reduced_reproduces_slides_convergence(reduced_run):
     """Slides: 'the simulation is run for 5 unit time and convergence is observed after 2.5'."""
-    plant, obs, ts, xs, ps, z0, traj = reduced_run
+    _plant, obs, ts, xs, ps, _z0, traj = reduced_run
     xhat = jax.jit(jax.vmap(obs.estimate))(ts, ps, xs[:, :2])
     assert np.allclose(traj.xhat, xhat)
     err = np.linalg.norm(np.asarray(traj.error), axis=1)
@@ -211,12 +227,14 @@ def test_reduced_reproduces_slides_convergence(reduced_run):
 def test_reduced_p_form_equals_form_with_ydot(reduced_run):
     """The differentiation-free p-form (run by obsjax.simulate) and ż = Fz + G(ẏ − A11y − B1u) + TA21y +
     TB2u with the plant's true ẏ (run by the harness here) give the same z."""
-    plant, obs, ts, xs, ps, z0, traj = reduced_run
+    plant, obs, ts, xs, ps, z0, _traj = reduced_run
 
     def vf_z(t, z, y, u, x):
-        A11, A12_, A21, A22, B1, B2 = obs.blocks(t)
+        A11, _A12, A21, _A22, B1, B2 = obs.blocks(t)
         ydot = (plant.f(t, x, u))[:2]
-        return obs.F @ z + obs.G_of(t) @ (ydot - A11 @ y - B1 @ u) + obs.T_of(t) @ (A21 @ y + B2 @ u)
+        return (
+            obs.F @ z + obs.G_of(t) @ (ydot - A11 @ y - B1 @ u) + obs.T_of(t) @ (A21 @ y + B2 @ u)
+        )
 
     def vf(t, s, args):
         x, z = s
@@ -224,8 +242,14 @@ def test_reduced_p_form_equals_form_with_ydot(reduced_run):
         return plant.f(t, x, uu), vf_z(t, z, x[:2], uu, x)
 
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(vf), diffrax.Tsit5(), 0.0, 5.0, 1e-2, (xs[0], z0),
-        saveat=diffrax.SaveAt(ts=ts), stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
+        diffrax.ODETerm(vf),
+        diffrax.Tsit5(),
+        0.0,
+        5.0,
+        1e-2,
+        (xs[0], z0),
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
     )
     zs = jax.jit(jax.vmap(obs.z_of))(ts, ps, xs[:, :2])
     assert np.abs(np.asarray(sol.ys[1] - zs)).max() < 1e-7
@@ -234,16 +258,16 @@ def test_reduced_p_form_equals_form_with_ydot(reduced_run):
 def test_slides_reduced_form_violates_the_property(reduced_run):
     """The slides' final form (G from their (12) with the T·A21·C term, no T·A21·y, no Ġ·y) leaves a
     persistent bias in z − T w: the derivation matters for time-varying T."""
-    plant, obs, ts, xs, ps, z0, traj = reduced_run
+    plant, obs, ts, xs, _ps, z0, _traj = reduced_run
 
     def G_slides(t):
-        A11, A12_, A21, A22, B1, B2 = obs.blocks(t)
+        _A11, A12_, A21, A22, _B1, _B2 = obs.blocks(t)
         T = obs.T_of(t)
         M = obs.Tdot_of(t) + T @ A22 + T @ A21 @ A12_ - obs.F @ T
         return M @ C1_slides
 
     def vf_slides(t, p, y, u):
-        A11, A12_, A21, A22, B1, B2 = obs.blocks(t)
+        A11, _A12, _A21, _A22, B1, B2 = obs.blocks(t)
         G = G_slides(t)
         return obs.F @ (p + G @ y) - G @ A11 @ y - G @ B1 @ u + obs.T_of(t) @ B2 @ u
 
@@ -295,7 +319,9 @@ def test_reduced_requires_partitioned_model():
 def test_reduced_solvability_failure_names_residual_and_time():
     """T = I does not satisfy (Ṫ + T A22 − F T)(I − C⁺C) = 0 (its first column is [0, −4/β])."""
     with pytest.raises(ValueError, match=r"residual .* at t = 0"):
-        obsjax.GeneralizedInverseReduced(reduced_plant(), F5, lambda t: jnp.eye(2), horizon=(0.0, 5.0))
+        obsjax.GeneralizedInverseReduced(
+            reduced_plant(), F5, lambda t: jnp.eye(2), horizon=(0.0, 5.0)
+        )
 
 
 def test_reduced_singular_T_over_horizon():
@@ -341,7 +367,7 @@ def _reduced_loss(lams, t1=1.0, dt=0.02):
     F = jnp.diag(lams)
     T = lovass_nagy_T(lambda t: A_ex(t)[2:, 2:], A12, F, S_ex)
     obs = obsjax.GeneralizedInverseReduced(plant, F, T, C1=C1_slides)
-    ts = jnp.linspace(0.0, t1, int(round(t1 / dt)) + 1)
+    ts = jnp.linspace(0.0, t1, round(t1 / dt) + 1)
     x0 = jnp.array([-1.0, 2.0, -1.0, 2.0])
     p0 = obs.init(0.0, jnp.array([-1.0, 2.0, 0.5, 0.5]), x0[:2])
     xs, ps = simulate_pair(plant, obs.vector_field, x0, p0, ts, u_sin, dt=dt)
@@ -354,7 +380,7 @@ def _full_loss(lams, t1=1.0, dt=0.02):
     F = jnp.diag(lams)
     T = lovass_nagy_T(A_ex, C_full, F, S_full)
     obs = obsjax.GeneralizedInverse(plant, F, T)
-    ts = jnp.linspace(0.0, t1, int(round(t1 / dt)) + 1)
+    ts = jnp.linspace(0.0, t1, round(t1 / dt) + 1)
     x0 = jnp.array([-1.0, 2.0, -1.0, 2.0])
     z0 = obs.init(0.0, jnp.zeros(4), C_full @ x0)
     xs, zs = simulate_pair(plant, obs.vector_field, x0, z0, ts, u_sin, dt=dt)
@@ -372,6 +398,20 @@ def test_gradient_wrt_F_eigenvalues_matches_finite_differences(loss, lams):
     f = jax.jit(loss)
     g = np.asarray(jax.jit(jax.grad(loss))(lams))
     h = 1e-5
-    fd = np.array([(f(lams.at[i].add(h)) - f(lams.at[i].add(-h))) / (2 * h) for i in range(lams.size)])
+    fd = np.array(
+        [(f(lams.at[i].add(h)) - f(lams.at[i].add(-h))) / (2 * h) for i in range(lams.size)]
+    )
     assert np.allclose(g, fd, rtol=1e-5, atol=1e-8 * np.abs(fd).max())
     assert np.abs(g).max() > 1e-4
+
+
+def test_lti_constant_T_places_eigenvalues_of_F():
+    """LTI plant, constant S: T is constant and x̃̇ = (A − T⁻¹G C) x̃ with eig = eig(F) (numpy eig)."""
+    plant = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+    F = jnp.array([[-3.0, 1.0], [0.0, -4.0]])
+    T = lovass_nagy_T(plant.A, plant.C, F, lambda t: jnp.array([0.3, 1.0]))
+    obs = obsjax.GeneralizedInverse(plant, F, T, horizon=(0.0, 1.0), num_checks=5)
+    L = np.linalg.solve(np.asarray(T(0.0)), np.asarray(obs.G_of(0.0)))
+    eig = np.sort(np.linalg.eigvals(np.asarray(plant.A) - L @ np.asarray(plant.C)).real)
+    assert np.allclose(eig, [-4.0, -3.0], atol=1e-10)
+    assert np.allclose(obs.Tdot_of(0.5), 0.0)

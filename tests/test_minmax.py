@@ -23,8 +23,12 @@ def beta(k):
 
 
 def A_mm(k):  # slides, min-max example
-    return np.array([[10, 10 * alpha(k), 1, 0], [-2, 0, -1, -1], [0, -1, -5, 0],
-                     [-1, 2, 4 / beta(k), -5]]) / 20.0
+    return (
+        np.array(
+            [[10, 10 * alpha(k), 1, 0], [-2, 0, -1, -1], [0, -1, -5, 0], [-1, 2, 4 / beta(k), -5]]
+        )
+        / 20.0
+    )
 
 
 B_mm = np.array([[1.0], [1.0], [0.0], [1.0]])
@@ -33,8 +37,17 @@ X0 = np.array([10.0, 10.0, 0.0, 0.0])
 
 
 def A_comb(k):  # slides, combination example
-    return np.array([[-10, 10 * alpha(k), 0, -1], [-1, -10, -5, 5], [0, -1, -5, 0],
-                     [-1, 0, -4 / beta(k), 0]]) / 20.0
+    return (
+        np.array(
+            [
+                [-10, 10 * alpha(k), 0, -1],
+                [-1, -10, -5, 5],
+                [0, -1, -5, 0],
+                [-1, 0, -4 / beta(k), 0],
+            ]
+        )
+        / 20.0
+    )
 
 
 P_err = 0.02 * np.array([[1, 1, 1, 1], [1, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]], dtype=float)
@@ -62,7 +75,7 @@ def data(N, noise=0.0, seed=0):
 
 
 def test_exact_data_recovers_x0_and_theta_is_eps():
-    As, us, xs, ys = data(12)
+    As, us, _xs, ys = data(12)
     x0, theta = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=0.05)
     assert np.allclose(x0, X0, atol=1e-6)
     assert theta == pytest.approx(0.05, abs=1e-8)
@@ -73,9 +86,9 @@ def test_exact_data_recovers_x0_and_theta_is_eps():
 
 def test_minmax_value_is_chebyshev_plus_eps_and_same_estimate():
     """max over |δ| ≤ ε adds ε: θ̂(ε) = θ̂(0) + ε, and the estimate solves the plain min ‖ȳ − ψx0‖∞."""
-    As, us, xs, ys = data(10, noise=0.05)
+    As, us, _xs, ys = data(10, noise=0.05)
     ybar, psi = window_regression(As, B_mm, C_mm, ys, us)
-    x_c, th_c = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=0.0)
+    _x_c, th_c = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=0.0)
     for eps in [0.01, 0.3]:
         x_e, th_e = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=eps)
         assert th_e == pytest.approx(th_c + eps, abs=1e-8)
@@ -84,7 +97,7 @@ def test_minmax_value_is_chebyshev_plus_eps_and_same_estimate():
 
 def test_chebyshev_against_vertex_enumeration_and_least_squares():
     """Independent: the LP optimum is at a vertex with n + 1 active rows ψ_i x + s_i θ = ȳ_i."""
-    As, us, xs, ys = data(7, noise=0.05, seed=3)
+    As, us, _xs, ys = data(7, noise=0.05, seed=3)
     ybar, psi = window_regression(As, B_mm, C_mm, ys, us)
     r, n = psi.shape
     best = np.inf
@@ -101,7 +114,9 @@ def test_chebyshev_against_vertex_enumeration_and_least_squares():
     assert th_c == pytest.approx(best, rel=1e-7, abs=1e-10)
     x_ls = np.linalg.lstsq(psi, ybar, rcond=None)[0]
     assert np.abs(ybar - psi @ x_ls).max() >= th_c - 1e-10  # Chebyshev minimises the ℓ∞ residual
-    assert np.linalg.norm(ybar - psi @ x_ls) <= np.linalg.norm(ybar - psi @ x_c) + 1e-10  # LS the ℓ2 one
+    assert (
+        np.linalg.norm(ybar - psi @ x_ls) <= np.linalg.norm(ybar - psi @ x_c) + 1e-10
+    )  # LS the ℓ2 one
 
 
 def test_slides_algorithm_inequality_figure4():
@@ -109,7 +124,7 @@ def test_slides_algorithm_inequality_figure4():
     (θ̂ = θ̃ + ε ≥ ‖ȳ + ε·1 − ψx̃0‖∞); on these data it is 0 to LP accuracy, i.e. the slides' '≥ 0' holds
     only with equality: the min-max estimate coincides with the Chebyshev one."""
     eps = 0.05
-    As, us, xs, ys = data(20, noise=eps, seed=1)
+    As, us, _xs, ys = data(20, noise=eps, seed=1)
     gaps = []
     for N in range(4, 21):
         alg = obsjax.minmax_algorithm(As[:N], B_mm, C_mm, ys[: N + 1], us[:N], eps)
@@ -131,7 +146,7 @@ def test_figure3_state_error_small_with_exact_data():
 def test_constant_and_stacked_matrices_agree():
     A = A_mm(0)
     us = np.zeros((6, 1))
-    xs, ys = simulate(lambda k: A, B_mm, C_mm, X0, us)
+    _xs, ys = simulate(lambda k: A, B_mm, C_mm, X0, us)
     a = obsjax.minmax_initial_state(A, B_mm, C_mm, ys, us, 0.0)[0]
     b = obsjax.minmax_initial_state(np.stack([A] * 6), B_mm, np.stack([C_mm] * 7), ys, us, 0.0)[0]
     assert np.allclose(a, b, atol=1e-8) and np.allclose(a, X0, atol=1e-6)
@@ -139,31 +154,31 @@ def test_constant_and_stacked_matrices_agree():
 
 # --- bad input -----------------------------------------------------------------------------------------
 def test_window_too_short_is_refused():
-    As, us, xs, ys = data(2)
+    As, us, _xs, ys = data(2)
     with pytest.raises(ValueError, match="rank 3 < n = 4"):
         obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us)
 
 
 def test_negative_eps():
-    As, us, xs, ys = data(6)
+    As, us, _xs, ys = data(6)
     with pytest.raises(ValueError, match="`eps` must be >= 0"):
         obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=-0.1)
 
 
 def test_stacked_A_wrong_length():
-    As, us, xs, ys = data(6)
+    As, us, _xs, ys = data(6)
     with pytest.raises(ValueError, match=r"`A` stacked over k must have shape \(6, 4, 4\)"):
         obsjax.minmax_initial_state(As[:5], B_mm, C_mm, ys, us)
 
 
 def test_us_wrong_shape():
-    As, us, xs, ys = data(6)
+    As, us, _xs, ys = data(6)
     with pytest.raises(ValueError, match=r"`us` must have shape \(N, p\) = \(6, 1\)"):
         obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us[:4])
 
 
 def test_nan_measurements():
-    As, us, xs, ys = data(6)
+    As, us, _xs, ys = data(6)
     ys[2] = np.nan
     with pytest.raises(ValueError, match="`ys` must be finite"):
         obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us)
@@ -179,7 +194,9 @@ def test_discrete_luenberger_error_law_exact_model():
     xhat0 = np.zeros(4)
     xh = obs.luenberger(ys, us, xhat0)
     for k in range(K + 1):
-        assert np.allclose(xh[k] - xs[k], np.linalg.matrix_power(F_comb, k) @ (xhat0 - X0), atol=1e-12)
+        assert np.allclose(
+            xh[k] - xs[k], np.linalg.matrix_power(F_comb, k) @ (xhat0 - X0), atol=1e-12
+        )
 
 
 def test_combination_beats_pure_minmax_under_model_error_figure5():

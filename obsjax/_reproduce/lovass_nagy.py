@@ -55,7 +55,9 @@ def reduced_example(F=None, S=None):
     :func:`obsjax.design.lovass_nagy_T` with the free first column S(t) = [cos t, sin t] (so det T = β/4)."""
     F = -5.0 * jnp.eye(2) if F is None else F
     S = (lambda t: jnp.stack([jnp.cos(t), jnp.sin(t)])) if S is None else S
-    plant = obsjax.LTV(A_continuous, lambda t: jnp.hstack([jnp.eye(2), jnp.zeros((2, 2))]), lambda t: B_CONT)
+    plant = obsjax.LTV(
+        A_continuous, lambda t: jnp.hstack([jnp.eye(2), jnp.zeros((2, 2))]), lambda t: B_CONT
+    )
     T = obsjax.design.lovass_nagy_T(lambda t: A_continuous(t)[2:, 2:], A12, F, S)
     obs = obsjax.GeneralizedInverseReduced(plant, F, T, C1=C1_SLIDES, horizon=(0.0, 5.0))
     return plant, obs
@@ -68,7 +70,7 @@ class SlidesReducedForm(AbstractObserver):
     ref: obsjax.GeneralizedInverseReduced
 
     def G(self, t):
-        A11, A12_, A21, A22, B1, B2 = self.ref.blocks(t)
+        _A11, A12_, A21, A22, _B1, _B2 = self.ref.blocks(t)
         T = self.ref.T_of(t)
         return (self.ref.Tdot_of(t) + T @ A22 + T @ A21 @ A12_ - self.ref.F @ T) @ self.ref.C1_of(t)
 
@@ -109,8 +111,17 @@ def beta_k(k):
 
 
 def A_minmax(k):
-    return np.array([[10, 10 * alpha_k(k), 1, 0], [-2, 0, -1, -1], [0, -1, -5, 0],
-                     [-1, 2, 4 / beta_k(k), -5]]) / 20.0
+    return (
+        np.array(
+            [
+                [10, 10 * alpha_k(k), 1, 0],
+                [-2, 0, -1, -1],
+                [0, -1, -5, 0],
+                [-1, 2, 4 / beta_k(k), -5],
+            ]
+        )
+        / 20.0
+    )
 
 
 B_MINMAX = np.array([[1.0], [1.0], [0.0], [1.0]])
@@ -118,8 +129,17 @@ C_MINMAX = np.array([[0.0, 0.0, 0.0, 1.0]])
 
 
 def A_comb(k):
-    return np.array([[-10, 10 * alpha_k(k), 0, -1], [-1, -10, -5, 5], [0, -1, -5, 0],
-                     [-1, 0, -4 / beta_k(k), 0]]) / 20.0
+    return (
+        np.array(
+            [
+                [-10, 10 * alpha_k(k), 0, -1],
+                [-1, -10, -5, 5],
+                [0, -1, -5, 0],
+                [-1, 0, -4 / beta_k(k), 0],
+            ]
+        )
+        / 20.0
+    )
 
 
 P_ERR = 0.02 * np.array([[1, 1, 1, 1], [1, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]], dtype=float)
@@ -139,12 +159,16 @@ def minmax_study(N=30, eps=0.05, seed=0):
     Ns = np.arange(4, N + 1)
     out = {"N": Ns, "err_exact": [], "err_noisy": [], "err_ls": [], "gap": []}
     for n_ in Ns:
-        x0e, _ = obsjax.minmax_initial_state(As[:n_], B_MINMAX, C_MINMAX, ys[: n_ + 1], us[:n_], eps)
+        x0e, _ = obsjax.minmax_initial_state(
+            As[:n_], B_MINMAX, C_MINMAX, ys[: n_ + 1], us[:n_], eps
+        )
         alg = obsjax.minmax_algorithm(As[:n_], B_MINMAX, C_MINMAX, ys_noisy[: n_ + 1], us[:n_], eps)
         ybar, psi = window_regression(As[:n_], B_MINMAX, C_MINMAX, ys_noisy[: n_ + 1], us[:n_])
         x_ls = np.linalg.lstsq(psi, ybar, rcond=None)[0]
         out["err_exact"].append(np.linalg.norm(propagate(As, B_MINMAX, x0e, us) - xs, axis=1).max())
-        out["err_noisy"].append(np.linalg.norm(propagate(As, B_MINMAX, alg.x_minmax, us) - xs, axis=1).max())
+        out["err_noisy"].append(
+            np.linalg.norm(propagate(As, B_MINMAX, alg.x_minmax, us) - xs, axis=1).max()
+        )
         out["err_ls"].append(np.linalg.norm(propagate(As, B_MINMAX, x_ls, us) - xs, axis=1).max())
         out["gap"].append(alg.gap)
     return {k: np.asarray(v) for k, v in out.items()}
@@ -222,7 +246,10 @@ def reproduce(outdir: str) -> list[str]:
     plt.close(fig)
 
     fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
-    for a, forced, title in [(ax[0], False, "free response (slides)"), (ax[1], True, "input u = sin(0.5k)")]:
+    for a, forced, title in [
+        (ax[0], False, "free response (slides)"),
+        (ax[1], True, "input u = sin(0.5k)"),
+    ]:
         ks, e_mm, e_c = combination_study(forced=forced)
         a.plot(ks, e_mm - e_c, "o-")
         a.axhline(0.0, color="k", lw=0.5)

@@ -112,8 +112,10 @@ def null_space_basis(C, rtol: float | None = None) -> np.ndarray:
     if Cn is None:
         raise ValueError("`C` must be concrete (not traced) to compute its null-space basis.")
     m, n = Cn.shape
-    u, s, vt = np.linalg.svd(Cn)
-    tol = (rtol if rtol is not None else max(m, n) * np.finfo(float).eps) * (s[0] if s.size else 0.0)
+    _u, s, vt = np.linalg.svd(Cn)
+    tol = (rtol if rtol is not None else max(m, n) * np.finfo(float).eps) * (
+        s[0] if s.size else 0.0
+    )
     rank = int(np.sum(s > tol))
     N = vt[rank:].T.copy()
     for j in range(N.shape[1]):
@@ -208,13 +210,17 @@ def lovass_nagy_T(A, C, F, S, *, N=None, t0: float = 0.0) -> LovassNagyT:
     A_fn = _as_time_fn(A, "A")
     A0 = jnp.asarray(A_fn(jnp.asarray(t0)))
     if A0.shape != (n_, n_):
-        raise ValueError(f"`A` must be ({n_}, {n_}) to match `C` of shape {tuple(C.shape)}, got {A0.shape}.")
+        raise ValueError(
+            f"`A` must be ({n_}, {n_}) to match `C` of shape {tuple(C.shape)}, got {A0.shape}."
+        )
     if N is None:
         N = null_space_basis(C)
     N = matrix(N, "N", (n_, None))
     k = N.shape[1]
     if k == 0:
-        raise ValueError("`C` has full column rank: null(C) = {0}, every T satisfies the condition.")
+        raise ValueError(
+            "`C` has full column rank: null(C) = {0}, every T satisfies the condition."
+        )
     Nc = concrete_value(N)
     Cc = concrete_value(C)
     if Nc is not None and Cc is not None:
@@ -227,7 +233,9 @@ def lovass_nagy_T(A, C, F, S, *, N=None, t0: float = 0.0) -> LovassNagyT:
     q = S0.shape[0]
     S0 = S0.reshape(q, -1)
     if S0.shape[1] != k:
-        raise ValueError(f"`S(t)` must return ({q}, {k}) (k = dim null(C) = {k}), got {tuple(S0.shape)}.")
+        raise ValueError(
+            f"`S(t)` must return ({q}, {k}) (k = dim null(C) = {k}), got {tuple(S0.shape)}."
+        )
     F = matrix(F, "F", (q, q))
     if q != n_:
         raise ValueError(f"`S(t)` must have {n_} rows (T is square, {n_} × {n_}), got {q}.")

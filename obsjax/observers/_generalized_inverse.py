@@ -63,7 +63,9 @@ def _check_over(obs, ts, what):
             where = f"changes sign between t = {ts[j]:.6g} and t = {ts[j + 1]:.6g} ({det[j]:.3e} → {det[j + 1]:.3e})"
         else:
             where = f"= {det[k]:.3e} at t = {ts[k]:.6g}"
-        raise ValueError(f"{what}: `T` must be invertible over the horizon (det T ≠ 0), found det T {where}.")
+        raise ValueError(
+            f"{what}: `T` must be invertible over the horizon (det T ≠ 0), found det T {where}."
+        )
 
 
 class GeneralizedInverse(AbstractObserver):
@@ -105,7 +107,7 @@ class GeneralizedInverse(AbstractObserver):
         self.model = model
         self.F = matrix(F, "F", (n, n))
         if not callable(T):
-            raise ValueError("`T` must be a callable of t returning an (n, n) matrix.")
+            raise ValueError("`T` must be a callable of t returning an (n, n) matrix.")  # noqa: TRY004 (project rule: ValueError)
         T0 = jax.eval_shape(T, jnp.asarray(0.0))
         if tuple(T0.shape) != (n, n):
             raise ValueError(f"`T(t)` must return shape ({n}, {n}), got {tuple(T0.shape)}.")
@@ -225,8 +227,10 @@ class GeneralizedInverseReduced(AbstractObserver):
         n, m = int(model.n), int(model.m)
         q = n - m
         if q <= 0:
-            raise ValueError(f"`model` must have fewer outputs than states for a reduced observer, got "
-                             f"n = {n}, m = {m}.")
+            raise ValueError(
+                f"`model` must have fewer outputs than states for a reduced observer, got "
+                f"n = {n}, m = {m}."
+            )
         C = concrete_value(jnp.asarray(model.C_of(jnp.asarray(0.0))))
         expected = np.hstack([np.eye(m), np.zeros((m, q))])
         if C is not None and (C.shape != expected.shape or not np.allclose(C, expected)):
@@ -237,10 +241,12 @@ class GeneralizedInverseReduced(AbstractObserver):
         self.model = model
         self.F = matrix(F, "F", (q, q))
         if not callable(T):
-            raise ValueError(f"`T` must be a callable of t returning a ({q}, {q}) matrix.")
+            raise ValueError(f"`T` must be a callable of t returning a ({q}, {q}) matrix.")  # noqa: TRY004 (project rule: ValueError)
         T0 = jax.eval_shape(T, jnp.asarray(0.0))
         if tuple(T0.shape) != (q, q):
-            raise ValueError(f"`T(t)` must return shape ({q}, {q}) (n − m = {q}), got {tuple(T0.shape)}.")
+            raise ValueError(
+                f"`T(t)` must return shape ({q}, {q}) (n − m = {q}), got {tuple(T0.shape)}."
+            )
         self.T = T
         self.C1 = None if C1 is None else matrix(C1, "C1", (q, m))
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
@@ -307,7 +313,7 @@ class GeneralizedInverseReduced(AbstractObserver):
     # --- the observer protocol -------------------------------------------------------------------
     def init(self, t0, xhat0, y0):
         """p0 = T(t0) ŵ0 − G(t0) y0, with ŵ0 = xhat0[m:] (so z0 = T(t0) ŵ0)."""
-        w0 = jnp.asarray(xhat0)[self.m:]
+        w0 = jnp.asarray(xhat0)[self.m :]
         return self.T_of(t0) @ w0 - self.G_of(t0) @ jnp.asarray(y0)
 
     def init_from_z(self, t0, z0, y0):

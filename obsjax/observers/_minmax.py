@@ -35,7 +35,9 @@ from .._checks import concrete_value
 def _np(x, name):
     v = concrete_value(jnp.asarray(x)) if not isinstance(x, np.ndarray) else x
     if v is None:
-        raise ValueError(f"`{name}` must be concrete (the min-max LP runs in SciPy/HiGHS, not under jit).")
+        raise ValueError(
+            f"`{name}` must be concrete (the min-max LP runs in SciPy/HiGHS, not under jit)."
+        )
     v = np.asarray(v, dtype=float)
     if not np.all(np.isfinite(v)):
         raise ValueError(f"`{name}` must be finite, found NaN or inf.")
@@ -47,15 +49,21 @@ def _stack(x, name, count, shape):
     x = _np(x, name)
     if x.ndim == 2:
         if x.shape != shape:
-            raise ValueError(f"`{name}` must have shape {shape} (or ({count}, {shape[0]}, {shape[1]}) "
-                             f"stacked over k), got {x.shape}.")
+            raise ValueError(
+                f"`{name}` must have shape {shape} (or ({count}, {shape[0]}, {shape[1]}) "
+                f"stacked over k), got {x.shape}."
+            )
         return np.broadcast_to(x, (count, *shape)).copy()
     if x.ndim == 3:
         if x.shape != (count, *shape):
-            raise ValueError(f"`{name}` stacked over k must have shape ({count}, {shape[0]}, {shape[1]}), "
-                             f"got {x.shape}.")
+            raise ValueError(
+                f"`{name}` stacked over k must have shape ({count}, {shape[0]}, {shape[1]}), "
+                f"got {x.shape}."
+            )
         return x
-    raise ValueError(f"`{name}` must be a matrix {shape} or a stack ({count}, ...), got shape {x.shape}.")
+    raise ValueError(
+        f"`{name}` must be a matrix {shape} or a stack ({count}, ...), got shape {x.shape}."
+    )
 
 
 def _parse(A, B, C, ys, us):
@@ -97,7 +105,7 @@ def window_regression(A, B, C, ys, us=None):
 
     **Returns:** ``(ybar, psi)`` with ybar of shape ((N+1)·m,) and psi ((N+1)·m, n), rows ordered by k.
     """
-    A, B, C, ys, us, N, n, m, p = _parse(A, B, C, ys, us)
+    A, B, C, ys, us, N, n, _m, _p = _parse(A, B, C, ys, us)
     Phi = np.eye(n)  # Φ(k, 0)
     forced = np.zeros(n)  # Σ_{j<k} Φ(k, j+1) B(j) u(j)
     psi, ybar = [], []
@@ -114,19 +122,23 @@ def _solve_lp(ybar, psi, eps):
     r, n = psi.shape
     # variables v = [x0, θ]; 4 inequalities per row (the slides' two double inequalities).
     one = np.ones((r, 1))
-    A_ub = np.vstack([
-        np.hstack([-psi, -one]),  # ȳ − ψx + ε ≤ θ
-        np.hstack([psi, -one]),  # −θ ≤ ȳ − ψx + ε
-        np.hstack([-psi, -one]),  # ȳ − ψx − ε ≤ θ
-        np.hstack([psi, -one]),  # −θ ≤ ȳ − ψx − ε
-    ])
+    A_ub = np.vstack(
+        [
+            np.hstack([-psi, -one]),  # ȳ − ψx + ε ≤ θ
+            np.hstack([psi, -one]),  # −θ ≤ ȳ − ψx + ε
+            np.hstack([-psi, -one]),  # ȳ − ψx − ε ≤ θ
+            np.hstack([psi, -one]),  # −θ ≤ ȳ − ψx − ε
+        ]
+    )
     b_ub = np.concatenate([-ybar - eps, ybar + eps, -ybar + eps, ybar - eps])
     c = np.zeros(n + 1)
     c[-1] = 1.0
     bounds = [(None, None)] * n + [(0.0, None)]
     res = scipy.optimize.linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
     if res.status != 0:
-        raise ValueError(f"The min-max linear program failed (HiGHS status {res.status}: {res.message}).")
+        raise ValueError(
+            f"The min-max linear program failed (HiGHS status {res.status}: {res.message})."
+        )
     return res.x[:n], float(res.x[-1])
 
 
@@ -202,7 +214,10 @@ def minmax_algorithm(A, B, C, ys, us=None, eps=0.0) -> MinMaxAlgorithm:
     x_h, th_h = minmax_initial_state(A, B, C, ys, us, eps)
     e = float(eps)
     return MinMaxAlgorithm(
-        x_cheb=x_t, theta_cheb=th_t, x_minmax=x_h, theta_minmax=th_h,
+        x_cheb=x_t,
+        theta_cheb=th_t,
+        x_minmax=x_h,
+        theta_minmax=th_h,
         residual_cheb_shifted=float(np.abs(ybar + e - psi @ x_t).max()),
         residual_minmax_shifted=float(np.abs(ybar + e - psi @ x_h).max()),
     )
@@ -212,7 +227,7 @@ def propagate(A, B, x0, us=None, steps=None):
     """x(k) of x(k+1) = A(k) x(k) + B(k) u(k) for k = 0..N from x(0) (NumPy; N from ``us`` or ``steps``)."""
     x0 = _np(x0, "x0")
     n = x0.shape[0]
-    N = (len(us) if us is not None else steps)
+    N = len(us) if us is not None else steps
     if N is None:
         raise ValueError("`us` or `steps` is required.")
     A = _stack(A, "A", N, (n, n)) if N else np.zeros((0, n, n))
@@ -232,7 +247,9 @@ def _of_k(M, name):
         return M
     M = _np(M, name)
     if M.ndim != 2:
-        raise ValueError(f"`{name}` must be a matrix or a callable k -> matrix, got shape {M.shape}.")
+        raise ValueError(
+            f"`{name}` must be a matrix or a callable k -> matrix, got shape {M.shape}."
+        )
     return lambda k: M
 
 
@@ -286,7 +303,11 @@ class MinMaxLuenberger(eqx.Module):
     rtol: float = eqx.field(static=True)
 
     def __init__(self, A, B, C, F, window, eps=0.0, T=None, rtol=1e-9):
-        self.A, self.B, self.C = _of_k(A, "A"), (None if B is None else _of_k(B, "B")), _of_k(C, "C")
+        self.A, self.B, self.C = (
+            _of_k(A, "A"),
+            (None if B is None else _of_k(B, "B")),
+            _of_k(C, "C"),
+        )
         A0, C0 = np.asarray(self.A(0), dtype=float), np.asarray(self.C(0), dtype=float)
         n = A0.shape[0]
         if A0.shape != (n, n):
@@ -298,7 +319,9 @@ class MinMaxLuenberger(eqx.Module):
             raise ValueError(f"`F` must have shape ({n}, {n}), got {F.shape}.")
         rho = float(np.abs(np.linalg.eigvals(F)).max())
         if rho >= 1.0:
-            raise ValueError(f"`F` must have its eigenvalues inside the unit circle, spectral radius {rho:.4g}.")
+            raise ValueError(
+                f"`F` must have its eigenvalues inside the unit circle, spectral radius {rho:.4g}."
+            )
         self.F = F
         self.T = (lambda k: np.eye(n)) if T is None else _of_k(T, "T")
         if int(window) < 1:
@@ -312,7 +335,11 @@ class MinMaxLuenberger(eqx.Module):
     def _stacks(self, K):
         A = np.stack([np.asarray(self.A(k), dtype=float) for k in range(K)])
         n = A.shape[1]
-        B = None if self.B is None else np.stack([np.asarray(self.B(k), dtype=float) for k in range(K)])
+        B = (
+            None
+            if self.B is None
+            else np.stack([np.asarray(self.B(k), dtype=float) for k in range(K)])
+        )
         C = np.stack([np.asarray(self.C(k), dtype=float) for k in range(K + 1)])
         T = np.stack([np.asarray(self.T(k), dtype=float).reshape(n, n) for k in range(K + 1)])
         return A, B, C, T
@@ -339,12 +366,16 @@ class MinMaxLuenberger(eqx.Module):
         """The Luenberger observer alone from x̂(start) = xhat0 over the record (k = start..K)."""
         ys = _np(ys, "ys")
         K = ys.shape[0] - 1
-        A, B, C, T = self._stacks(K)
+        _A, B, _C, T = self._stacks(K)
         G = self.gains(K)
         z = T[start] @ _np(xhat0, "xhat0")
         out = [np.linalg.solve(T[start], z)]
         for j in range(start, K):
-            z = self.F @ z + G[j] @ ys[j] + (0.0 if B is None else T[j + 1] @ B[j] @ np.asarray(us)[j])
+            z = (
+                self.F @ z
+                + G[j] @ ys[j]
+                + (0.0 if B is None else T[j + 1] @ B[j] @ np.asarray(us)[j])
+            )
             out.append(np.linalg.solve(T[j + 1], z))
         return np.stack(out)
 
@@ -370,7 +401,7 @@ class MinMaxLuenberger(eqx.Module):
             s = k - W
             Bw = None if B is None else B[s:k]
             uw = None if B is None else us[s:k]
-            x_s, theta = minmax_initial_state(A[s:k], Bw, C[s:k + 1], ys[s:k + 1], uw, self.eps)
+            x_s, theta = minmax_initial_state(A[s:k], Bw, C[s : k + 1], ys[s : k + 1], uw, self.eps)
             # pure min-max: the model propagates x̂(k − W) to k
             x_m = x_s
             z = T[s] @ x_s
@@ -383,5 +414,10 @@ class MinMaxLuenberger(eqx.Module):
             xm.append(x_m)
             xs.append(x_s)
             th.append(theta)
-        return MinMaxResult(ks=np.array(ks), xhat=np.stack(xc), xhat_minmax=np.stack(xm),
-                            x_start=np.stack(xs), theta=np.array(th))
+        return MinMaxResult(
+            ks=np.array(ks),
+            xhat=np.stack(xc),
+            xhat_minmax=np.stack(xm),
+            x_start=np.stack(xs),
+            theta=np.array(th),
+        )
