@@ -161,11 +161,19 @@ class GeneralizedInverse(AbstractObserver):
     def init(self, t0, xhat0, y0):
         return self.T_of(t0) @ jnp.asarray(xhat0)
 
+    def _T_G(self, t):
+        """(T, G) at t with Ṫ from one forward-mode pass (jax.jvp in t)."""
+        t = jnp.asarray(t, dtype=self.F.dtype)
+        T, Td = jax.jvp(self.T_of, (t,), (jnp.ones_like(t),))
+        G = (Td + T @ self.model.A_of(t) - self.F @ T) @ self.C1_of(t)
+        return T, G
+
     def vector_field(self, t, z, y, u):
-        dz = self.F @ z + self.G_of(t) @ y
+        T, G = self._T_G(t)
+        dz = self.F @ z + G @ y
         B = self.model.B_of(t)
         if B.shape[1] > 0:
-            dz = dz + self.T_of(t) @ (B @ u)
+            dz = dz + T @ (B @ u)
         return dz
 
     def estimate(self, t, z, y):
@@ -320,13 +328,19 @@ class GeneralizedInverseReduced(AbstractObserver):
         """p0 = z0 − G(t0) y0 (the slides give z0 directly)."""
         return jnp.asarray(z0) - self.G_of(t0) @ jnp.asarray(y0)
 
+    def _T_G(self, t):
+        """(T, G) at t with Ṫ from one forward-mode pass (jax.jvp in t)."""
+        T, Td = jax.jvp(self.T_of, (t,), (jnp.ones_like(t),))
+        G = (Td + T @ self.blocks(t)[3] - self.F @ T) @ self.C1_of(t)
+        return T, G
+
     def vector_field(self, t, z, y, u):
         p = z
-        _, _, A21, _, B1, B2 = self.blocks(t)
-        T = self.T_of(t)
-        G = self.G_of(t)
-        zz = p + G @ y
-        dp = self.F @ zz + (T @ A21 - G @ self.blocks(t)[0] - self.Gdot_of(t)) @ y
+        t = jnp.asarray(t, dtype=self.F.dtype)
+        A11, _, A21, _, B1, B2 = self.blocks(t)
+        # T, G and Ġ in one nested forward-mode pass (the same quantities as T_of, G_of, Gdot_of)
+        (T, G), (_, Gdot) = jax.jvp(self._T_G, (t,), (jnp.ones_like(t),))
+        dp = self.F @ (p + G @ y) + (T @ A21 - G @ A11 - Gdot) @ y
         if B1.shape[1] > 0:
             dp = dp + (T @ B2 - G @ B1) @ u
         return dp
