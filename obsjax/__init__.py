@@ -37,3 +37,8 @@ from .observers._least_squares import LeastSquaresState as LeastSquaresState
 from .observers._least_squares import chen_yen_example as chen_yen_example
 from .observers._kalman_bucy import KalmanBucy as KalmanBucy
 from .observers._kalman_bucy import KalmanBucyState as KalmanBucyState
+from .observers._generalized_inverse import GeneralizedInverse as GeneralizedInverse
+from .observers._generalized_inverse import GeneralizedInverseReduced as GeneralizedInverseReduced
+from .observers._minmax import MinMaxLuenberger as MinMaxLuenberger
+from .observers._minmax import minmax_algorithm as minmax_algorithm
+from .observers._minmax import minmax_initial_state as minmax_initial_state
