@@ -65,7 +65,11 @@ def child(n_big, chunk):
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if n_big:
         t0 = time.perf_counter()
-        big = obsjax.monte_carlo(plant, obs, jr.PRNGKey(9), n_big, devices=2, **{**kw, "progress": True})
+        # resumable: the study can be stopped (e.g. while other benchmarks run) and continued from here
+        ckpt = os.environ.get("OBSJAX_BENCH_CHECKPOINT")
+        big = obsjax.monte_carlo(plant, obs, jr.PRNGKey(9), n_big, devices=2, checkpoint=ckpt,
+                                 **{**kw, "progress": True})
+        out["big_computed_here"] = big.n_computed
         out["big_n"] = n_big
         out["big_wall"] = time.perf_counter() - t0
         out["big_tput"] = big.throughput
@@ -82,10 +86,9 @@ def main(n_big=0, chunk=4096):
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
     env["JAX_PLATFORMS"] = "cpu"
     proc = subprocess.run([sys.executable, __file__, "--child", "--n", str(n_big), "--chunk", str(chunk)],
-                          env=env, capture_output=True, text=True, cwd=C.ROOT)
+                          env=env, stdout=subprocess.PIPE, text=True, cwd=C.ROOT)  # stderr: progress bar
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
     if proc.returncode != 0 or not lines:
-        print(proc.stderr[-4000:])
         raise SystemExit("d_sharding: the child process failed")
     r = json.loads(lines[-1])
     speedup = r["tput_2"] / r["tput_1"]
@@ -105,7 +108,7 @@ wall time of the study after a warm-up study of the same shape (best of 2).
     if r.get("big_n"):
         keep = r["big_tput"] / r["tput_2"]
         body = body.rstrip("\n") + f"""
-| {r['big_n']:,} trajectories, 2 devices, chunks of {chunk} | {r['big_tput']:.0f} ({r['big_wall']:.0f} s wall) |
+| {r['big_n']:,} trajectories, 2 devices, chunks of {chunk} | {r['big_tput']:.0f} ({r['big_computed_here']:,} computed in the last call, {r['big_wall']:.0f} s wall) |
 | large-study rate ÷ {chunk}-batch rate (2 devices) | **{keep:.2f}** — target ≥ 0.8: {C.verdict(keep, 0.8, 'higher')} |
 
 Peak resident memory of the process: {r['peak_rss_mib']:.0f} MiB ({r['rss_before_big_mib']:.0f} MiB before the
