@@ -45,7 +45,11 @@ def timeit(fn, *args, repeat=5, min_time=0.1):
 
 
 def machine() -> dict:
-    info = {"platform": platform.platform(), "python": sys.version.split()[0], "cpus": os.cpu_count()}
+    info = {
+        "platform": platform.platform(),
+        "python": sys.version.split()[0],
+        "cpus": os.cpu_count(),
+    }
     try:
         with open("/proc/cpuinfo") as fh:
             for line in fh:
@@ -70,14 +74,14 @@ def versions() -> dict:
     for mod in ("jax", "jaxlib", "diffrax", "equinox", "optax", "numpy", "scipy", "control"):
         try:
             out[mod] = importlib.import_module(mod).__version__
-        except Exception:  # noqa: BLE001
+        except Exception:
             out[mod] = "n/a"
     try:
         import jax
 
         out["jax backend"] = f"{jax.default_backend()} ({len(jax.devices())} device(s))"
         out["x64"] = str(jax.config.jax_enable_x64)
-    except Exception:  # noqa: BLE001
+    except Exception:
         pass
     return out
 
@@ -86,9 +90,12 @@ def other_processes(limit=8) -> list[str]:
     """The busiest other processes right now (what else was running during the measurement)."""
     try:
         out = subprocess.run(
-            ["ps", "-eo", "pid,pcpu,etime,args", "--sort=-pcpu"], capture_output=True, text=True, timeout=10
+            ["ps", "-eo", "pid,pcpu,etime,args", "--sort=-pcpu"],
+            capture_output=True,
+            text=True,
+            timeout=10,
         ).stdout.splitlines()
-    except Exception:  # noqa: BLE001
+    except Exception:
         return []
     me = os.getpid()
     rows = []
@@ -115,8 +122,10 @@ class Load:
     def markdown(self) -> str:
         lines = ["## What else was running", ""]
         for when, (la, procs) in (("start", self.start), ("end", self.end)):
-            lines.append(f"- at the {when}: load average {la[0]:.2f} / {la[1]:.2f} / {la[2]:.2f} "
-                         f"(1 / 5 / 15 min) on {os.cpu_count()} CPUs")
+            lines.append(
+                f"- at the {when}: load average {la[0]:.2f} / {la[1]:.2f} / {la[2]:.2f} "
+                f"(1 / 5 / 15 min) on {os.cpu_count()} CPUs"
+            )
             for p in procs:
                 lines.append(f"  - {p}")
             if not procs:
@@ -157,10 +166,18 @@ def verdict(value: float, target: float, better: str) -> str:
     if better == "higher":
         ok = value >= target
         gap = target / value if value > 0 else float("inf")
-        return "**met**" if ok else f"**missed** by a factor {gap:.2f} (need {target:g}, got {value:.3g})"
+        return (
+            "**met**"
+            if ok
+            else f"**missed** by a factor {gap:.2f} (need {target:g}, got {value:.3g})"
+        )
     ok = value <= target
     gap = value / target
-    return "**met**" if ok else f"**missed** by a factor {gap:.2f} (need ≤ {target:g}, got {value:.3g})"
+    return (
+        "**met**"
+        if ok
+        else f"**missed** by a factor {gap:.2f} (need ≤ {target:g}, got {value:.3g})"
+    )
 
 
 # ------------------------------------------------------------------------------------------------ Chen & Yen

@@ -39,9 +39,13 @@ def main(batch=4096, n_scipy=24, repeat=3):
     def sim(**kw):
         @jax.jit
         def f(x0s, xh0s):
-            return jax.vmap(lambda x, xh: obsjax.simulate(plant, obs, x, xh, ts, throw=False, max_segments=nseg, **kw).error_norm)(
-                x0s, xh0s
-            )
+            return jax.vmap(
+                lambda x, xh: (
+                    obsjax.simulate(
+                        plant, obs, x, xh, ts, throw=False, max_segments=nseg, **kw
+                    ).error_norm
+                )
+            )(x0s, xh0s)
 
         return f
 
@@ -64,7 +68,11 @@ def main(batch=4096, n_scipy=24, repeat=3):
         for i in range(n_stages):
             yi = y
             if i > 0:
-                yi = tmap(lambda y0, *kk: y0 + h * sum(a_lower[i - 1][j] * kk[j] for j in range(i)), y, *ks)
+                yi = tmap(
+                    lambda y0, *kk: y0 + h * sum(a_lower[i - 1][j] * kk[j] for j in range(i)),
+                    y,
+                    *ks,
+                )
             ks.append(_drift(t + c[i] * h, yi, args))
         return tmap(lambda y0, *kk: y0 + h * sum(b_sol[j] * kk[j] for j in range(n_stages)), y, *ks)
 
@@ -101,9 +109,17 @@ def main(batch=4096, n_scipy=24, repeat=3):
                 x, z = state
                 z = jax.lax.cond(k > 0, lambda zz: ob.reset(k * C.T_RESET, zz), lambda zz: zz, z)
                 sol = diffrax.diffeqsolve(
-                    term, diffrax.Tsit5(), k * C.T_RESET, (k + 1) * C.T_RESET, None, (x, z), args=args,
-                    saveat=diffrax.SaveAt(t1=True), stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-8),
-                    max_steps=16384, throw=False,
+                    term,
+                    diffrax.Tsit5(),
+                    k * C.T_RESET,
+                    (k + 1) * C.T_RESET,
+                    None,
+                    (x, z),
+                    args=args,
+                    saveat=diffrax.SaveAt(t1=True),
+                    stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-8),
+                    max_steps=16384,
+                    throw=False,
                 )
                 return tmap(lambda v: v[-1], sol.ys), sol.stats["num_steps"]
 
@@ -117,7 +133,10 @@ def main(batch=4096, n_scipy=24, repeat=3):
         first, best, med = C.timeit(f, x0s, xh0s, repeat=repeat, min_time=0.1)
         res[name] = dict(first=first, best=best, median=med, tput=batch / best)
         print(f"{name}: first call {first:.2f} s, best {best:.3f} s, {batch / best:.0f} traj/s")
-    out = {k: np.asarray(f(x0s, xh0s)) for k, f in (("adaptive", f_adapt), ("fixed", f_fixed), ("scan", f_scan))}
+    out = {
+        k: np.asarray(f(x0s, xh0s))
+        for k, f in (("adaptive", f_adapt), ("fixed", f_fixed), ("scan", f_scan))
+    }
     nsteps = np.asarray(f_steps(x0s, xh0s))  # (batch, nseg)
     total = nsteps.sum()
     waste_whole = batch * nsteps.sum(axis=1).max() / total
@@ -131,14 +150,20 @@ def main(batch=4096, n_scipy=24, repeat=3):
     print(f"scipy loop: {n_scipy} in {t_sp:.2f} s, {tput_sp:.1f} traj/s")
     # accuracy against a tight reference on a few trajectories
     n_acc = min(6, n_scipy)
-    ref = np.stack([C.scipy_chen_yen(x0s[i], xh0s[i], ts, rtol=1e-10, atol=1e-12) for i in range(n_acc)])
+    ref = np.stack(
+        [C.scipy_chen_yen(x0s[i], xh0s[i], ts, rtol=1e-10, atol=1e-12) for i in range(n_acc)]
+    )
     scale = np.linalg.norm(xh0s[:n_acc] - x0s[:n_acc], axis=1)[:, None]
 
     def err(a):
         return float(np.max(np.abs(a[:n_acc] - ref) / scale))
 
-    acc = {"scipy RK45 rtol 1e-6": err(np.stack(sp[:n_acc])), "obsjax adaptive rtol 1e-6": err(out["adaptive"]),
-           "obsjax fixed h = 0.0125": err(out["fixed"]), "hand-written scan": err(out["scan"])}
+    acc = {
+        "scipy RK45 rtol 1e-6": err(np.stack(sp[:n_acc])),
+        "obsjax adaptive rtol 1e-6": err(out["adaptive"]),
+        "obsjax fixed h = 0.0125": err(out["fixed"]),
+        "hand-written scan": err(out["scan"]),
+    }
     fixed_vs_scan = float(np.max(np.abs(out["fixed"] - out["scan"])))
 
     ra = res["adaptive"]["tput"] / tput_sp
@@ -152,28 +177,30 @@ one `jax.jit` of `jax.vmap(simulate)`, warmed up, timed with `block_until_ready`
 | method | time per batch (best / median) | trajectories/s | ratio to SciPy loop |
 |---|---|---|---|
 | SciPy `solve_ivp` RK45 loop (rtol 1e-6, {n_scipy} trajectories) | {t_sp / n_scipy * batch:.1f} s (extrapolated) | {tput_sp:.1f} | 1 |
-| obsjax adaptive Tsit5 (rtol 1e-6) | {res['adaptive']['best']:.3f} / {res['adaptive']['median']:.3f} s | {res['adaptive']['tput']:.0f} | **{ra:.0f}×** |
-| obsjax fixed Tsit5 (h = {h}, {nseg * steps_per_seg} steps) | {res['fixed']['best']:.3f} / {res['fixed']['median']:.3f} s | {res['fixed']['tput']:.0f} | **{rf:.0f}×** |
-| hand-written `lax.scan` Tsit5 (same steps) | {res['scan']['best']:.3f} / {res['scan']['median']:.3f} s | {res['scan']['tput']:.0f} | {res['scan']['tput'] / tput_sp:.0f}× |
+| obsjax adaptive Tsit5 (rtol 1e-6) | {res["adaptive"]["best"]:.3f} / {res["adaptive"]["median"]:.3f} s | {res["adaptive"]["tput"]:.0f} | **{ra:.0f}×** |
+| obsjax fixed Tsit5 (h = {h}, {nseg * steps_per_seg} steps) | {res["fixed"]["best"]:.3f} / {res["fixed"]["median"]:.3f} s | {res["fixed"]["tput"]:.0f} | **{rf:.0f}×** |
+| hand-written `lax.scan` Tsit5 (same steps) | {res["scan"]["best"]:.3f} / {res["scan"]["median"]:.3f} s | {res["scan"]["tput"]:.0f} | {res["scan"]["tput"] / tput_sp:.0f}× |
 
-First calls (trace + compile + run): adaptive {res['adaptive']['first']:.1f} s, fixed {res['fixed']['first']:.1f} s,
-scan {res['scan']['first']:.1f} s.
+First calls (trace + compile + run): adaptive {res["adaptive"]["first"]:.1f} s, fixed {res["fixed"]["first"]:.1f} s,
+scan {res["scan"]["first"]:.1f} s.
 
 Targets:
-- adaptive ≥ 100× the SciPy loop: {ra:.0f}× — {C.verdict(ra, 100, 'higher')}
-- fixed step ≥ 1000× the SciPy loop: {rf:.0f}× — {C.verdict(rf, 1000, 'higher')}
-- fixed step within 1.5× of the hand-written scan: {rs:.2f}× — {C.verdict(rs, 1.5, 'lower')}
+- adaptive ≥ 100× the SciPy loop: {ra:.0f}× — {C.verdict(ra, 100, "higher")}
+- fixed step ≥ 1000× the SciPy loop: {rf:.0f}× — {C.verdict(rf, 1000, "higher")}
+- fixed step within 1.5× of the hand-written scan: {rs:.2f}× — {C.verdict(rs, 1.5, "lower")}
   (the two agree to {fixed_vs_scan:.1e} in ‖x̃‖: same method, same steps)
 
 Accuracy (max over the grid of |‖x̃‖ − ‖x̃‖_ref| / ‖x̃(0)‖ on {n_acc} trajectories, reference SciPy RK45 rtol
-1e-10): {'; '.join(f'{k}: {v:.1e}' for k, v in acc.items())}.
+1e-10): {"; ".join(f"{k}: {v:.1e}" for k, v in acc.items())}.
 
 Lock-step waste of the vmapped adaptive solve (step counts from diffrax's stats of the same segmented
 solve): mean {total / batch:.0f} steps per trajectory, slowest {nsteps.sum(axis=1).max()}; batch × slowest ÷ total
 = **{waste_whole:.2f}** over the whole solve, and **{waste_seg:.2f}** counted per reset segment (each segment is a
 separate vmapped while loop that runs as long as its slowest member).
 """
-    C.write_result("a_chen_yen_throughput", "Benchmark (a): Chen & Yen batch throughput", body, load)
+    C.write_result(
+        "a_chen_yen_throughput", "Benchmark (a): Chen & Yen batch throughput", body, load
+    )
     return dict(res=res, tput_scipy=tput_sp, acc=acc, waste=(waste_whole, waste_seg))
 
 

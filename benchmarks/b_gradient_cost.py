@@ -28,8 +28,10 @@ def main(batch=64, repeat=3):
     params0 = jnp.array([C.GAMMA, C.P0, C.T_RESET])
     rows = []
     checks = []
-    for label, kw in (("adaptive Tsit5, rtol 1e-6", dict(rtol=1e-6, atol=1e-8)),
-                      ("fixed Tsit5, h = 0.0125", dict(adaptive=False, dt0=0.0125))):
+    for label, kw in (
+        ("adaptive Tsit5, rtol 1e-6", dict(rtol=1e-6, atol=1e-8)),
+        ("fixed Tsit5, h = 0.0125", dict(adaptive=False, dt0=0.0125)),
+    ):
 
         def loss(params, kw=kw):
             o = eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), obs, (params[0], params[1], params[2]))

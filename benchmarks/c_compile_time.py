@@ -86,8 +86,16 @@ FAMILIES = {
     "GeneralizedInverseReduced": f_generalized_inverse_reduced,
 }
 #: documented families not yet on this branch (measured once a factory is added above)
-OTHERS = ("GeneralizedInverse", "KudvaNarendra", "LudersNarendra", "Kreisselmeier",
-          "TrajectoryLinearization", "ExtendedKalman", "FiniteWindow", "MinMaxLuenberger")
+OTHERS = (
+    "GeneralizedInverse",
+    "KudvaNarendra",
+    "LudersNarendra",
+    "Kreisselmeier",
+    "TrajectoryLinearization",
+    "ExtendedKalman",
+    "FiniteWindow",
+    "MinMaxLuenberger",
+)
 
 
 def measure(name):
@@ -118,7 +126,11 @@ def measure(name):
     retrace_ok = None
     if where is not None:
         leaves = where(obs)
-        new = tuple(1.1 * jnp.asarray(v) for v in leaves) if isinstance(leaves, tuple) else 1.1 * jnp.asarray(leaves)
+        new = (
+            tuple(1.1 * jnp.asarray(v) for v in leaves)
+            if isinstance(leaves, tuple)
+            else 1.1 * jnp.asarray(leaves)
+        )
         obs2 = eqx.tree_at(where, obs, new)
         try:
             out2 = jax.block_until_ready(run(obs2, 2.0 * x0, xh0))
@@ -138,12 +150,19 @@ def main():
         if not hasattr(obsjax, name):
             rows.append((name, None))
             continue
-        out = subprocess.run([sys.executable, __file__, "--family", name], capture_output=True, text=True,
-                             cwd=C.ROOT, timeout=600)
+        out = subprocess.run(
+            [sys.executable, __file__, "--family", name],
+            capture_output=True,
+            text=True,
+            cwd=C.ROOT,
+            timeout=600,
+        )
         line = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
         if out.returncode != 0 or not line:
             print(out.stderr[-2000:])
-            rows.append((name, {"error": out.stderr.strip().splitlines()[-1] if out.stderr else "failed"}))
+            rows.append(
+                (name, {"error": out.stderr.strip().splitlines()[-1] if out.stderr else "failed"})
+            )
             continue
         r = json.loads(line[-1])
         rows.append((name, r))
@@ -157,9 +176,13 @@ def main():
             lines.append(f"| {name} | error: {r['error'][:80]} | | | |")
         else:
             worst = max(worst, r["compile"])
-            nr = {True: "no retrace", False: "**retraced**", None: "(no tunable leaf)"}[r["no_retrace"]]
-            lines.append(f"| {name} | {r['compile']:.2f} s | {r['first']:.2f} s | {r['steady'] * 1e3:.1f} ms | "
-                         f"{nr} · {C.verdict(r['compile'], 5.0, 'lower')} |")
+            nr = {True: "no retrace", False: "**retraced**", None: "(no tunable leaf)"}[
+                r["no_retrace"]
+            ]
+            lines.append(
+                f"| {name} | {r['compile']:.2f} s | {r['first']:.2f} s | {r['steady'] * 1e3:.1f} ms | "
+                f"{nr} · {C.verdict(r['compile'], 5.0, 'lower')} |"
+            )
     others = [o for o in OTHERS if hasattr(obsjax, o)]
     body = f"""
 `eqx.filter_jit(simulate)` of one trajectory on [0, 10] ([0, 5] for the slides' generalized-inverse example; 101 save points, adaptive Tsit5, rtol 1e-6), each
@@ -171,10 +194,12 @@ gains selected for tuning are multiplied by 1.1 and x0 by 2, and the call is rep
 |---|---|---|---|---|
 {chr(10).join(lines)}
 
-Worst compile time: {worst:.2f} s — {C.verdict(worst, 5.0, 'lower')}.
-{'Families present in obsjax but without a factory here (not measured): ' + ', '.join(others) if others else ''}
+Worst compile time: {worst:.2f} s — {C.verdict(worst, 5.0, "lower")}.
+{"Families present in obsjax but without a factory here (not measured): " + ", ".join(others) if others else ""}
 """
-    C.write_result("c_compile_time", "Benchmark (c): first-call compile time and retracing", body, load)
+    C.write_result(
+        "c_compile_time", "Benchmark (c): first-call compile time and retracing", body, load
+    )
     return rows
 
 

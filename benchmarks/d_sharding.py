@@ -49,11 +49,15 @@ def child(n_big, chunk):
     assert len(jax.devices()) == 2, jax.devices()
     plant, obs = C.chen_yen()
     ts = np.linspace(0.0, 10.0, 11)
-    kw = dict(x0_sampler=x0_sampler, xhat0_sampler=xhat0_sampler, ts=ts, chunk_size=chunk, progress=False)
+    kw = dict(
+        x0_sampler=x0_sampler, xhat0_sampler=xhat0_sampler, ts=ts, chunk_size=chunk, progress=False
+    )
     out = {}
     for d in (1, 2):
         t0 = time.perf_counter()
-        obsjax.monte_carlo(plant, obs, jr.PRNGKey(1), chunk, devices=d, **kw)  # warm-up: compiles the kernel
+        obsjax.monte_carlo(
+            plant, obs, jr.PRNGKey(1), chunk, devices=d, **kw
+        )  # warm-up: compiles the kernel
         out[f"compile_{d}"] = time.perf_counter() - t0
         best = None
         for rep in range(2):
@@ -67,8 +71,9 @@ def child(n_big, chunk):
         t0 = time.perf_counter()
         # resumable: the study can be stopped (e.g. while other benchmarks run) and continued from here
         ckpt = os.environ.get("OBSJAX_BENCH_CHECKPOINT")
-        big = obsjax.monte_carlo(plant, obs, jr.PRNGKey(9), n_big, devices=2, checkpoint=ckpt,
-                                 **{**kw, "progress": True})
+        big = obsjax.monte_carlo(
+            plant, obs, jr.PRNGKey(9), n_big, devices=2, checkpoint=ckpt, **{**kw, "progress": True}
+        )
         out["big_computed_here"] = big.n_computed
         out["big_n"] = n_big
         out["big_wall"] = time.perf_counter() - t0
@@ -83,10 +88,17 @@ def child(n_big, chunk):
 def main(n_big=0, chunk=4096):
     load = C.Load()
     env = dict(os.environ)
-    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    ).strip()
     env["JAX_PLATFORMS"] = "cpu"
-    proc = subprocess.run([sys.executable, __file__, "--child", "--n", str(n_big), "--chunk", str(chunk)],
-                          env=env, stdout=subprocess.PIPE, text=True, cwd=C.ROOT)  # stderr: progress bar
+    proc = subprocess.run(
+        [sys.executable, __file__, "--child", "--n", str(n_big), "--chunk", str(chunk)],
+        env=env,
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=C.ROOT,
+    )  # stderr: progress bar
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
     if proc.returncode != 0 or not lines:
         raise SystemExit("d_sharding: the child process failed")
@@ -101,26 +113,34 @@ wall time of the study after a warm-up study of the same shape (best of 2).
 
 | study | trajectories/s |
 |---|---|
-| {chunk} trajectories, 1 device | {r['tput_1']:.0f} |
-| {chunk} trajectories, 2 devices (shard_map) | {r['tput_2']:.0f} |
-| speed-up | **{speedup:.2f}×** — target ≥ 1.4×: {C.verdict(speedup, 1.4, 'higher')} |
+| {chunk} trajectories, 1 device | {r["tput_1"]:.0f} |
+| {chunk} trajectories, 2 devices (shard_map) | {r["tput_2"]:.0f} |
+| speed-up | **{speedup:.2f}×** — target ≥ 1.4×: {C.verdict(speedup, 1.4, "higher")} |
 """
     if r.get("big_n"):
         keep = r["big_tput"] / r["tput_2"]
-        body = body.rstrip("\n") + f"""
-| {r['big_n']:,} trajectories, 2 devices, chunks of {chunk} | {r['big_tput']:.0f} ({r['big_computed_here']:,} computed in the last call, {r['big_wall']:.0f} s wall) |
-| large-study rate ÷ {chunk}-batch rate (2 devices) | **{keep:.2f}** — target ≥ 0.8: {C.verdict(keep, 0.8, 'higher')} |
+        body = (
+            body.rstrip("\n")
+            + f"""
+| {r["big_n"]:,} trajectories, 2 devices, chunks of {chunk} | {r["big_tput"]:.0f} ({r["big_computed_here"]:,} computed in the last call, {r["big_wall"]:.0f} s wall) |
+| large-study rate ÷ {chunk}-batch rate (2 devices) | **{keep:.2f}** — target ≥ 0.8: {C.verdict(keep, 0.8, "higher")} |
 
-Peak resident memory of the process: {r['peak_rss_mib']:.0f} MiB ({r['rss_before_big_mib']:.0f} MiB before the
-large study; the host keeps ‖x̃‖ on the 11-point grid, {r['big_n'] * 11 * 8 / 2**20:.0f} MiB for N = {r['big_n']:,}).
-Failures in the large study: {r['big_failed']} (counted from the per-trajectory status).
+Peak resident memory of the process: {r["peak_rss_mib"]:.0f} MiB ({r["rss_before_big_mib"]:.0f} MiB before the
+large study; the host keeps ‖x̃‖ on the 11-point grid, {r["big_n"] * 11 * 8 / 2**20:.0f} MiB for N = {r["big_n"]:,}).
+Failures in the large study: {r["big_failed"]} (counted from the per-trajectory status).
 """
+        )
     body += f"""
-Compile (first study, trace + compile + run of one chunk): {r['compile_1']:.1f} s on 1 device,
-{r['compile_2']:.1f} s on 2 devices.
+Compile (first study, trace + compile + run of one chunk): {r["compile_1"]:.1f} s on 1 device,
+{r["compile_2"]:.1f} s on 2 devices.
 """
     if r.get("big_n"):
-        C.write_result("d_sharding_large", f"Benchmark (d): a {r['big_n']:,}-trajectory sharded study", body, load)
+        C.write_result(
+            "d_sharding_large",
+            f"Benchmark (d): a {r['big_n']:,}-trajectory sharded study",
+            body,
+            load,
+        )
     else:
         body += "\nThe large (10⁶-trajectory) study is run separately: see `d_sharding_large.md`.\n"
         C.write_result("d_sharding", "Benchmark (d): sharded Monte-Carlo studies", body, load)

@@ -25,7 +25,6 @@ def main(batch=4096, n_loop=64, repeat=3):
     load = C.Load()
     import control as ct
     import jax
-    import jax.numpy as jnp
     import numpy as np
     import scipy.linalg
 
@@ -48,8 +47,13 @@ def main(batch=4096, n_loop=64, repeat=3):
     U = np.sin(ts) + 0.5 * np.sin(3 * ts)
     err_ct = []
     for i in range(n_loop):
-        resp = ct.input_output_response(sys_aug, ts, U, np.concatenate([x0s[i], xh0s[i]]),
-                                        solve_ivp_kwargs={"rtol": 1e-6, "atol": 1e-8})
+        resp = ct.input_output_response(
+            sys_aug,
+            ts,
+            U,
+            np.concatenate([x0s[i], xh0s[i]]),
+            solve_ivp_kwargs={"rtol": 1e-6, "atol": 1e-8},
+        )
         err_ct.append(np.linalg.norm(resp.outputs, axis=0))
     t_ct = time.perf_counter() - t0
     tput_ct = n_loop / t_ct
@@ -61,7 +65,9 @@ def main(batch=4096, n_loop=64, repeat=3):
 
     @jax.jit
     def run(x0s, xh0s):
-        return jax.vmap(lambda x, xh: obsjax.simulate(plant, obs, x, xh, ts, u=u, throw=False).error_norm)(x0s, xh0s)
+        return jax.vmap(
+            lambda x, xh: obsjax.simulate(plant, obs, x, xh, ts, u=u, throw=False).error_norm
+        )(x0s, xh0s)
 
     first, best, med = C.timeit(run, x0s, xh0s, repeat=repeat)
     tput_oj = batch / best
@@ -70,7 +76,12 @@ def main(batch=4096, n_loop=64, repeat=3):
     # closed form
     L_oj = np.asarray(obs.gain)
     F = A - L_oj @ Cm
-    ref = np.stack([[np.linalg.norm(scipy.linalg.expm(F * t) @ (xh0s[i] - x0s[i])) for t in ts] for i in range(n_loop)])
+    ref = np.stack(
+        [
+            [np.linalg.norm(scipy.linalg.expm(F * t) @ (xh0s[i] - x0s[i])) for t in ts]
+            for i in range(n_loop)
+        ]
+    )
     scale = np.linalg.norm(x0s[:n_loop], axis=1)[:, None]
     acc_ct = float(np.max(np.abs(np.stack(err_ct) - ref) / scale))
     acc_oj = float(np.max(np.abs(out[:n_loop] - ref) / scale))
@@ -90,7 +101,12 @@ obsjax first call (trace + compile + run): {first:.1f} s.
 Accuracy against the closed form ‖exp((A − LC)t) x̃(0)‖ (max over the grid, relative to ‖x̃(0)‖, {n_loop}
 trajectories): python-control {acc_ct:.1e}, obsjax {acc_oj:.1e}.
 """
-    C.write_result("e_lti_python_control", "Benchmark (e): LTI Luenberger, obsjax against python-control", body, load)
+    C.write_result(
+        "e_lti_python_control",
+        "Benchmark (e): LTI Luenberger, obsjax against python-control",
+        body,
+        load,
+    )
     return ratio
 
 

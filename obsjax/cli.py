@@ -29,7 +29,14 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "004": ("byrski_fuksa",),
 }
 #: the order of ``--all`` for the documents' modules (others found in obsjax/_reproduce follow)
-DOCUMENT_MODULES = ("chen_yen", "luenberger", "adaptive", "lovass_nagy", "huang_zhu", "byrski_fuksa")
+DOCUMENT_MODULES = (
+    "chen_yen",
+    "luenberger",
+    "adaptive",
+    "lovass_nagy",
+    "huang_zhu",
+    "byrski_fuksa",
+)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -41,7 +48,9 @@ def available_reproductions() -> list[str]:
     """Module names present in obsjax/_reproduce."""
     from . import _reproduce
 
-    return sorted(m.name for m in pkgutil.iter_modules(_reproduce.__path__) if not m.name.startswith("_"))
+    return sorted(
+        m.name for m in pkgutil.iter_modules(_reproduce.__path__) if not m.name.startswith("_")
+    )
 
 
 def resolve_document(name: str) -> tuple[str, ...]:
@@ -68,14 +77,16 @@ def run_reproductions(modules, outdir: str) -> int:
     failures = 0
     for mod in modules:
         if mod not in present:
-            print(f"[skip] {mod}: obsjax/_reproduce/{mod}.py is not present in this installation (not merged yet).")
+            print(
+                f"[skip] {mod}: obsjax/_reproduce/{mod}.py is not present in this installation (not merged yet)."
+            )
             continue
         target = os.path.join(outdir, mod)
         t0 = time.perf_counter()
         try:
             module = importlib.import_module(f"obsjax._reproduce.{mod}")
             paths = module.reproduce(target)
-        except Exception:  # noqa: BLE001 - report and go on with the next document
+        except Exception:
             failures += 1
             print(f"[fail] {mod}:")
             traceback.print_exc()
@@ -110,7 +121,9 @@ def demo_xhat0(key):
     return jnp.zeros(2)
 
 
-def demo(outdir: str = "obsjax-demo", n: int = 10_000, steps: int = 20, batch: int = 8, seed: int = 0) -> dict:
+def demo(
+    outdir: str = "obsjax-demo", n: int = 10_000, steps: int = 20, batch: int = 8, seed: int = 0
+) -> dict:
     """Chen & Yen's example end to end: the paper's figures, gradient tuning of γ·p0 and T under measurement
     noise, and a Monte-Carlo comparison of the paper's and the tuned gains.  Returns the numbers printed."""
     t_all = time.perf_counter()
@@ -142,17 +155,26 @@ def demo(outdir: str = "obsjax-demo", n: int = 10_000, steps: int = 20, batch: i
     # with both this SciPy run and obsjax there; at t = 2 and t = 10 all three agree.
     ref = {0.25: (5.775, 7.126, 1.052, 3.347e-2), 2.0: (4.853, 5.280, 1.120, 3.707e-3)}
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
-    print("Chen & Yen example, γ = 20, p0 = 0.1, x̂(0) = [5, -5]  (‖x̃(t)‖; SciPy reference in brackets)")
+    print(
+        "Chen & Yen example, γ = 20, p0 = 0.1, x̂(0) = [5, -5]  (‖x̃(t)‖; SciPy reference in brackets)"
+    )
     import equinox as eqx
 
     @eqx.filter_jit
-    def paper_run(obs):  # one compilation for both periods (T is a traced leaf; 40 segments cover T ≥ 0.25)
-        return obsjax.simulate(plant, obs, jnp.zeros(2), jnp.array([5.0, -5.0]), ts, max_segments=40).error_norm
+    def paper_run(
+        obs,
+    ):  # one compilation for both periods (T is a traced leaf; 40 segments cover T ≥ 0.25)
+        return obsjax.simulate(
+            plant, obs, jnp.zeros(2), jnp.array([5.0, -5.0]), ts, max_segments=40
+        ).error_norm
 
     for T, r in ref.items():
         en = np.asarray(paper_run(obsjax.LeastSquaresReset(plant, 20.0, 0.1, T)))
         vals = [en[np.argmin(np.abs(ts - t))] for t in (1, 2, 5, 10)]
-        print(f"  T = {T:<5}" + "".join(f"  t={t:>2}: {v:.4g} [{w:.4g}]" for t, v, w in zip((1, 2, 5, 10), vals, r)))
+        print(
+            f"  T = {T:<5}"
+            + "".join(f"  t={t:>2}: {v:.4g} [{w:.4g}]" for t, v, w in zip((1, 2, 5, 10), vals, r))
+        )
         ax.semilogy(ts, en, label=f"T = {T}")
     ax.set_xlabel("t")
     ax.set_ylabel("‖x̃(t)‖")
@@ -168,15 +190,25 @@ def demo(outdir: str = "obsjax-demo", n: int = 10_000, steps: int = 20, batch: i
     #    conditions, each with its own band-limited measurement-noise realisation.
     t0 = time.perf_counter()
     ts_s = np.linspace(0.0, 10.0, 41)
-    ts_tune = ts_s[: 25]  # tune on [0, 6]: the transient, at 60 % of the cost
+    ts_tune = ts_s[:25]  # tune on [0, 6]: the transient, at 60 % of the cost
     noise = obsjax.noise.BandLimitedNoise(DEMO_NOISE_SIGMA, dt=DEMO_NOISE_DT)
     x0s = jax.vmap(demo_x0)(jr.split(k_tune_x0, batch))
     xhat0s = jnp.zeros((batch, 2))
     plants = noisy_batch(plant, noise, k_tune_noise, batch, ts_tune[0], ts_tune[-1])
     fixed = {"adaptive": False, "dt0": DEMO_DT0}
     tuned = obsjax.tune(
-        paper, plants, where=lambda o: (o.gamma, o.T), loss=obsjax.losses.ise, x0s=x0s, xhat0s=xhat0s, ts=ts_tune,
-        optimizer=optax.adam(0.15), steps=steps, plant_batched=True, simulate_kwargs=fixed, progress=True,
+        paper,
+        plants,
+        where=lambda o: (o.gamma, o.T),
+        loss=obsjax.losses.ise,
+        x0s=x0s,
+        xhat0s=xhat0s,
+        ts=ts_tune,
+        optimizer=optax.adam(0.15),
+        steps=steps,
+        plant_batched=True,
+        simulate_kwargs=fixed,
+        progress=True,
     )
     best = tuned.observer
     hist = tuned.history
@@ -203,15 +235,28 @@ def demo(outdir: str = "obsjax-demo", n: int = 10_000, steps: int = 20, batch: i
     # 3. Monte-Carlo study: n trajectories, random x(0), independent noise, paper's against tuned gains.
     t0 = time.perf_counter()
     results = {}
-    for label, obs in (("paper (γ·p0 = 2, T = 0.25)", paper),
-                       (f"tuned (γ·p0 = {float(best.gamma * best.p0):.3g}, T = {float(best.T):.3g})", best)):
+    for label, obs in (
+        ("paper (γ·p0 = 2, T = 0.25)", paper),
+        (f"tuned (γ·p0 = {float(best.gamma * best.p0):.3g}, T = {float(best.T):.3g})", best),
+    ):
         results[label] = obsjax.monte_carlo(
-            plant, obs, k_mc, n, x0_sampler=demo_x0, xhat0_sampler=demo_xhat0, ts=ts_s, noise=noise,
-            chunk_size=min(n, 2500), simulate_kwargs=fixed, progress=True,
+            plant,
+            obs,
+            k_mc,
+            n,
+            x0_sampler=demo_x0,
+            xhat0_sampler=demo_xhat0,
+            ts=ts_s,
+            noise=noise,
+            chunk_size=min(n, 2500),
+            simulate_kwargs=fixed,
+            progress=True,
         )
     t_mc = time.perf_counter() - t0
-    print(f"\nMonte-Carlo study: {n} trajectories each, x(0) ~ N(0, {DEMO_X0_SCALE:g}² I), x̂(0) = 0, "
-          f"band-limited noise σ = {DEMO_NOISE_SIGMA} ({t_mc:.1f} s, common random numbers)")
+    print(
+        f"\nMonte-Carlo study: {n} trajectories each, x(0) ~ N(0, {DEMO_X0_SCALE:g}² I), x̂(0) = 0, "
+        f"band-limited noise σ = {DEMO_NOISE_SIGMA} ({t_mc:.1f} s, common random numbers)"
+    )
     print(comparison_table(results))
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for i, (label, res) in enumerate(results.items()):
@@ -226,9 +271,17 @@ def demo(outdir: str = "obsjax-demo", n: int = 10_000, steps: int = 20, batch: i
 
     total = time.perf_counter() - t_all
     print(f"\nFigures: {', '.join(figures)}")
-    print(f"Total {total:.1f} s (paper figures {t_paper:.1f} s, tuning {t_tune:.1f} s, Monte Carlo {t_mc:.1f} s)")
-    return {"results": results, "tuned": best, "history": hist, "figures": figures, "seconds": total,
-            "seconds_parts": {"paper": t_paper, "tune": t_tune, "monte_carlo": t_mc}}
+    print(
+        f"Total {total:.1f} s (paper figures {t_paper:.1f} s, tuning {t_tune:.1f} s, Monte Carlo {t_mc:.1f} s)"
+    )
+    return {
+        "results": results,
+        "tuned": best,
+        "history": hist,
+        "figures": figures,
+        "seconds": total,
+        "seconds_parts": {"paper": t_paper, "tune": t_tune, "monte_carlo": t_mc},
+    }
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -252,8 +305,10 @@ def _benchmarks_dir(given: str | None):
 def bench(names, bench_dir=None) -> int:
     d = _benchmarks_dir(bench_dir)
     if d is None:
-        print("obsjax bench: no benchmarks/run_all.py found (the benchmarks live in the source checkout, not "
-              "in the installed package); run it from the repository root or pass --dir.")
+        print(
+            "obsjax bench: no benchmarks/run_all.py found (the benchmarks live in the source checkout, not "
+            "in the installed package); run it from the repository root or pass --dir."
+        )
         return 2
     return subprocess.call([sys.executable, os.path.join(d, "run_all.py"), *names])
 
@@ -264,16 +319,26 @@ def bench(names, bench_dir=None) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="obsjax", description="Differentiable, batched state observers.")
+    parser = argparse.ArgumentParser(
+        prog="obsjax", description="Differentiable, batched state observers."
+    )
     sub = parser.add_subparsers(dest="command", required=True)
-    p_demo = sub.add_parser("demo", help="Chen & Yen example: simulate, tune under noise, Monte-Carlo compare")
-    p_demo.add_argument("--out", default="obsjax-demo", help="figure directory (default ./obsjax-demo)")
+    p_demo = sub.add_parser(
+        "demo", help="Chen & Yen example: simulate, tune under noise, Monte-Carlo compare"
+    )
+    p_demo.add_argument(
+        "--out", default="obsjax-demo", help="figure directory (default ./obsjax-demo)"
+    )
     p_demo.add_argument("-n", type=int, default=10_000, help="Monte-Carlo trajectories per study")
     p_demo.add_argument("--steps", type=int, default=20, help="Adam steps of the tuning")
-    p_demo.add_argument("--batch", type=int, default=8, help="initial conditions in the tuning batch")
+    p_demo.add_argument(
+        "--batch", type=int, default=8, help="initial conditions in the tuning batch"
+    )
     p_demo.add_argument("--seed", type=int, default=0)
     p_rep = sub.add_parser("reproduce", help="write a document's examples and figures")
-    p_rep.add_argument("documents", nargs="*", help="chen-yen, hassan, lovass-nagy, huang-zhu, byrski-fuksa, ...")
+    p_rep.add_argument(
+        "documents", nargs="*", help="chen-yen, hassan, lovass-nagy, huang-zhu, byrski-fuksa, ..."
+    )
     p_rep.add_argument("--all", action="store_true", help="every document")
     p_rep.add_argument("--out", default="obsjax-reproduce", help="output directory")
     p_rep.add_argument("--list", action="store_true", help="list the available reproductions")
@@ -289,7 +354,10 @@ def main(argv=None) -> int:
         if args.list:
             present = available_reproductions()
             print("available:", ", ".join(present) or "(none)")
-            print("aliases:", ", ".join(f"{k} -> {'/'.join(v)}" for k, v in ALIASES.items() if not k.isdigit()))
+            print(
+                "aliases:",
+                ", ".join(f"{k} -> {'/'.join(v)}" for k, v in ALIASES.items() if not k.isdigit()),
+            )
             return 0
         if args.all:
             extra = [m for m in available_reproductions() if m not in DOCUMENT_MODULES]

@@ -41,8 +41,14 @@ def run(n=40, chunk_size=16, **kw):
     kw.setdefault("xhat0_sampler", xhat0_zero)
     kw.setdefault("ts", TS)
     kw.setdefault("progress", False)
-    return obsjax.monte_carlo(kw.pop("plant", PLANT), kw.pop("observer", OBS), jr.PRNGKey(7), n,
-                              chunk_size=chunk_size, **kw)
+    return obsjax.monte_carlo(
+        kw.pop("plant", PLANT),
+        kw.pop("observer", OBS),
+        jr.PRNGKey(7),
+        n,
+        chunk_size=chunk_size,
+        **kw,
+    )
 
 
 def _x0_of(i, key=jr.PRNGKey(7)):
@@ -63,7 +69,9 @@ def test_matches_closed_form_error(base):
         ref[i] = [np.linalg.norm(scipy.linalg.expm(F * t) @ e0) for t in TS]
     np.testing.assert_allclose(base.error_norm, ref, rtol=2e-5, atol=1e-7)
     # bands are the empirical quantiles of the closed-form norms
-    np.testing.assert_allclose(base.bands, np.quantile(ref, base.quantiles, axis=0), rtol=2e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        base.bands, np.quantile(ref, base.quantiles, axis=0), rtol=2e-5, atol=1e-7
+    )
     assert base.complete and base.n_failed == 0 and base.failure_fraction == 0.0
 
 
@@ -131,10 +139,20 @@ def test_failures_are_counted_not_averaged():
     # ẋ = x² blows up at t = 1/x0: every trajectory with x0 > 1/t1 must fail, every other must succeed.
     ts = np.linspace(0.0, 2.0, 11)
     res = obsjax.monte_carlo(
-        BLOWUP, SCALAR_OBS, jr.PRNGKey(3), 48, x0_sampler=x0_uniform, xhat0_sampler=np.zeros(1), ts=ts,
-        chunk_size=16, progress=False, simulate_kwargs={"max_steps": 2048},
+        BLOWUP,
+        SCALAR_OBS,
+        jr.PRNGKey(3),
+        48,
+        x0_sampler=x0_uniform,
+        xhat0_sampler=np.zeros(1),
+        ts=ts,
+        chunk_size=16,
+        progress=False,
+        simulate_kwargs={"max_steps": 2048},
     )
-    x0 = np.array([float(x0_uniform(jr.split(jr.fold_in(jr.PRNGKey(3), i), 4)[0])[0]) for i in range(48)])
+    x0 = np.array(
+        [float(x0_uniform(jr.split(jr.fold_in(jr.PRNGKey(3), i), 4)[0])[0]) for i in range(48)]
+    )
     expect_fail = x0 > 1.0 / ts[-1]
     assert 0 < expect_fail.sum() < 48
     np.testing.assert_array_equal(res.status > 0, expect_fail)
@@ -150,7 +168,12 @@ def test_failures_are_counted_not_averaged():
     # survivors against the closed form x(t) = x0 / (1 − x0 t), x̂ from x̂' = y − x̂ (L = 1, model ẋ = 0)
     i = int(np.flatnonzero(~expect_fail)[0])
     sol = scipy.integrate.solve_ivp(
-        lambda t, s: [s[0] ** 2, s[0] - s[1]], (0, 2), [x0[i], 0.0], t_eval=ts, rtol=1e-10, atol=1e-12
+        lambda t, s: [s[0] ** 2, s[0] - s[1]],
+        (0, 2),
+        [x0[i], 0.0],
+        t_eval=ts,
+        rtol=1e-10,
+        atol=1e-12,
     )
     np.testing.assert_allclose(res.error_norm[i], np.abs(sol.y[1] - sol.y[0]), rtol=1e-4, atol=1e-6)
 
@@ -196,8 +219,17 @@ def test_resetting_observer_with_sampled_plants_against_scipy():
     ts = np.linspace(0.0, 2.0, 9)
     key = jr.PRNGKey(11)
     res = obsjax.monte_carlo(
-        SCALAR_PLANT, RESET_OBS, key, 6, x0_sampler=x0_uniform, xhat0_sampler=np.zeros(1), ts=ts,
-        param_sampler=scale_a, chunk_size=4, progress=False, simulate_kwargs={"rtol": 1e-9, "atol": 1e-11},
+        SCALAR_PLANT,
+        RESET_OBS,
+        key,
+        6,
+        x0_sampler=x0_uniform,
+        xhat0_sampler=np.zeros(1),
+        ts=ts,
+        param_sampler=scale_a,
+        chunk_size=4,
+        progress=False,
+        simulate_kwargs={"rtol": 1e-9, "atol": 1e-11},
     )
     for i in range(6):
         kx, _, _, kp = jr.split(jr.fold_in(key, i), 4)
@@ -209,7 +241,11 @@ def test_resetting_observer_with_sampled_plants_against_scipy():
             s[2] = 4.0
             sol = scipy.integrate.solve_ivp(
                 lambda t, v: [a_true * v[0], 0.5 * v[1] + v[2] * (v[0] - v[1]), -v[2]],
-                (0.5 * j, 0.5 * (j + 1)), s, t_eval=[0.5 * j + 0.25, 0.5 * (j + 1)], rtol=1e-11, atol=1e-13,
+                (0.5 * j, 0.5 * (j + 1)),
+                s,
+                t_eval=[0.5 * j + 0.25, 0.5 * (j + 1)],
+                rtol=1e-11,
+                atol=1e-13,
             )
             errs += list(np.abs(sol.y[1] - sol.y[0]))
             s = sol.y[:, -1].copy()
@@ -333,11 +369,17 @@ _SHARD_SCRIPT = textwrap.dedent(
 
 def test_sharded_equals_unsharded():
     env = dict(os.environ)
-    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+    ).strip()
     env["JAX_PLATFORMS"] = "cpu"
     out = subprocess.run(
-        [sys.executable, "-c", _SHARD_SCRIPT.format(root=ROOT)], env=env, capture_output=True, text=True,
-        timeout=300, cwd=ROOT,
+        [sys.executable, "-c", _SHARD_SCRIPT.format(root=ROOT)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
     )
     assert out.returncode == 0, out.stderr[-3000:]
     line = [ln for ln in out.stdout.splitlines() if ln.startswith("MAXDIFF")][0]
@@ -355,7 +397,9 @@ def test_band_limited_noise_is_simulates_realisation():
     res = run(n=3, chunk_size=4, noise=noise, simulate_kwargs=tol)
     for i in range(3):
         kx, kh, kn, _ = jr.split(jr.fold_in(jr.PRNGKey(7), i), 4)
-        traj = obsjax.simulate(PLANT, OBS, x0_normal(kx), xhat0_zero(kh), TS, noise=noise, key=kn, **tol)
+        traj = obsjax.simulate(
+            PLANT, OBS, x0_normal(kx), xhat0_zero(kh), TS, noise=noise, key=kn, **tol
+        )
         np.testing.assert_allclose(res.error_norm[i], traj.error_norm, rtol=1e-7, atol=1e-9)
     F = np.asarray(OBS.observer_matrix)  # the noise-free error differs: the noise is really there
     clean = [np.linalg.norm(scipy.linalg.expm(F * t) @ _x0_of(0)) for t in TS]
@@ -377,7 +421,9 @@ def test_noisy_batch_paths_are_the_split_keys_paths():
         np.testing.assert_array_equal(batch.path.values[b], one.path.values)
         x = jnp.array([0.3, -0.2])
         # y = C x + v(t), v the linear interpolation of the samples
-        v = np.interp(0.55, 0.1 * np.arange(one.path.values.shape[0]), np.asarray(one.path.values[:, 0]))
+        v = np.interp(
+            0.55, 0.1 * np.arange(one.path.values.shape[0]), np.asarray(one.path.values[:, 0])
+        )
         np.testing.assert_allclose(one.h(0.55, x, jnp.zeros(1)), [0.3 + v], rtol=1e-12)
         assert one.n == 2 and one.m == 1 and one.p == 1
 

@@ -112,12 +112,14 @@ def reproduce(outdir: str) -> list[str]:
     eig_sep = np.concatenate([np.linalg.eigvals(A + B @ K), np.linalg.eigvals(F)])
     x0c = np.array([1.0, 1.0])
     tc = np.linspace(0.0, 8.0, 321)
-    ctrl = lambda t, xhat: jnp.asarray(K) @ xhat  # noqa: E731
+    ctrl = lambda t, xhat: jnp.asarray(K) @ xhat
     cl = obsjax.simulate(plant, obs, x0c, np.zeros(2), tc, controller=ctrl, rtol=1e-9, atol=1e-11)
     ref = np.stack([scipy.linalg.expm(M * t) @ np.concatenate([x0c, np.zeros(2)]) for t in tc])
     full = np.stack([scipy.linalg.expm((A + B @ K) * t) @ x0c for t in tc])
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
-    ax[0].plot(eig_comp.real, eig_comp.imag, "o", ms=10, mfc="none", label="eig of composite (2.22)")
+    ax[0].plot(
+        eig_comp.real, eig_comp.imag, "o", ms=10, mfc="none", label="eig of composite (2.22)"
+    )
     ax[0].plot(eig_sep.real, eig_sep.imag, "x", ms=8, label="eig(A + BK) ∪ eig(A − GC)")
     ax[0].axvline(0, color="k", lw=0.5)
     ax[0].set_xlabel("Re")

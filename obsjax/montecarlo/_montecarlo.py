@@ -54,7 +54,9 @@ class _Fixed:
     def __init__(self, value, name):
         arr = np.asarray(as_float_array(value, name))
         if arr.ndim != 1:
-            raise ValueError(f"`{name}` given as an array must be a vector (n,), got shape {arr.shape}.")
+            raise ValueError(
+                f"`{name}` given as an array must be a vector (n,), got shape {arr.shape}."
+            )
         self.value = arr
         self._key = (arr.shape, arr.tobytes())
 
@@ -73,7 +75,9 @@ class _Fixed:
 
 def _sampler(s, name):
     if s is None:
-        raise ValueError(f"`{name}` is required: a callable key -> (n,) array, or a fixed (n,) array.")
+        raise ValueError(
+            f"`{name}` is required: a callable key -> (n,) array, or a fixed (n,) array."
+        )
     if callable(s):
         return s
     return _Fixed(s, name)
@@ -184,7 +188,9 @@ class MonteCarloResult:
             "conv_p95": float(cq[1]),
             "converged_fraction": self.converged_fraction,
             "ise_mean": float(np.mean(ise)) if ise.size else float("nan"),
-            f"ise_cvar{int(round(cvar_alpha * 100))}": float(np.mean(np.sort(ise)[-k:])) if k else float("nan"),
+            f"ise_cvar{int(round(cvar_alpha * 100))}": float(np.mean(np.sort(ise)[-k:]))
+            if k
+            else float("nan"),
         }
 
     def plot(self, axes=None, label: str | None = None, color=None):
@@ -203,8 +209,13 @@ class MonteCarloResult:
         pairs = [(qs[i], qs[-1 - i]) for i in range(len(qs) // 2)]
         for j, (lo, hi) in enumerate(pairs):
             ax0.fill_between(
-                ts, self.bands[qs.index(lo)], self.bands[qs.index(hi)], color=color,
-                alpha=0.15 + 0.15 * j, lw=0, label=None if label is not None else f"{lo:.0%}–{hi:.0%}",
+                ts,
+                self.bands[qs.index(lo)],
+                self.bands[qs.index(hi)],
+                color=color,
+                alpha=0.15 + 0.15 * j,
+                lw=0,
+                label=None if label is not None else f"{lo:.0%}–{hi:.0%}",
             )
         if 0.5 in qs:
             ax0.plot(ts, self.bands[qs.index(0.5)], color=color, lw=1.8, label=label or "median")
@@ -216,8 +227,13 @@ class MonteCarloResult:
         ct = self.convergence_time[self.ok]
         finite = ct[np.isfinite(ct)]
         if finite.size:
-            ax1.hist(finite, bins=min(50, max(5, int(np.sqrt(finite.size)))), color=color, alpha=0.6,
-                     label=label)
+            ax1.hist(
+                finite,
+                bins=min(50, max(5, int(np.sqrt(finite.size)))),
+                color=color,
+                alpha=0.6,
+                label=label,
+            )
         thr = f"{self.conv_tol:g}·‖x̃(t0)‖" if self.conv_relative else f"{self.conv_tol:g}"
         ax1.set_xlabel(f"convergence time (‖x̃‖ ≤ {thr} thereafter)")
         ax1.set_ylabel("count")
@@ -258,8 +274,18 @@ def _trapz_sq(ts, norms):
     return np.sum(0.5 * (sq[:, 1:] + sq[:, :-1]) * np.diff(ts), axis=1)
 
 
-def summarise(ts, error_norm, status, *, quantiles=DEFAULT_QUANTILES, conv_tol=0.05, conv_relative=True,
-              n=None, elapsed=0.0, n_computed=0) -> MonteCarloResult:
+def summarise(
+    ts,
+    error_norm,
+    status,
+    *,
+    quantiles=DEFAULT_QUANTILES,
+    conv_tol=0.05,
+    conv_relative=True,
+    n=None,
+    elapsed=0.0,
+    n_computed=0,
+) -> MonteCarloResult:
     """Build a :class:`MonteCarloResult` from per-trajectory error norms (N, T) and statuses (N,)."""
     ts = np.asarray(ts, dtype=float)
     norms = np.array(error_norm, dtype=float, copy=True)
@@ -325,8 +351,16 @@ def _one(dyn, cfg: _Config, key, i):
         plant = NoisyOutput(plant, realise_band_limited(noise, kn, cfg.ts[0], cfg.ts[-1], plant.m))
         noise = None
     traj = simulate(
-        plant, observer, x0, xhat0, ts, noise=noise, key=kn if noise is not None else None, throw=False,
-        max_segments=cfg.max_segments, **dict(cfg.sim_kwargs),
+        plant,
+        observer,
+        x0,
+        xhat0,
+        ts,
+        noise=noise,
+        key=kn if noise is not None else None,
+        throw=False,
+        max_segments=cfg.max_segments,
+        **dict(cfg.sim_kwargs),
     )
     return traj.error_norm, traj.status
 
@@ -349,7 +383,10 @@ def _chunk_kernel(dyn, key_data, idx, cfg: _Config):
     # waits only for its own slowest trajectory (automatic sharding of the vmapped solve would synchronise
     # the batch at every step).
     sharded = jax.shard_map(
-        local, mesh=cfg.mesh, in_specs=(P(), P(), P("batch")), out_specs=(P("batch"), P("batch")),
+        local,
+        mesh=cfg.mesh,
+        in_specs=(P(), P(), P("batch")),
+        out_specs=(P("batch"), P("batch")),
         check_vma=False,
     )
     return sharded(dyn, key_data, idx)
@@ -394,7 +431,9 @@ def _resolve_devices(devices):
     elif isinstance(devices, int):
         all_devs = jax.devices()
         if not 1 <= devices <= len(all_devs):
-            raise ValueError(f"`devices` asks for {devices} devices, but {len(all_devs)} are available.")
+            raise ValueError(
+                f"`devices` asks for {devices} devices, but {len(all_devs)} are available."
+            )
         devices = all_devs[:devices]
     devices = list(devices)
     if not devices:
@@ -496,25 +535,37 @@ def monte_carlo(
     """
     require_x64("obsjax.monte_carlo")
     if not isinstance(plant, AbstractSystem):
-        raise ValueError(f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}.")
+        raise ValueError(
+            f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}."
+        )
     if not isinstance(observer, AbstractObserver):
         raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
     if noise is not None and not isinstance(noise, AbstractNoise):
-        raise ValueError(f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}.")
+        raise ValueError(
+            f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}."
+        )
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"`n` (the number of trajectories) must be a positive integer, got {n!r}.")
     n = int(n)
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+    if (
+        isinstance(chunk_size, bool)
+        or not isinstance(chunk_size, (int, np.integer))
+        or chunk_size < 1
+    ):
         raise ValueError(f"`chunk_size` must be a positive integer, got {chunk_size!r}.")
     if max_chunks is not None and (not isinstance(max_chunks, (int, np.integer)) or max_chunks < 0):
-        raise ValueError(f"`max_chunks` must be a non-negative integer or None, got {max_chunks!r}.")
+        raise ValueError(
+            f"`max_chunks` must be a non-negative integer or None, got {max_chunks!r}."
+        )
     if not conv_tol > 0:
         raise ValueError(f"`conv_tol` must be > 0, got {conv_tol}.")
     qs = tuple(float(q) for q in quantiles)
     if not qs or any(not 0.0 <= q <= 1.0 for q in qs) or list(qs) != sorted(qs):
         raise ValueError(f"`quantiles` must be increasing levels in [0, 1], got {quantiles!r}.")
     if param_sampler is not None and not callable(param_sampler):
-        raise ValueError(f"`param_sampler` must be a callable (key, plant) -> plant, got {type(param_sampler).__name__}.")
+        raise ValueError(
+            f"`param_sampler` must be a callable (key, plant) -> plant, got {type(param_sampler).__name__}."
+        )
     ts_arr = np.asarray(_check_ts(ts), dtype=float)
     x0_sampler = _sampler(x0_sampler, "x0_sampler")
     xhat0_sampler = _sampler(xhat0_sampler, "xhat0_sampler")
@@ -579,8 +630,15 @@ def monte_carlo(
     ckpt = None
     if checkpoint is not None:
         ckpt = os.fspath(checkpoint)
-        names = [_fn_name(x0_sampler), _fn_name(xhat0_sampler), _fn_name(param_sampler),
-                 type(plant).__name__, type(observer).__name__, type(noise).__name__, repr(sim_kw)]
+        names = [
+            _fn_name(x0_sampler),
+            _fn_name(xhat0_sampler),
+            _fn_name(param_sampler),
+            type(plant).__name__,
+            type(observer).__name__,
+            type(noise).__name__,
+            repr(sim_kw),
+        ]
         fp = _fingerprint(dyn, ts_arr, n, chunk, key_data, names)
         os.makedirs(ckpt, exist_ok=True)
         meta_path = os.path.join(ckpt, "meta.json")
@@ -602,8 +660,16 @@ def monte_carlo(
                     done[c] = True
         else:
             with open(meta_path, "w") as fh:
-                json.dump({"fingerprint": fp, "n": n, "chunk_size": chunk, "n_chunks": n_chunks,
-                           "version": _CHECKPOINT_VERSION}, fh)
+                json.dump(
+                    {
+                        "fingerprint": fp,
+                        "n": n,
+                        "chunk_size": chunk,
+                        "n_chunks": n_chunks,
+                        "version": _CHECKPOINT_VERSION,
+                    },
+                    fh,
+                )
 
     todo = [c for c in range(n_chunks) if not done[c]]
     if max_chunks is not None:
@@ -625,9 +691,11 @@ def monte_carlo(
     computed = 0
     for c in it:
         lo, hi = c * chunk, min((c + 1) * chunk, n)
-        idx = np.minimum(np.arange(lo, lo + chunk), n - 1).astype(np.int32)  # pad with the last index
+        idx = np.minimum(np.arange(lo, lo + chunk), n - 1).astype(
+            np.int32
+        )  # pad with the last index
         if sharding_in is not None:
-            idx_dev = jax.make_array_from_callback((chunk,), sharding_in, lambda s: idx[s])
+            idx_dev = jax.make_array_from_callback((chunk,), sharding_in, lambda s, idx=idx: idx[s])
         else:
             idx_dev = jnp.asarray(idx)
         en, st = _chunk_kernel(dyn, key_data, idx_dev, cfg)
@@ -648,17 +716,42 @@ def monte_carlo(
     if bar is not None:
         bar.close()
     return summarise(
-        ts_arr, norms, status, quantiles=qs, conv_tol=conv_tol, conv_relative=conv_relative, n=n,
-        elapsed=elapsed, n_computed=computed,
+        ts_arr,
+        norms,
+        status,
+        quantiles=qs,
+        conv_tol=conv_tol,
+        conv_relative=conv_relative,
+        n=n,
+        elapsed=elapsed,
+        n_computed=computed,
     )
 
 
 def comparison_table(results: dict, cvar_alpha: float = 0.95) -> str:
     """A plain-text table comparing several :class:`MonteCarloResult` (label -> result)."""
-    cols = ["n", "failed", "final_median", "final_p95", "conv_median", "conv_p95", "converged_fraction",
-            "ise_mean", f"ise_cvar{int(round(cvar_alpha * 100))}"]
-    heads = ["N", "failed", "‖x̃(tf)‖ med", "‖x̃(tf)‖ p95", "t_conv med", "t_conv p95", "converged",
-             "ISE mean", f"ISE CVaR{int(round(cvar_alpha * 100))}"]
+    cols = [
+        "n",
+        "failed",
+        "final_median",
+        "final_p95",
+        "conv_median",
+        "conv_p95",
+        "converged_fraction",
+        "ise_mean",
+        f"ise_cvar{int(round(cvar_alpha * 100))}",
+    ]
+    heads = [
+        "N",
+        "failed",
+        "‖x̃(tf)‖ med",
+        "‖x̃(tf)‖ p95",
+        "t_conv med",
+        "t_conv p95",
+        "converged",
+        "ISE mean",
+        f"ISE CVaR{int(round(cvar_alpha * 100))}",
+    ]
     rows = []
     for label, res in results.items():
         s = res.summary(cvar_alpha)
@@ -673,6 +766,8 @@ def comparison_table(results: dict, cvar_alpha: float = 0.95) -> str:
                 row.append(f"{v:.3g}" if np.isfinite(v) else str(v))
         rows.append(row)
     widths = [max(len(r[i]) for r in rows + [["observer"] + heads]) for i in range(len(heads) + 1)]
-    fmt = lambda r: "  ".join(x.rjust(w) if i else x.ljust(w) for i, (x, w) in enumerate(zip(r, widths)))  # noqa: E731
+    fmt = lambda r: "  ".join(
+        x.rjust(w) if i else x.ljust(w) for i, (x, w) in enumerate(zip(r, widths))
+    )
     line = "-" * (sum(widths) + 2 * len(widths) - 2)
     return "\n".join([fmt(["observer"] + heads), line] + [fmt(r) for r in rows])

@@ -88,5 +88,7 @@ def noisy_batch(plant, noise, key, batch, t0, t1):
     paths = [realise_band_limited(noise, k, float(t0), float(t1), plant.m) for k in keys]
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *paths)
     out = NoisyOutput(plant, stacked)
-    arrays = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (batch,) + jnp.shape(a)), out.plant_arrays)
+    arrays = jax.tree_util.tree_map(
+        lambda a: jnp.broadcast_to(a, (batch,) + jnp.shape(a)), out.plant_arrays
+    )
     return eqx.tree_at(lambda o: o.plant_arrays, out, arrays, is_leaf=lambda x: x is None)
