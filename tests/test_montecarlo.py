@@ -457,3 +457,8 @@ def test_cli_reproduce_unknown_document_exits():
 
     with pytest.raises(SystemExit):
         cli.main(["reproduce", "no-such-paper"])
+
+
+def test_white_noise_refused():
+    with pytest.raises(ValueError, match="BandLimitedNoise in monte_carlo"):
+        run(noise=obsjax.noise.WhiteNoise(0.1))

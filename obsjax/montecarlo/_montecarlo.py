@@ -503,8 +503,10 @@ def monte_carlo(
     - `x0_sampler`: ``key -> (n_x,)`` initial plant state (or a fixed array).
     - `xhat0_sampler`: ``key -> (n_x,)`` or ``(key, x0) -> (n_x,)`` initial estimate (or a fixed array).
     - `ts`: (T,) save times (the statistics live on this grid).
-    - `noise`: measurement noise (:class:`obsjax.noise.WhiteNoise` or ``BandLimitedNoise``), an
-      independent realisation per trajectory.
+    - `noise`: band-limited measurement noise (:class:`obsjax.noise.BandLimitedNoise`), an independent
+      realisation per trajectory (drawn exactly as ``simulate(..., noise=noise, key=k_noise)`` draws it).
+      Fixed steps aligned with the noise grid (``simulate_kwargs=dict(adaptive=False, dt0=noise.dt / 4)``)
+      are much faster than adaptive ones on its kinks.
     - `param_sampler`: ``(key, plant) -> plant``: draws the true plant of each trajectory (model
       uncertainty); the returned plant must have the same structure (e.g. ``eqx.tree_at`` on its leaves).
     - `chunk_size`: trajectories per chunk (rounded up to a multiple of the number of devices).
@@ -543,6 +545,12 @@ def monte_carlo(
     if noise is not None and not isinstance(noise, AbstractNoise):
         raise ValueError(
             f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}."
+        )
+    if noise is not None and not isinstance(noise, BandLimitedNoise):
+        raise ValueError(
+            f"`noise` must be a BandLimitedNoise in monte_carlo, got {type(noise).__name__}: the study runs "
+            "inside jit, where obsjax.simulate cannot place a white-noise Brownian path on the (traced) save "
+            "grid; a band-limited path is realised from the static grid instead."
         )
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"`n` (the number of trajectories) must be a positive integer, got {n!r}.")
