@@ -133,14 +133,14 @@ class Load:
         return "\n".join(lines)
 
 
-def write_result(name: str, title: str, body: str, load: Load | None = None) -> str:
+def write_result(name: str, title: str, body: str, load: Load | None = None, script: str | None = None) -> str:
     os.makedirs(RESULTS, exist_ok=True)
     path = os.path.join(RESULTS, f"{name}.md")
     m, v = machine(), versions()
     parts = [
         f"# {title}",
         "",
-        f"Run {datetime.datetime.now().strftime('%Y-%m-%d %H:%M:%S')} by `benchmarks/{name}.py`.",
+        f"Run {datetime.datetime.now().strftime('%Y-%m-%d %H:%M:%S')} by `benchmarks/{script or name}.py`.",
         "",
         body.strip(),
         "",
