@@ -165,7 +165,7 @@ def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL,
     if reference not in ("start", "end"):
         raise ValueError(f"`reference` must be 'start' or 'end', got {reference!r}.")
     a = _window(k, T, float(t0))
-    _, PhiT, G = _periods(plant, jnp.asarray([a]), jnp.asarray(T), 2, rtol, atol)
+    _, PhiT, G = _periods(plant, _pad(jnp.asarray([a])), jnp.asarray(T), 2, rtol, atol)
     PhiT, G = PhiT[0], G[0]
     if reference == "start":
         return G
@@ -191,7 +191,7 @@ def regressor_gramian(plant, k, T, *, t0=0.0, rtol=_RTOL, atol=_ATOL):
     _check_plant(plant)
     T = _pos_float(T, "T")
     a = _window(k, T, float(t0))
-    return _periods(plant, jnp.asarray([a]), jnp.asarray(T), 2, rtol, atol)[2][0]
+    return _periods(plant, _pad(jnp.asarray([a])), jnp.asarray(T), 2, rtol, atol)[2][0]
 
 
 class UniformObservability(NamedTuple):
