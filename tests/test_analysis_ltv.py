@@ -1,5 +1,7 @@
 """LTV analysis (Chen & Yen (2)-(7), (16)-(19)) against closed forms, SciPy and defining properties."""
 
+import itertools
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -29,7 +31,7 @@ def _sw_transition(t, tau, period=0.7):
     A = [np.array(_SW_A1), np.array(_SW_A2)]
     edges = [tau] + [period * k for k in range(1, 200) if tau < period * k < t] + [t]
     Phi = np.eye(3)
-    for a, b in zip(edges[:-1], edges[1:]):
+    for a, b in itertools.pairwise(edges):
         mode = int(np.floor((0.5 * (a + b)) / period)) % 2
         Phi = scipy.linalg.expm(A[mode] * (b - a)) @ Phi
     return Phi
@@ -45,8 +47,12 @@ def test_transition_matrix_switching_closed_form_and_inverse():
 
 def test_transition_matrix_example_scipy_and_open_loop_instability():
     sol = scipy.integrate.solve_ivp(
-        lambda t, v: (_np_A(t) @ v.reshape(2, 2)).ravel(), (0, 10), np.eye(2).ravel(),
-        rtol=1e-11, atol=1e-13, method="DOP853",
+        lambda t, v: (_np_A(t) @ v.reshape(2, 2)).ravel(),
+        (0, 10),
+        np.eye(2).ravel(),
+        rtol=1e-11,
+        atol=1e-13,
+        method="DOP853",
     )
     Phi = np.asarray(an.transition_matrix(CY, 10.0, 0.0))
     np.testing.assert_allclose(Phi, sol.y[:, -1].reshape(2, 2), rtol=1e-7, atol=1e-9)
@@ -60,12 +66,18 @@ def test_gramians_lti_closed_form():
     plant = obsjax.LTI(A, C=C)
     T = 1.3
     ref, _ = scipy.integrate.quad_vec(
-        lambda s: scipy.linalg.expm(A.T * s) @ C.T @ C @ scipy.linalg.expm(A * s), 0.0, T, epsabs=1e-13
+        lambda s: scipy.linalg.expm(A.T * s) @ C.T @ C @ scipy.linalg.expm(A * s),
+        0.0,
+        T,
+        epsabs=1e-13,
     )
     W = np.asarray(an.observability_gramian(plant, 2, T))  # window [T, 2T]; LTI: same as [0, T]
     np.testing.assert_allclose(W, ref, rtol=1e-8, atol=1e-12)
     refe, _ = scipy.integrate.quad_vec(
-        lambda s: scipy.linalg.expm(-A.T * s) @ C.T @ C @ scipy.linalg.expm(-A * s), 0.0, T, epsabs=1e-13
+        lambda s: scipy.linalg.expm(-A.T * s) @ C.T @ C @ scipy.linalg.expm(-A * s),
+        0.0,
+        T,
+        epsabs=1e-13,
     )
     We = np.asarray(an.observability_gramian(plant, 1, T, reference="end"))
     np.testing.assert_allclose(We, refe, rtol=1e-8, atol=1e-12)
@@ -91,7 +103,9 @@ def test_constants_lemma_and_definitions():
         Phi = _sw_transition(a + T, a)
         sv = np.linalg.svd(Phi, compute_uv=False)
         np.testing.assert_allclose([c.m1[k], c.m2[k]], [sv[-1], sv[0]], rtol=1e-7)
-        assert c.mu[k] >= max(1.0, sv[0]) - 1e-9  # Φ(t_k, t_k) = I and the period's end are on the grid
+        assert (
+            c.mu[k] >= max(1.0, sv[0]) - 1e-9
+        )  # Φ(t_k, t_k) = I and the period's end are on the grid
         mu_fine = max(np.linalg.norm(_sw_transition(s, a), 2) for s in np.linspace(a, a + T, 301))
         assert abs(c.mu[k] - mu_fine) < 2e-3 * mu_fine  # μ is a sup sampled on n_grid = 129 points
     # The Lemma (16): α1 m1² ≤ η1 ≤ η2 ≤ α2 m2², period by period.
@@ -102,8 +116,14 @@ def test_constants_lemma_and_definitions():
 
 def test_switching_plant_needs_long_windows():
     # Each mode alone is unobservable (rank 2): a window inside one mode sees nothing of one direction.
-    assert int(np.linalg.matrix_rank(np.asarray(an.obsv(jnp.asarray(_SW_A1), jnp.asarray(_SW_C1))))) == 2
-    assert int(np.linalg.matrix_rank(np.asarray(an.obsv(jnp.asarray(_SW_A2), jnp.asarray(_SW_C2))))) == 2
+    assert (
+        int(np.linalg.matrix_rank(np.asarray(an.obsv(jnp.asarray(_SW_A1), jnp.asarray(_SW_C1)))))
+        == 2
+    )
+    assert (
+        int(np.linalg.matrix_rank(np.asarray(an.obsv(jnp.asarray(_SW_A2), jnp.asarray(_SW_C2)))))
+        == 2
+    )
     short = an.is_persistently_exciting(SW, 0.35, 7.0)
     assert not short and short.eta1 < 1e-12
     assert an.is_persistently_exciting(SW, 0.93, 9.3)
@@ -126,8 +146,8 @@ def test_chen_yen_bound_formula_and_small_T():
     Ts = (0.8, 0.4, 0.2, 0.1)
     a1 = [float(an.uniform_observability_constants(CY, T, T, t0=1.0).alpha1[0]) for T in Ts]
     r = [float(an.chen_yen_bound(CY, 20.0, 0.1, T, T, t0=1.0)[0]) for T in Ts]
-    assert all(x > y > 0 for x, y in zip(a1, a1[1:])) and a1[-1] < 1e-4 * a1[0]
-    assert all(x > y >= 1.0 for x, y in zip(r, r[1:])) and r[-1] < 1.02
+    assert all(x > y > 0 for x, y in itertools.pairwise(a1)) and a1[-1] < 1e-4 * a1[0]
+    assert all(x > y >= 1.0 for x, y in itertools.pairwise(r)) and r[-1] < 1.02
 
 
 def test_decay_rate_exact_exponential():

@@ -32,7 +32,15 @@ def _idx(t):
 def _run_example(obs):
     # Fig. 1/2 setting: x(0) = 0, no input, so x̃ = x̂ and x̃(0) = [5, -5] (REFERENCE.md).
     return obsjax.simulate(
-        CY, obs, jnp.zeros(2), XHAT0, TS, solver=diffrax.Dopri8(), rtol=1e-10, atol=1e-12, max_segments=64
+        CY,
+        obs,
+        jnp.zeros(2),
+        XHAT0,
+        TS,
+        solver=diffrax.Dopri8(),
+        rtol=1e-10,
+        atol=1e-12,
+        max_segments=64,
     )
 
 
@@ -70,10 +78,14 @@ def _scipy_error_norms(gamma, p0, T, times, tend=10.0):
             C = _np_C(t)
             w = Phi.T @ C.T
             L = gamma * Phi @ np.linalg.solve(Pinv, w)
-            return np.concatenate([(_np_A(t) - L @ C) @ x, (_np_A(t) @ Phi).ravel(), (gamma * w @ w.T).ravel()])
+            return np.concatenate(
+                [(_np_A(t) - L @ C) @ x, (_np_A(t) @ Phi).ravel(), (gamma * w @ w.T).ravel()]
+            )
 
         v0 = np.concatenate([e, np.eye(2).ravel(), np.eye(2).ravel() / p0])
-        sol = scipy.integrate.solve_ivp(f, (a, b), v0, method="DOP853", rtol=1e-11, atol=1e-13, dense_output=True)
+        sol = scipy.integrate.solve_ivp(
+            f, (a, b), v0, method="DOP853", rtol=1e-11, atol=1e-13, dense_output=True
+        )
         for t in times:
             if a <= t < b or (t == tend and b == tend):
                 out[t] = np.linalg.norm(sol.sol(t)[:2])
@@ -118,7 +130,9 @@ def test_figures_match_scipy(T):
 def test_depends_on_gamma_p0_only_through_product():
     base = np.asarray(_example(20.0, 0.1, 0.25).error)
     for g, p in [(2.0, 1.0), (200.0, 0.01)]:
-        np.testing.assert_allclose(np.asarray(_example(g, p, 0.25).error), base, rtol=1e-8, atol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(_example(g, p, 0.25).error), base, rtol=1e-8, atol=1e-12
+        )
     assert not np.allclose(np.asarray(_example(40.0, 0.1, 0.25).error), base, rtol=1e-3)
 
 
@@ -128,11 +142,14 @@ def test_state_matches_transition_matrix_and_regressor_gramian():
     obs = obsjax.LeastSquaresReset(CY, gamma, p0, 2.0)
     tr = _example(gamma, p0, 2.0)
     i = _idx(0.96)
-    np.testing.assert_allclose(tr.z.Phi[i], an.transition_matrix(CY, 0.96, 0.0), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(
+        tr.z.Phi[i], an.transition_matrix(CY, 0.96, 0.0), rtol=1e-8, atol=1e-10
+    )
     Wz = an.regressor_gramian(CY, 1, 0.96)
     np.testing.assert_allclose(tr.z.Qinv[i] - jnp.eye(2) / (gamma * p0), Wz, rtol=1e-7, atol=1e-10)
     np.testing.assert_allclose(
-        obs.covariance(jax.tree.map(lambda a: a[i], tr.z)), jnp.linalg.inv(jnp.eye(2) / p0 + gamma * Wz),
+        obs.covariance(jax.tree.map(lambda a: a[i], tr.z)),
+        jnp.linalg.inv(jnp.eye(2) / p0 + gamma * Wz),
         rtol=1e-7,
     )
     # Right after a reset (t = 2 is saved right-continuously): Φ = I, Qinv = I / (γ p0).
@@ -143,12 +160,14 @@ def test_state_matches_transition_matrix_and_regressor_gramian():
 
 def test_inputs_B_u_leave_error_dynamics_unchanged():
     # With an input and B(t) in both the plant and the model, x̃ still obeys (9): same error as Fig. 1.
-    B = lambda t: jnp.array([[0.0], [1.0 + 0.5 * jnp.sin(t)]])  # noqa: E731
+    B = lambda t: jnp.array([[0.0], [1.0 + 0.5 * jnp.sin(t)]])
     plant = obsjax.chen_yen_example(B=B)
     u = obsjax.signals.multisine([1.0, 0.5], [0.3, 1.1])
     obs = obsjax.LeastSquaresReset(plant, 20.0, 0.1, 0.25)
     x0 = jnp.array([1.0, 2.0])
-    tr = obsjax.simulate(plant, obs, x0, x0 + XHAT0, TS, u=u, solver=diffrax.Dopri8(), rtol=1e-10, atol=1e-12)
+    tr = obsjax.simulate(
+        plant, obs, x0, x0 + XHAT0, TS, u=u, solver=diffrax.Dopri8(), rtol=1e-10, atol=1e-12
+    )
     assert float(jnp.max(jnp.abs(tr.x[-1]))) > 1.0  # the input does move the plant
     np.testing.assert_allclose(tr.error, _example(20.0, 0.1, 0.25).error, rtol=1e-6, atol=1e-8)
 
@@ -176,7 +195,7 @@ def test_theorem_bound_switching_system():
     for x0 in ([1.0, -1.0, 2.0], [0.0, 3.0, -1.0]):
         tr = obsjax.simulate(SW, obs, jnp.asarray(x0), jnp.zeros(3), ts, rtol=1e-10, atol=1e-12)
         nrm = np.asarray(tr.error_norm)
-        rho = _check_periods(lambda t: nrm[int(round(t / T))], SW, 20.0, 1.0, T, K * T)
+        rho = _check_periods(lambda t, nrm=nrm: nrm[round(t / T)], SW, 20.0, 1.0, T, K * T)
         assert rho.max() < 1  # hypothesis holds: exponential convergence with a known factor
 
 
@@ -187,8 +206,16 @@ def _rates(g, p, T):
 
     def one(g, p, T):
         obs = eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), obs0, (g, p, T))
-        tr = obsjax.simulate(CY, obs, jnp.zeros(2), XHAT0, jnp.linspace(0, 10, 201), rtol=1e-8, atol=1e-10,
-                             max_segments=512)
+        tr = obsjax.simulate(
+            CY,
+            obs,
+            jnp.zeros(2),
+            XHAT0,
+            jnp.linspace(0, 10, 201),
+            rtol=1e-8,
+            atol=1e-10,
+            max_segments=512,
+        )
         return an.decay_rate(tr, t_min=1.0)
 
     return jax.vmap(one)(g, p, T)
@@ -225,7 +252,9 @@ def _ise_and_grad(params):
         obs = eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), obs0, params)
 
         def one(x0):
-            tr = obsjax.simulate(SW, obs, x0, jnp.zeros(3), _SW_TS, rtol=1e-8, atol=1e-10, max_segments=8)
+            tr = obsjax.simulate(
+                SW, obs, x0, jnp.zeros(3), _SW_TS, rtol=1e-8, atol=1e-10, max_segments=8
+            )
             return obsjax.losses.ise(tr)
 
         return jnp.mean(jax.vmap(one)(_SW_X0))
@@ -291,18 +320,29 @@ def test_kalman_bucy_lti_converges_to_are():
     Q, R = np.diag([0.1, 0.5]), np.array([[0.02]])
     plant = obsjax.LTI(A, C=C)
     kb = obsjax.KalmanBucy(plant, Q, R, np.eye(2))
-    tr = obsjax.simulate(plant, kb, jnp.array([1.0, 0.0]), jnp.zeros(2), jnp.linspace(0, 20, 5), rtol=1e-10,
-                         atol=1e-12)
+    tr = obsjax.simulate(
+        plant,
+        kb,
+        jnp.array([1.0, 0.0]),
+        jnp.zeros(2),
+        jnp.linspace(0, 20, 5),
+        rtol=1e-10,
+        atol=1e-12,
+    )
     P_are = scipy.linalg.solve_continuous_are(A.T, C.T, Q, R)
     np.testing.assert_allclose(tr.z.P[-1], P_are, rtol=1e-6)
-    np.testing.assert_allclose(kb.gain(20.0, jax.tree.map(lambda a: a[-1], tr.z)), P_are @ C.T / R, rtol=1e-6)
+    np.testing.assert_allclose(
+        kb.gain(20.0, jax.tree.map(lambda a: a[-1], tr.z)), P_are @ C.T / R, rtol=1e-6
+    )
     assert float(tr.error_norm[-1]) < 1e-6
 
 
 def test_kalman_bucy_ltv_riccati_matches_scipy():
     Q, R, P0 = 0.1 * np.eye(2), np.array([[0.05]]), np.eye(2)
     kb = obsjax.KalmanBucy(CY, Q, R, P0)
-    tr = obsjax.simulate(CY, kb, jnp.zeros(2), XHAT0, jnp.array([0.0, 1.0, 3.0]), rtol=1e-10, atol=1e-12)
+    tr = obsjax.simulate(
+        CY, kb, jnp.zeros(2), XHAT0, jnp.array([0.0, 1.0, 3.0]), rtol=1e-10, atol=1e-12
+    )
 
     def f(t, v):
         P = v.reshape(2, 2)
@@ -339,12 +379,25 @@ def test_error_kalman_bucy_shape():
 def test_tune_gamma_T_with_noise_lowers_loss():
     import optax
 
+    # γ and T from the paper's values (p0 fixed: only γ·p0 matters); ISE under measurement noise charges
+    # both slow convergence and noise amplification.
     obs = obsjax.LeastSquaresReset(CY, 20.0, 0.1, 0.25)
-    xh = XHAT0 + jax.random.normal(jax.random.PRNGKey(1), (4, 2))
+    xh = XHAT0 + jax.random.normal(jax.random.PRNGKey(1), (3, 2))
     res = obsjax.tune(
-        obs, CY, where=lambda o: (o.gamma, o.T), loss=obsjax.losses.ise, x0s=jnp.zeros((4, 2)), xhat0s=xh,
-        ts=jnp.linspace(0, 5, 101), optimizer=optax.adam(0.1), steps=8, progress=False,
-        noise=obsjax.noise.BandLimitedNoise(0.05, 0.02), key=jax.random.PRNGKey(2),
+        obs,
+        CY,
+        where=lambda o: (o.gamma, o.T),
+        loss=obsjax.losses.ise,
+        x0s=jnp.zeros((3, 2)),
+        xhat0s=xh,
+        ts=jnp.linspace(0, 4, 81),
+        optimizer=optax.adam(0.1),
+        steps=6,
+        progress=False,
+        noise=obsjax.noise.BandLimitedNoise(0.05, 0.02),
+        key=jax.random.PRNGKey(2),
+        simulate_kwargs={"adaptive": False, "dt0": 0.02},
     )
     loss = res.history["loss"]
     assert np.all(np.isfinite(loss)) and loss.min() < 0.9 * loss[0]
+    assert float(res.observer.gamma) > 20.0  # faster injection pays at this noise level

@@ -34,7 +34,14 @@ def simulate_example(T, gamma=20.0, p0=0.1, ts=None, rtol=1e-9, atol=1e-11):
     obs = obsjax.LeastSquaresReset(plant, gamma, p0, T)
     ts = jnp.linspace(0.0, 10.0, 1001) if ts is None else ts
     return obsjax.simulate(
-        plant, obs, jnp.zeros(2), jnp.array([5.0, -5.0]), ts, solver=diffrax.Dopri8(), rtol=rtol, atol=atol
+        plant,
+        obs,
+        jnp.zeros(2),
+        jnp.array([5.0, -5.0]),
+        ts,
+        solver=diffrax.Dopri8(),
+        rtol=rtol,
+        atol=atol,
     )
 
 

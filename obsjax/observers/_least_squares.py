@@ -134,7 +134,9 @@ def _scalar_gain(x, name):
         if arr.size == 1:
             arr = arr.reshape(())
         else:
-            raise ValueError(f"`{name}` must be a scalar, got an array of shape {tuple(arr.shape)}.")
+            raise ValueError(
+                f"`{name}` must be a scalar, got an array of shape {tuple(arr.shape)}."
+            )
     positive(arr, name)
     # a strongly typed float64 scalar, so observers built from ints or Python floats share one jit trace
     return jnp.asarray(arr, dtype=jnp.result_type(float))
@@ -216,14 +218,14 @@ class LeastSquaresReset(AbstractObserver):
     def reset_period(self):
         return self.T
 
-    def check(self) -> "LeastSquaresReset":
+    def check(self) -> LeastSquaresReset:
         """Value checks that survive jit: γ, p0, T > 0 (``eqx.error_if``)."""
         gamma = eqx.error_if(self.gamma, self.gamma <= 0, "`gamma` must be > 0.")
         p0 = eqx.error_if(self.p0, self.p0 <= 0, "`p0` must be > 0.")
         T = eqx.error_if(self.T, self.T <= 0, "`T` (the reset period) must be > 0.")
         return eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), self, (gamma, p0, T))
 
-    def prepare(self) -> "LeastSquaresReset":
+    def prepare(self) -> LeastSquaresReset:
         return self.check()
 
     def _reset_state(self, xhat):
@@ -264,4 +266,3 @@ class LeastSquaresReset(AbstractObserver):
 
     def estimate(self, t, z, y):
         return z.xhat
-
