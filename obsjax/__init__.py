@@ -1,1 +1,2 @@
 """obsjax: differentiable state observers in JAX."""
+from .observers._finite_window import FiniteWindow as FiniteWindow
