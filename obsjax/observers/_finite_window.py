@@ -15,6 +15,7 @@ W_i of γ_i = β_i / α_i, so the kernels are matrix exponentials (25)-(26), or 
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import equinox as eqx
@@ -217,36 +218,12 @@ class FiniteWindow(AbstractObserver):
         return self
 
     def _leaves(self):
-        """(A, B, C, T, α, β) with value checks that survive ``jit`` (``eqx.error_if``)."""
-        T = eqx.error_if(self.T, self.T <= 0, "FiniteWindow: `T` (the window length) must be > 0.")
-        alpha = eqx.error_if(
-            self.alpha, jnp.any(self.alpha <= 0), "FiniteWindow: `alpha` must be > 0 elementwise."
-        )
-        beta = eqx.error_if(
-            self.beta, jnp.any(self.beta < 0), "FiniteWindow: `beta` must be >= 0 elementwise."
-        )
-        if self.formula == "(28)":
-            alpha = eqx.error_if(
-                alpha,
-                jnp.any(jnp.abs(beta / alpha - 1.0) > 1e-12),
-                "FiniteWindow: formula '(28)' needs beta == alpha (every γ = 1); use formula '(25)'.",
-            )
-        return self.model.A, self.model.B, self.model.C, T, alpha, beta
+        return self.model.A, self.model.B, self.model.C, self.T, self.alpha, self.beta
 
     # ---- the kernels ----------------------------------------------------------------------------------
     def _design(self):
-        """(W (r, 2n, 2n), Cmat (n, r, 2n)): row i of [G1 | G2](s)ᵀ-generator is Σ_k Cmat[i, k] e^{W_k s}."""
-        A, B, C, T, alpha, beta = self._leaves()
-        n = A.shape[0]
-        if self.formula == "(28)":
-            W, R = _uniform_R(A, B, C, T)
-            E1 = jnp.concatenate([jnp.eye(n), jnp.zeros((n, n))], axis=1)
-            # row i of G(s) = R[i] [I 0] e^{Wᵀs} [...]ᵀ  ⇔  generator vector e^{Ws} (E1ᵀ R[i]ᵀ)
-            coef = (E1.T @ R.T).T[:, None, :]  # (n, 1, 2n)
-            return W[None], coef
-        W, c = _general_rows(A, B, C, T, beta / alpha)
-        coef = jnp.eye(n)[:, :, None] * c[None, :, :]  # (n, n, 2n): row i uses only W_i
-        return W, coef
+        """(W (r, 2n, 2n), coef (n, r, 2n)): row i of G1, G2 at s comes from Σ_k e^{W_k s} coef[i, k]."""
+        return _design(*self._leaves(), self.formula)
 
     def kernels(self, s):
         """The optimal kernels G1(s) (n, m) and G2(s) (n, p) at s ∈ [0, T] ((26) or (28)).
@@ -255,24 +232,18 @@ class FiniteWindow(AbstractObserver):
 
         **Returns:** ``(G1, G2)`` with shapes (…, n, m) and (…, n, p).
         """
-        A, B, C = self.model.A, self.model.B, self.model.C
-        n = A.shape[0]
+        s = jnp.asarray(s, dtype=self.model.A.dtype)
         W, coef = self._design()
-        s = jnp.asarray(s, dtype=A.dtype)
-
-        def at(si):
-            V = jnp.einsum("kab,ikb->ia", jax.vmap(lambda Wk: expm(Wk * si))(W), coef)  # (n, 2n)
-            return V[:, :n] @ C.T, V[:, n:] @ B
-
+        G1, G2 = _kernels_at(W, coef, self.model.B, self.model.C, s.reshape(-1))
         if s.ndim == 0:
-            return at(s)
-        return jax.vmap(at)(s.reshape(-1))
+            return G1[0], G2[0]
+        return G1, G2
 
     def norm(self):
         """The observer norm (15) of the optimal kernels, ‖(G1, G2)‖ (Byrski & Fuksa (5), (15), (31)).
 
         Computed exactly as Σᵢ cᵢᵀ (∫₀ᵀ e^{Wᵀs} Qᵢ e^{Ws} ds) cᵢ with Qᵢ = blockdiag(αᵢ CᵀC, βᵢ BBᵀ) by a
-        block matrix exponential; differentiable in T, α, β.
+        block matrix exponential; differentiable in T, α, β (and the model).
 
         Meaning (Section 2.2): for disturbances z1 of y and z2 of u with ‖z1‖² + ‖z2‖² ≤ 1 (the unit ball
         of Y × U) the estimation error obeys Σᵢ min(αᵢ, βᵢ) eᵢ² ≤ ‖(G1, G2)‖², so ‖x̂ − x‖ ≤ ‖(G1, G2)‖
@@ -281,25 +252,7 @@ class FiniteWindow(AbstractObserver):
 
         **Returns:** a scalar.  **Example:** ``FiniteWindow(model29, 1.0).norm()`` ≈ 2.09271 (31).
         """
-        A, B, C, T, alpha, beta = self._leaves()
-        n = A.shape[0]
-        W, coef = self._design()
-        CC, BB = C.T @ C, B @ B.T
-        Z = jnp.zeros((n, n))
-        Q1 = jnp.block([[CC, Z], [Z, Z]])
-        Q2 = jnp.block([[Z, Z], [Z, BB]])
-        if self.formula == "(28)":
-            c = coef[:, 0, :]  # (n, 2n)
-            M1, M2 = _gram(W[0], Q1, T), _gram(W[0], Q2, T)
-            val = jnp.sum(alpha * jnp.einsum("ia,ab,ib->i", c, M1, c))
-            val = val + jnp.sum(beta * jnp.einsum("ia,ab,ib->i", c, M2, c))
-        else:
-            c = jnp.einsum("iia->ia", coef)
-            M1 = jax.vmap(lambda Wi: _gram(Wi, Q1, T))(W)
-            M2 = jax.vmap(lambda Wi: _gram(Wi, Q2, T))(W)
-            val = jnp.sum(alpha * jnp.einsum("ia,iab,ib->i", c, M1, c))
-            val = val + jnp.sum(beta * jnp.einsum("ia,iab,ib->i", c, M2, c))
-        return jnp.sqrt(val)
+        return _norm(*self._leaves(), self.formula)
 
     # ---- the estimate from a sampled window ---------------------------------------------------------
     def estimate_window(self, ts, ys, us=None, *, rule="auto"):
@@ -365,8 +318,7 @@ class FiniteWindow(AbstractObserver):
             "FiniteWindow.estimate_window: `ts` must span [t − T, t].",
         )
         G1, G2 = self.kernels(ts - ts[0])
-        yd = ys - us @ self.model.D.T
-        return jnp.einsum("k,kij,kj->i", wts, G1, yd) + jnp.einsum("k,kij,kj->i", wts, G2, us)
+        return _quadrature(wts, G1, G2, ys, us, self.model.D)
 
     # ---- the sliding-window observer in a simulation (Section 4) ------------------------------------
     @property
@@ -375,22 +327,7 @@ class FiniteWindow(AbstractObserver):
         return self.T / self.n_chunks
 
     def _window_design(self) -> _Window:
-        A, B, C, T, _, _ = self._leaves()
-        n, N = A.shape[0], self.n_chunks
-        h = T / N
-        W, coef = self._design()  # (r, 2n, 2n), (n, r, 2n)
-        # piece j covers s ∈ [jh, (j+1)h]; its stored value is ζ_j = ∫ e^{−Wᵀ((j+1)h − s)} w ds, so its
-        # contribution to row i is Σ_k (e^{W_k (j+1)h} coef[i, k])ᵀ ζ_{j,k}.
-        js = jnp.arange(1, N + 1, dtype=A.dtype)
-        E = jax.vmap(lambda j: jax.vmap(lambda Wk: expm(Wk * (j * h)))(W))(js)  # (N, r, 2n, 2n)
-        readout = jnp.einsum("jkba,ika->jikb", E, coef)
-        # history (36): w(τ) = [CᵀC e^{A(τ − t0)} x̂0; 0] on [t0 − T, t0).  Piece j starts at t0 − (N − j)h:
-        # ζ_j = ∫₀ʰ e^{−Wᵀ(h − r)} [CᵀC; 0] e^{A r} dr · e^{−A (N − j) h} x̂0.
-        F = jnp.concatenate([C.T @ C, jnp.zeros((n, n))], axis=0)
-        Gam = jax.vmap(lambda Wk: _upper_right(-Wk.T, F, A, h))(W)  # (r, 2n, n)
-        back = jax.vmap(lambda j: expm(-A * ((N - j) * h)))(jnp.arange(N, dtype=A.dtype))  # (N, n, n)
-        prefill = jnp.einsum("kan,jnl->jkal", Gam, back)
-        return _Window(W=W, readout=readout, prefill=prefill)
+        return _window_design(*self._leaves(), self.formula, self.n_chunks)
 
     def prepare(self) -> "FiniteWindow":
         """A copy with the window design (kernels at the piece boundaries, history) computed once."""
@@ -426,6 +363,104 @@ class FiniteWindow(AbstractObserver):
 
     def estimate(self, t, z, y):
         return z[0]
+
+
+# ------------------------------------------------------------------------------------------------------
+# Jitted cores (value checks by eqx.error_if survive jit; nested under an outer jit/grad they inline).
+# ------------------------------------------------------------------------------------------------------
+
+
+def _checked(T, alpha, beta, formula):
+    T = eqx.error_if(T, T <= 0, "FiniteWindow: `T` (the window length) must be > 0.")
+    alpha = eqx.error_if(alpha, jnp.any(alpha <= 0), "FiniteWindow: `alpha` must be > 0 elementwise.")
+    beta = eqx.error_if(beta, jnp.any(beta < 0), "FiniteWindow: `beta` must be >= 0 elementwise.")
+    if formula == "(28)":
+        alpha = eqx.error_if(
+            alpha,
+            jnp.any(jnp.abs(beta / alpha - 1.0) > 1e-12),
+            "FiniteWindow: formula '(28)' needs beta == alpha (every γ = 1); use formula '(25)'.",
+        )
+    return T, alpha, beta
+
+
+@partial(jax.jit, static_argnames="formula")
+def _design(A, B, C, T, alpha, beta, formula):
+    T, alpha, beta = _checked(T, alpha, beta, formula)
+    n = A.shape[0]
+    if formula == "(28)":
+        W, R = _uniform_R(A, B, C, T)
+        E1 = jnp.concatenate([jnp.eye(n), jnp.zeros((n, n))], axis=1)
+        # row i of G1(s) = R[i] [I 0] e^{Wᵀs} [I; 0] Cᵀ  ⇔  generator vector e^{Ws} [I; 0] R[i]ᵀ
+        coef = (R @ E1)[:, None, :]  # (n, 1, 2n)
+        W, coef = W[None], coef
+    else:
+        W, c = _general_rows(A, B, C, T, beta / alpha)
+        coef = jnp.eye(n)[:, :, None] * c[None, :, :]  # (n, n, 2n): row i uses only W_i
+    bad = ~(jnp.all(jnp.isfinite(W)) & jnp.all(jnp.isfinite(coef)))
+    coef = eqx.error_if(
+        coef, bad, "FiniteWindow: the kernel design is not finite (window too long for the Hamiltonian's growth?)."
+    )
+    return W, coef
+
+
+@jax.jit
+def _kernels_at(W, coef, B, C, s):
+    n = C.shape[1]
+
+    def at(si):
+        V = jnp.einsum("kab,ikb->ia", jax.vmap(lambda Wk: expm(Wk * si))(W), coef)  # (n, 2n)
+        return V[:, :n] @ C.T, V[:, n:] @ B
+
+    return jax.vmap(at)(s)
+
+
+@partial(jax.jit, static_argnames="formula")
+def _norm(A, B, C, T, alpha, beta, formula):
+    W, coef = _design(A, B, C, T, alpha, beta, formula)
+    T, alpha, beta = _checked(T, alpha, beta, formula)
+    n = A.shape[0]
+    CC, BB = C.T @ C, B @ B.T
+    Z = jnp.zeros((n, n), A.dtype)
+    Q1 = jnp.block([[CC, Z], [Z, Z]])
+    Q2 = jnp.block([[Z, Z], [Z, BB]])
+    if formula == "(28)":
+        c = coef[:, 0, :]  # (n, 2n)
+        M1, M2 = _gram(W[0], Q1, T), _gram(W[0], Q2, T)
+        val = jnp.sum(alpha * jnp.einsum("ia,ab,ib->i", c, M1, c))
+        val = val + jnp.sum(beta * jnp.einsum("ia,ab,ib->i", c, M2, c))
+    else:
+        c = jnp.einsum("iia->ia", coef)
+        M1 = jax.vmap(lambda Wi: _gram(Wi, Q1, T))(W)
+        M2 = jax.vmap(lambda Wi: _gram(Wi, Q2, T))(W)
+        val = jnp.sum(alpha * jnp.einsum("ia,iab,ib->i", c, M1, c))
+        val = val + jnp.sum(beta * jnp.einsum("ia,iab,ib->i", c, M2, c))
+    return jnp.sqrt(val)
+
+
+@partial(jax.jit, static_argnames=("formula", "N"))
+def _window_design(A, B, C, T, alpha, beta, formula, N) -> _Window:
+    W, coef = _design(A, B, C, T, alpha, beta, formula)  # (r, 2n, 2n), (n, r, 2n)
+    n = A.shape[0]
+    h = T / N
+    # piece j covers s ∈ [jh, (j+1)h]; its stored value is ζ_j = ∫ e^{−Wᵀ((j+1)h − s)} w ds, so its
+    # contribution to row i is Σ_k (e^{W_k (j+1)h} coef[i, k])ᵀ ζ_{j,k}.
+    js = jnp.arange(1, N + 1, dtype=A.dtype)
+    E = jax.vmap(lambda j: jax.vmap(lambda Wk: expm(Wk * (j * h)))(W))(js)  # (N, r, 2n, 2n)
+    readout = jnp.einsum("jkba,ika->jikb", E, coef)
+    # history (36): w(τ) = [CᵀC e^{A(τ − t0)} x̂0; 0] on [t0 − T, t0).  Piece j starts at t0 − (N − j)h:
+    # ζ_j = ∫₀ʰ e^{−Wᵀ(h − r)} [CᵀC; 0] e^{A r} dr · e^{−A (N − j) h} x̂0.
+    F = jnp.concatenate([C.T @ C, jnp.zeros((n, n), A.dtype)], axis=0)
+    Gam = jax.vmap(lambda Wk: _upper_right(-Wk.T, F, A, h))(W)  # (r, 2n, n)
+    back = jax.vmap(lambda j: expm(-A * ((N - j) * h)))(jnp.arange(N, dtype=A.dtype))  # (N, n, n)
+    prefill = jnp.einsum("kan,jnl->jkal", Gam, back)
+    return _Window(W=W, readout=readout, prefill=prefill)
+
+
+@jax.jit
+def _quadrature(wts, G1, G2, ys, us, D):
+    yd = ys - us @ D.T
+    return jnp.einsum("k,kij,kj->i", wts, G1, yd) + jnp.einsum("k,kij,kj->i", wts, G2, us)
+
 
 
 def _check_observable(model: LTI) -> None:
