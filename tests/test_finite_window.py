@@ -91,7 +91,10 @@ def test_kernels_match_closed_form_30_and_25_equals_28():
     t = np.linspace(0.0, T, 7)
     sh, ch, s, c = np.sinh, np.cosh, np.sin, np.cos
     R = np.array(
-        [[sh(T) * c(T) - ch(T) * s(T), 2 * sh(T) * s(T)], [-2 * sh(T) * s(T), 2 * (sh(T) * c(T) + ch(T) * s(T))]]
+        [
+            [sh(T) * c(T) - ch(T) * s(T), 2 * sh(T) * s(T)],
+            [-2 * sh(T) * s(T), 2 * (sh(T) * c(T) + ch(T) * s(T))],
+        ]
     ) / (2 * (sh(T) ** 2 - s(T) ** 2))
     g1 = (R @ np.array([2 * ch(t) * c(t), sh(t) * c(t) + ch(t) * s(t)])).T  # (30)
     g2 = (R @ np.array([-2 * sh(t) * s(t), sh(t) * c(t) - ch(t) * s(t)])).T
@@ -127,7 +130,9 @@ def test_unbiasedness_volterra_and_exact_reconstruction(n, m, p, seed):
     # (16): ∫ G1(τ) C e^{−A(T−τ)} dτ = I
     back = expm_grid(-A, T / (K - 1), K)[::-1]  # e^{−A(T − s_k)}
     integrand = np.einsum("kim,mj,kjl->kil", G1, C, back)
-    np.testing.assert_allclose(np.einsum("k,kij->ij", w, integrand), np.eye(n), atol=1e-6)  # Simpson O(h⁴)
+    np.testing.assert_allclose(
+        np.einsum("k,kij->ij", w, integrand), np.eye(n), atol=1e-6
+    )  # Simpson O(h⁴)
     # (18): G2(t) = ∫₀ᵗ G1(τ) C e^{A(τ−t)} B dτ, checked at a few t by Simpson on [0, t]
     for kt in (60, 150, 300):
         tt, kk = s[kt], 2 * kt + 1
@@ -135,10 +140,16 @@ def test_unbiasedness_volterra_and_exact_reconstruction(n, m, p, seed):
         G1t, _ = (np.asarray(g) for g in obs.kernels(tau))
         back = expm_grid(-A, tt / (kk - 1), kk)[::-1]  # e^{A(τ_k − t)}
         vals = np.einsum("kim,mj,kjl,lr->kir", G1t, C, back, B)
-        np.testing.assert_allclose(np.einsum("k,kij->ij", simpson_weights(kk, tt), vals), G2[kt], atol=1e-6)
+        np.testing.assert_allclose(
+            np.einsum("k,kij->ij", simpson_weights(kk, tt), vals), G2[kt], atol=1e-6
+        )
     # exact reconstruction of x(T) for arbitrary x0 and input, the plant integrated by SciPy
     x0 = rng.normal(size=n)
-    amp, frq, ph = rng.normal(size=(p, 3)), rng.uniform(0.3, 4.0, (p, 3)), rng.uniform(0, 6.3, (p, 3))
+    amp, frq, ph = (
+        rng.normal(size=(p, 3)),
+        rng.uniform(0.3, 4.0, (p, 3)),
+        rng.uniform(0, 6.3, (p, 3)),
+    )
 
     def u(t):
         return np.sum(amp * np.sin(frq * t + ph), axis=1)
@@ -167,7 +178,7 @@ def test_unbiasedness_volterra_and_exact_reconstruction(n, m, p, seed):
 
 def _discrete_problem(A, B, C, T, K):
     """Trapezoid discretisation: constraint matrix of (16), the Volterra map (18) and the weights."""
-    n, m, p = A.shape[0], C.shape[0], B.shape[1]
+    m, p = C.shape[0], B.shape[1]
     tau = np.linspace(0.0, T, K)
     h = T / (K - 1)
     q = np.full(K, h)
@@ -191,7 +202,7 @@ def _discrete_problem(A, B, C, T, K):
 def _discrete_optimum(A, B, C, T, alpha, beta, K):
     """min Σ αᵢ‖g1ⁱ‖² + βᵢ‖g2ⁱ‖² subject to (16), g2 = (18)(g1): the norm² and the kernels G1 (K, n, m)."""
     n, m = A.shape[0], C.shape[0]
-    tau, Hc, L, Qy, Qu = _discrete_problem(A, B, C, T, K)
+    _, Hc, L, Qy, Qu = _discrete_problem(A, B, C, T, K)
     total, rows = 0.0, []
     for i in range(n):
         H = alpha[i] * Qy + beta[i] * L.T @ Qu @ L
@@ -228,9 +239,10 @@ def test_minimality_against_the_gram_observer_and_other_members_of_S():
         opt = float(obsjax.FiniteWindow(obsjax.LTI(A, B, C), T, alpha=alpha, beta=beta).norm()) ** 2
         gram_norms = []
         for K in (201, 401):
-            tau, Hc, L, Qy, Qu = _discrete_problem(A, B, C, T, K)
+            _, Hc, L, Qy, Qu = _discrete_problem(A, B, C, T, K)
 
-            def weighted(G1rows):  # G1rows: (n, K m) → the norm² (15) with G2 from (18)
+            def weighted(G1rows, L=L, Qy=Qy, Qu=Qu, alpha=alpha, beta=beta, n=n):
+                """G1rows: (n, K m) → the norm² (15), G2 from (18)."""
                 G2rows = G1rows @ L.T
                 return sum(
                     alpha[i] * G1rows[i] @ Qy @ G1rows[i] + beta[i] * G2rows[i] @ Qu @ G2rows[i]
@@ -319,8 +331,20 @@ def test_gradient_of_norm_wrt_T_alpha_beta_general_formula():
     assert float(g.T) == pytest.approx(dT, rel=1e-6)
     for i in range(3):
         e = np.eye(3)[i]
-        da = _fd(lambda a: float(obsjax.FiniteWindow(model, 1.3, alpha=alpha + a * e, beta=beta).norm()), 0.0, h)
-        db = _fd(lambda b: float(obsjax.FiniteWindow(model, 1.3, alpha=alpha, beta=beta + b * e).norm()), 0.0, h)
+        da = _fd(
+            lambda a, e=e: float(
+                obsjax.FiniteWindow(model, 1.3, alpha=alpha + a * e, beta=beta).norm()
+            ),
+            0.0,
+            h,
+        )
+        db = _fd(
+            lambda b, e=e: float(
+                obsjax.FiniteWindow(model, 1.3, alpha=alpha, beta=beta + b * e).norm()
+            ),
+            0.0,
+            h,
+        )
         assert float(g.alpha[i]) == pytest.approx(da, rel=1e-6, abs=1e-9)
         assert float(g.beta[i]) == pytest.approx(db, rel=1e-6, abs=1e-9)
 
@@ -330,7 +354,9 @@ def test_gradient_of_norm_formula_28_matches_closed_form_and_fd():
     g = eqx.filter_grad(lambda o: o.norm())(obs)
     # d(31)/dT by differentiating the closed form (independent of the kernels)
     d31 = jax.grad(
-        lambda T: jnp.sqrt((3 * jnp.sinh(2 * T) + jnp.sin(2 * T)) / (4 * (jnp.sinh(T) ** 2 - jnp.sin(T) ** 2)))
+        lambda T: jnp.sqrt(
+            (3 * jnp.sinh(2 * T) + jnp.sin(2 * T)) / (4 * (jnp.sinh(T) ** 2 - jnp.sin(T) ** 2))
+        )
     )(1.0)
     assert float(g.T) == pytest.approx(float(d31), rel=1e-9)
     assert float(g.T) == pytest.approx(_fd(norm31, 1.0), rel=1e-7)
@@ -339,8 +365,20 @@ def test_gradient_of_norm_formula_28_matches_closed_form_and_fd():
     h = 1e-3
     for i in range(2):
         e = np.eye(2)[i]
-        da = _fd(lambda a: float(obsjax.FiniteWindow(MODEL29, 1.0, alpha=1 + a * e, beta=np.ones(2)).norm()), 0.0, h)
-        db = _fd(lambda b: float(obsjax.FiniteWindow(MODEL29, 1.0, alpha=np.ones(2), beta=1 + b * e).norm()), 0.0, h)
+        da = _fd(
+            lambda a, e=e: float(
+                obsjax.FiniteWindow(MODEL29, 1.0, alpha=1 + a * e, beta=np.ones(2)).norm()
+            ),
+            0.0,
+            h,
+        )
+        db = _fd(
+            lambda b, e=e: float(
+                obsjax.FiniteWindow(MODEL29, 1.0, alpha=np.ones(2), beta=1 + b * e).norm()
+            ),
+            0.0,
+            h,
+        )
         assert float(g.alpha[i]) == pytest.approx(da, rel=1e-6)
         assert float(g.beta[i]) == pytest.approx(db, rel=1e-6)
 
@@ -355,7 +393,7 @@ def test_sliding_window_observer_open_loop_unstable_plant():
     SciPy-simulated data and the history (36) (the free response through x̂0)."""
     A, B, C = random_plant(3, 1, 2, seed=11)
     plant = obsjax.LTI(A, B, C)
-    T, N = 1.0, 8
+    T, N = 1.0, 6
     obs = obsjax.FiniteWindow(plant, T, alpha=[1.0, 2.0, 1.0], beta=[0.5, 1.0, 2.0], n_chunks=N)
     amp, frq = np.array([[0.8, -0.5], [0.3, 1.0]]), np.array([[1.3, 3.1], [0.7, 2.2]])
 
@@ -372,14 +410,16 @@ def test_sliding_window_observer_open_loop_unstable_plant():
     assert np.abs(err[N:]).max() < 1e-7 * np.abs(np.asarray(tr.x)).max()
     assert np.abs(err[: N // 2]).min() > 1e-3  # before T the (wrong) history is still in the window
     np.testing.assert_allclose(np.asarray(tr.xhat[0]), xhat0, atol=1e-12)
-    sol = si.solve_ivp(lambda t, x: A @ x + B @ u_np(t), (0.0, 2.0), x0, rtol=1e-12, atol=1e-12, dense_output=True)
+    sol = si.solve_ivp(
+        lambda t, x: A @ x + B @ u_np(t), (0.0, 2.0), x0, rtol=1e-12, atol=1e-12, dense_output=True
+    )
     np.testing.assert_allclose(np.asarray(tr.x), sol.sol(ts).T, atol=1e-7)
     for k in (1, 3, 5):
         tk = ts[k]
-        grid = np.linspace(tk - T, tk, 32 * N + 1)  # t0 = 0 falls on an even node (a Simpson panel edge)
-        ys = np.stack(
-            [C @ (sl.expm(A * t) @ xhat0) if t < 0 else C @ sol.sol(t) for t in grid]
-        )
+        # the same grid size as the (3, 1, 2) plant above (kernels compiled once); t0 = 0 falls on an
+        # even node, a Simpson panel edge, so the history's kink does not spoil the O(h⁴) rule
+        grid = np.linspace(tk - T, tk, 50 * N + 1)
+        ys = np.stack([C @ (sl.expm(A * t) @ xhat0) if t < 0 else C @ sol.sol(t) for t in grid])
         us = np.stack([np.zeros(2) if t < 0 else u_np(t) for t in grid])
         ref = np.asarray(obs.estimate_window(grid, ys, us, rule="simpson"))
         np.testing.assert_allclose(np.asarray(tr.xhat[k]), ref, atol=1e-6 * np.linalg.norm(ref))
@@ -396,7 +436,14 @@ def test_closed_loop_deadbeat_and_decay_of_A_plus_BP():
     ts = np.linspace(0.0, 8.0, 81)
     x0, xhat0 = np.array([1.0, -0.5]), np.array([0.3, 0.2])
     tr = obsjax.simulate(
-        MODEL29, obs, x0, xhat0, ts, controller=lambda t, xh: jnp.asarray(P) @ xh, rtol=1e-10, atol=1e-12
+        MODEL29,
+        obs,
+        x0,
+        xhat0,
+        ts,
+        controller=lambda t, xh: jnp.asarray(P) @ xh,
+        rtol=1e-10,
+        atol=1e-12,
     )
     x = np.asarray(tr.x)
     iT = 10  # ts[10] = T
@@ -405,7 +452,7 @@ def test_closed_loop_deadbeat_and_decay_of_A_plus_BP():
     np.testing.assert_allclose(np.asarray(tr.xhat)[iT:], x[iT:], atol=1e-8)
     assert np.abs(np.asarray(tr.error)[:iT]).max() > 0.1  # not exact before the window fills
     # before T the loop is not (42): the state differs from the state feedback from x0
-    ref0 = np.stack([sl.expm(Acl * t) @ x0 for t in ts[:iT + 1]])
+    ref0 = np.stack([sl.expm(Acl * t) @ x0 for t in ts[: iT + 1]])
     assert np.abs(x[: iT + 1] - ref0).max() > 1e-2
     # decay: fitted slope of log‖x‖ on [5, 8] is the slowest eigenvalue −1
     sel = ts >= 5.0
@@ -470,7 +517,9 @@ def test_n_chunks_positive_integer():
 
 
 def test_check_after_tree_at():
-    obs = eqx.tree_at(lambda o: o.alpha, obsjax.FiniteWindow(MODEL29, 1.0, formula="(25)"), jnp.array([1.0, -2.0]))
+    obs = eqx.tree_at(
+        lambda o: o.alpha, obsjax.FiniteWindow(MODEL29, 1.0, formula="(25)"), jnp.array([1.0, -2.0])
+    )
     with pytest.raises(ValueError, match="`alpha`.*must be > 0"):
         obs.check()
 
@@ -486,7 +535,9 @@ _TS = np.linspace(0.0, 1.0, 11)
 
 def test_window_span():
     with pytest.raises(ValueError, match="`ts` must span the window"):
-        obsjax.FiniteWindow(MODEL29, 1.0).estimate_window(_TS * 0.9, np.zeros((11, 1)), np.zeros((11, 1)))
+        obsjax.FiniteWindow(MODEL29, 1.0).estimate_window(
+            _TS * 0.9, np.zeros((11, 1)), np.zeros((11, 1))
+        )
 
 
 def test_window_ys_shape():

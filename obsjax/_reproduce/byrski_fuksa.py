@@ -32,7 +32,10 @@ def kernels30(t, T):
     """(30): the optimal kernels of (29) at α = β = I, as arrays (len(t), 2)."""
     sh, ch, s, c = np.sinh, np.cosh, np.sin, np.cos
     R = np.array(
-        [[sh(T) * c(T) - ch(T) * s(T), 2 * sh(T) * s(T)], [-2 * sh(T) * s(T), 2 * (sh(T) * c(T) + ch(T) * s(T))]]
+        [
+            [sh(T) * c(T) - ch(T) * s(T), 2 * sh(T) * s(T)],
+            [-2 * sh(T) * s(T), 2 * (sh(T) * c(T) + ch(T) * s(T))],
+        ]
     ) / (2 * (sh(T) ** 2 - s(T) ** 2))
     g1 = (R @ np.array([2 * ch(t) * c(t), sh(t) * c(t) + ch(t) * s(t)])).T
     g2 = (R @ np.array([-2 * sh(t) * s(t), sh(t) * c(t) - ch(t) * s(t)])).T
@@ -47,7 +50,7 @@ def norm_curve(Ts, formula="(28)"):
 
     import obsjax
 
-    kw = {} if formula == "(28)" else dict(alpha=[1.0, 1.0], beta=[1.0, 1.0])
+    kw = {} if formula == "(28)" else {"alpha": [1.0, 1.0], "beta": [1.0, 1.0]}
     obs = obsjax.FiniteWindow(_model29(), 1.0, **kw)
     f = jax.jit(jax.vmap(lambda T: eqx.tree_at(lambda o: o.T, obs, T).norm()))
     return np.asarray(f(jnp.asarray(Ts, dtype=float)))
@@ -64,10 +67,16 @@ def deadbeat_loop(T=1.0, n_chunks=10, t1=8.0, P=((-2.0, -3.0),), x0=(1.0, -0.5),
     model = _model29()
     P = np.asarray(P, dtype=float)
     obs = obsjax.FiniteWindow(model, T, n_chunks=n_chunks)
-    ts = np.linspace(0.0, t1, int(round(t1 / T * n_chunks)) * 2 + 1)
+    ts = np.linspace(0.0, t1, round(t1 / T * n_chunks) * 2 + 1)
     tr = obsjax.simulate(
-        model, obs, jnp.asarray(x0), jnp.asarray(xhat0), ts, controller=lambda t, xh: jnp.asarray(P) @ xh,
-        rtol=1e-10, atol=1e-12,
+        model,
+        obs,
+        jnp.asarray(x0),
+        jnp.asarray(xhat0),
+        ts,
+        controller=lambda t, xh: jnp.asarray(P) @ xh,
+        rtol=1e-10,
+        atol=1e-12,
     )
     x, xh = np.asarray(tr.x), np.asarray(tr.xhat)
     Acl = np.asarray(model.A) + np.asarray(model.B) @ P
@@ -147,10 +156,17 @@ def reproduce(outdir: str) -> list[str]:
     axs[0].legend(ncol=2, fontsize=8)
     nx = np.linalg.norm(x, axis=1)
     axs[1].semilogy(ts, nx, "C0-", label=r"$\|x(t)\|$")
-    axs[1].semilogy(ts, np.maximum(np.linalg.norm(xh - x, axis=1), 1e-16), "C3-", label=r"$\|\hat x - x\|$")
+    axs[1].semilogy(
+        ts, np.maximum(np.linalg.norm(xh - x, axis=1), 1e-16), "C3-", label=r"$\|\hat x - x\|$"
+    )
     iT = int(np.argmin(np.abs(ts - 1.0)))
-    axs[1].semilogy(ts[iT:], nx[-1] * np.exp(rate * (ts[iT:] - ts[-1])), "k--", lw=1,
-                    label=rf"slope {rate:.0f} = max Re eig(A+BP)")
+    axs[1].semilogy(
+        ts[iT:],
+        nx[-1] * np.exp(rate * (ts[iT:] - ts[-1])),
+        "k--",
+        lw=1,
+        label=rf"slope {rate:.0f} = max Re eig(A+BP)",
+    )
     axs[1].axvline(1.0, color="gray", lw=0.8)
     axs[1].set_xlabel("t")
     axs[1].set_title("deadbeat after T (Lemma 4)")

@@ -97,7 +97,9 @@ class _Window(NamedTuple):
 
     W: jax.Array  # (r, 2n, 2n): the r distinct Hamiltonian matrices (r = n for (25), 1 for (28))
     readout: jax.Array  # (N, n, r, 2n): x̂ = Σ_j readout[j] · buffer[j]
-    prefill: jax.Array  # (N, r, 2n, n): buffer of the model's free response through x̂0 (history (36))
+    prefill: (
+        jax.Array
+    )  # (N, r, 2n, n): buffer of the model's free response through x̂0 (history (36))
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -172,7 +174,7 @@ class FiniteWindow(AbstractObserver):
     def __init__(self, model, T, alpha=None, beta=None, *, formula="auto", n_chunks=20):
         require_x64("FiniteWindow")
         if not isinstance(model, LTI):
-            raise ValueError(
+            raise ValueError(  # noqa: TRY004 (the project raises ValueError for every bad input)
                 f"`model` must be an obsjax.LTI (Byrski & Fuksa's observer is for ẋ = Ax + Bu, y = Cx), "
                 f"got {type(model).__name__}."
             )
@@ -181,7 +183,11 @@ class FiniteWindow(AbstractObserver):
             raise ValueError(f"`formula` must be one of {_FORMULAS}, got {formula!r}.")
         if formula == "auto":
             formula = "(28)" if (alpha is None and beta is None) else "(25)"
-        if not isinstance(n_chunks, (int, np.integer)) or isinstance(n_chunks, bool) or n_chunks < 1:
+        if (
+            not isinstance(n_chunks, (int, np.integer))
+            or isinstance(n_chunks, bool)
+            or n_chunks < 1
+        ):
             raise ValueError(f"`n_chunks` must be an integer >= 1, got {n_chunks!r}.")
         T = as_float_array(T, "T")
         if T.ndim != 0:
@@ -202,17 +208,21 @@ class FiniteWindow(AbstractObserver):
         if T is not None and not T > 0:
             raise ValueError(f"`T` (the window length) must be > 0, got {float(T)}.")
         if a is not None and not np.all(a > 0):
-            raise ValueError(f"`alpha` (weights of G1's rows in (15)) must be > 0, got {a.tolist()}.")
+            raise ValueError(
+                f"`alpha` (weights of G1's rows in (15)) must be > 0, got {a.tolist()}."
+            )
         if b is not None and not np.all(b >= 0):
-            raise ValueError(f"`beta` (weights of G2's rows in (15)) must be >= 0, got {b.tolist()}.")
-        if self.formula == "(28)" and a is not None and b is not None:
-            if not np.allclose(b / a, 1.0, rtol=1e-12, atol=0.0):
-                raise ValueError(
-                    "`formula='(28)'` needs every γᵢ = βᵢ/αᵢ = 1, got "
-                    f"γ = {(b / a).tolist()}; use formula='(25)' for general weights."
-                )
+            raise ValueError(
+                f"`beta` (weights of G2's rows in (15)) must be >= 0, got {b.tolist()}."
+            )
+        gamma_one = a is None or b is None or np.allclose(b / a, 1.0, rtol=1e-12, atol=0.0)
+        if self.formula == "(28)" and not gamma_one:
+            raise ValueError(
+                "`formula='(28)'` needs every γᵢ = βᵢ/αᵢ = 1, got "
+                f"γ = {(b / a).tolist()}; use formula='(25)' for general weights."
+            )
 
-    def check(self) -> "FiniteWindow":
+    def check(self) -> FiniteWindow:
         """Re-validate T > 0, α > 0, β ≥ 0 (and γ = 1 for (28)) after leaves were updated."""
         self._check_values()
         return self
@@ -273,19 +283,23 @@ class FiniteWindow(AbstractObserver):
         101 Simpson points reconstructs x(T) to about 1e-9.
         """
         A = self.model.A
-        n, m, p = self.model.n, self.model.m, self.model.p
+        m, p = self.model.m, self.model.p
         ts = vector(ts, "ts", None)
         K = ts.shape[0]
         if K < 2:
             raise ValueError(f"`ts` must hold at least 2 sample times, got {K}.")
         ys = as_float_array(ys, "ys")
         if ys.shape != (K, m):
-            raise ValueError(f"`ys` must have shape ({K}, {m}) (one output per sample), got {tuple(ys.shape)}.")
+            raise ValueError(
+                f"`ys` must have shape ({K}, {m}) (one output per sample), got {tuple(ys.shape)}."
+            )
         if us is None:
             us = jnp.zeros((K, p), A.dtype)
         us = as_float_array(us, "us")
         if us.shape != (K, p):
-            raise ValueError(f"`us` must have shape ({K}, {p}) (one input per sample), got {tuple(us.shape)}.")
+            raise ValueError(
+                f"`us` must have shape ({K}, {p}) (one input per sample), got {tuple(us.shape)}."
+            )
         if rule not in ("auto", "simpson", "trapezoid"):
             raise ValueError(f"`rule` must be 'auto', 'simpson' or 'trapezoid', got {rule!r}.")
         tsc, Tc = concrete_value(ts), concrete_value(self.T)
@@ -329,7 +343,7 @@ class FiniteWindow(AbstractObserver):
     def _window_design(self) -> _Window:
         return _window_design(*self._leaves(), self.formula, self.n_chunks)
 
-    def prepare(self) -> "FiniteWindow":
+    def prepare(self) -> FiniteWindow:
         """A copy with the window design (kernels at the piece boundaries, history) computed once."""
         win = self._window_design()
         return eqx.tree_at(lambda o: o.window, self, win, is_leaf=lambda x: x is None)
@@ -372,7 +386,9 @@ class FiniteWindow(AbstractObserver):
 
 def _checked(T, alpha, beta, formula):
     T = eqx.error_if(T, T <= 0, "FiniteWindow: `T` (the window length) must be > 0.")
-    alpha = eqx.error_if(alpha, jnp.any(alpha <= 0), "FiniteWindow: `alpha` must be > 0 elementwise.")
+    alpha = eqx.error_if(
+        alpha, jnp.any(alpha <= 0), "FiniteWindow: `alpha` must be > 0 elementwise."
+    )
     beta = eqx.error_if(beta, jnp.any(beta < 0), "FiniteWindow: `beta` must be >= 0 elementwise.")
     if formula == "(28)":
         alpha = eqx.error_if(
@@ -392,13 +408,15 @@ def _design(A, B, C, T, alpha, beta, formula):
         E1 = jnp.concatenate([jnp.eye(n), jnp.zeros((n, n))], axis=1)
         # row i of G1(s) = R[i] [I 0] e^{Wᵀs} [I; 0] Cᵀ  ⇔  generator vector e^{Ws} [I; 0] R[i]ᵀ
         coef = (R @ E1)[:, None, :]  # (n, 1, 2n)
-        W, coef = W[None], coef
+        W = W[None]
     else:
         W, c = _general_rows(A, B, C, T, beta / alpha)
         coef = jnp.eye(n)[:, :, None] * c[None, :, :]  # (n, n, 2n): row i uses only W_i
     bad = ~(jnp.all(jnp.isfinite(W)) & jnp.all(jnp.isfinite(coef)))
     coef = eqx.error_if(
-        coef, bad, "FiniteWindow: the kernel design is not finite (window too long for the Hamiltonian's growth?)."
+        coef,
+        bad,
+        "FiniteWindow: the kernel design is not finite (window too long for the Hamiltonian's growth?).",
     )
     return W, coef
 
@@ -460,7 +478,6 @@ def _window_design(A, B, C, T, alpha, beta, formula, N) -> _Window:
 def _quadrature(wts, G1, G2, ys, us, D):
     yd = ys - us @ D.T
     return jnp.einsum("k,kij,kj->i", wts, G1, yd) + jnp.einsum("k,kij,kj->i", wts, G2, us)
-
 
 
 def _check_observable(model: LTI) -> None:
