@@ -575,3 +575,32 @@ def test_simpson_needs_uniform_grid():
 def test_unknown_rule():
     with pytest.raises(ValueError, match="`rule` must be"):
         obsjax.FiniteWindow(MODEL29, 1.0).estimate_window(_TS, np.zeros((11, 1)), rule="gauss")
+
+
+@pytest.mark.slow
+def test_gradient_through_the_closed_loop_wrt_T():
+    """d/dT of a closed-loop cost through `simulate` (T moves the reset instants and the kernels) against
+    central finite differences.  T = 1.03 keeps the instants off the save times (where x(tᵢ) has a kink
+    in T, since u = P x̂ jumps at every instant before the window fills)."""
+    P = jnp.array([[-2.0, -3.0]])
+    ts = jnp.linspace(0.0, 4.0, 41)
+
+    def loss(T):
+        obs = eqx.tree_at(lambda o: o.T, obsjax.FiniteWindow(MODEL29, 1.0, n_chunks=5), T)
+        tr = obsjax.simulate(
+            MODEL29,
+            obs,
+            jnp.array([1.0, -0.5]),
+            jnp.array([0.3, 0.2]),
+            ts,
+            controller=lambda t, xh: P @ xh,
+            rtol=1e-10,
+            atol=1e-12,
+            max_segments=40,
+        )
+        return jnp.sum(tr.x[:, 0] ** 2) * 0.1
+
+    g = jax.jit(jax.grad(loss))(1.03)
+    lf = jax.jit(loss)
+    h = 1e-4
+    assert float(g) == pytest.approx(float((lf(1.03 + h) - lf(1.03 - h)) / (2 * h)), rel=1e-6)
