@@ -435,6 +435,7 @@ def test_closed_loop_deadbeat_and_decay_of_A_plus_BP():
     obs = obsjax.FiniteWindow(MODEL29, T, n_chunks=N)
     ts = np.linspace(0.0, 8.0, 81)
     x0, xhat0 = np.array([1.0, -0.5]), np.array([0.3, 0.2])
+    # max_segments above the 80 needed (zero-length segments at the end)
     tr = obsjax.simulate(
         MODEL29,
         obs,
@@ -444,6 +445,7 @@ def test_closed_loop_deadbeat_and_decay_of_A_plus_BP():
         controller=lambda t, xh: jnp.asarray(P) @ xh,
         rtol=1e-10,
         atol=1e-12,
+        max_segments=90,
     )
     x = np.asarray(tr.x)
     iT = 10  # ts[10] = T

@@ -93,13 +93,16 @@ def _gram(W, Q, T):
 
 
 class _Window(NamedTuple):
-    """Everything the sliding-window observer needs, derived once per simulation by ``prepare()``."""
+    """Everything the sliding-window observer needs, derived once per simulation by ``prepare()``.
 
-    W: jax.Array  # (r, 2n, 2n): the r distinct Hamiltonian matrices (r = n for (25), 1 for (28))
-    readout: jax.Array  # (N, n, r, 2n): x̂ = Σ_j readout[j] · buffer[j]
-    prefill: (
-        jax.Array
-    )  # (N, r, 2n, n): buffer of the model's free response through x̂0 (history (36))
+    - `W` (r, 2n, 2n): the r distinct Hamiltonian matrices (r = n for (25), 1 for (28)).
+    - `readout` (N, n, r, 2n): x̂ = Σ_j readout[j] · buffer[j].
+    - `prefill` (N, r, 2n, n): the buffer of the model's free response through x̂0 (history (36)).
+    """
+
+    W: jax.Array
+    readout: jax.Array
+    prefill: jax.Array
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -143,6 +146,13 @@ class FiniteWindow(AbstractObserver):
     (36); it is taken as the model's free response through x̂0 (u = 0 on [t0 − T, t0)), so x̂(t0) = x̂0.
     With ``controller=lambda t, xh: P @ xh`` this is the closed loop (33)-(35): for t ≥ t0 + T the
     estimate is exact and the state follows ẋ = (A + BP)x (42) (Lemma 4's deadbeat property).
+
+    **Gradients:** :meth:`norm` is differentiable in T, α, β.  Under formula (28) the kernels keep γ = 1;
+    the gradient of :meth:`norm` in α, β is still that of the general optimum (envelope theorem: the
+    derivative of a minimum in a weight is the weight's partial derivative at the minimiser), but for
+    gradients of the kernels or estimates in α, β use ``formula="(25)"``.  Through :func:`obsjax.simulate`
+    the derivative in T is exact (the reset instants move with T; pass ``max_segments`` under ``jit``);
+    x(tᵢ) has a kink in T where a save time tᵢ coincides with a reset instant before the window fills.
 
     **Arguments:**
 
