@@ -339,12 +339,17 @@ def _segmented(observer, solve, state0, ts, T, max_segments):
 
     def body(carry, k):
         state, buf, ok = carry
-        s0 = jnp.minimum(t0 + k * T, t1)
-        s1 = jnp.minimum(t0 + (k + 1) * T, t1)
+        # min(t0 + kT, t1), with a tie (horizon a multiple of T) resolved to the fixed t1: the end of the
+        # horizon, like the save times, carries no T-derivative (jnp.minimum would split it 50/50).
+        a0, a1 = t0 + k * T, t0 + (k + 1) * T
+        s0 = jnp.where(a0 < t1, a0, t1)
+        s1 = jnp.where(a1 < t1, a1, t1)
         s1 = jnp.where(k == n_seg - 1, t1, s1)
         x, z = state
         z = jax.lax.cond(k > 0, lambda zz: observer.reset(s0, zz), lambda zz: zz, z)
-        ys, ok_k = solve(s0, s1, (x, z), jnp.clip(ts, s0, s1))
+        # Save times are fixed: they must not inherit a T-derivative from the clip (ties at reset instants).
+        save_ts = jnp.clip(ts, jax.lax.stop_gradient(s0), jax.lax.stop_gradient(s1))
+        ys, ok_k = solve(s0, s1, (x, z), save_ts)
         inside = seg_of == k
         buf = jax.tree_util.tree_map(
             lambda b, v: jnp.where(inside.reshape((-1,) + (1,) * (b.ndim - 1)), v[:-1], b), buf, ys
