@@ -307,6 +307,9 @@ def test_disturbance_error_is_bounded_by_the_norm():
     # √λmax(M1+M2), at most √2·norm (the paper's inequality holds for the product ball).
     sep = max(np.sqrt(v @ M1 @ v) + np.sqrt(v @ M2 @ v) for v in dirs)
     assert np.sqrt(evals[-1]) < sep <= np.sqrt(2) * bound
+    assert (
+        sep > bound
+    )  # (29), T = 1: about 2.535 > 2.093, a counterexample to the separate-ball reading
 
 
 # ------------------------------------------------------------------------------------------------------
