@@ -428,6 +428,38 @@ def test_sliding_window_observer_open_loop_unstable_plant():
         np.testing.assert_allclose(np.asarray(tr.xhat[k]), ref, atol=1e-6 * np.linalg.norm(ref))
 
 
+def test_lemma4_exponential_solutions_give_the_spectrum_of_A_plus_BP():
+    """(41): for x(t) = x0 e^{λt}, u = u0 e^{λt} with (λ − A) x0 = B u0 the observer returns x0, so the
+    characteristic matrix of (40), I − P·[∫G1(T+s) C x̂(λ) e^{λs} ds + ∫G2(T+s) e^{λs} ds], has the zeros of
+    det(λ − A − BP) (Lemma 4)."""
+    T, K = 1.0, 401
+    s = np.linspace(0.0, T, K)
+    w = simpson_weights(K, T)
+    G1, G2 = (np.asarray(g) for g in obsjax.FiniteWindow(MODEL29, T).kernels(s))
+    P = np.array([[-2.0, -3.0]])
+
+    def transfer(lam):  # the observer's response to exponential data, per unit u0
+        xu = np.linalg.solve(lam * np.eye(2) - A29, B29)  # x0 per unit u0
+        e = np.exp(lam * (s - T))
+        return np.einsum("k,kim,mj,k->ij", w, G1, C29 @ xu, e) + np.einsum(
+            "k,kij,k->ij", w, G2, e
+        ), xu
+
+    for lam in (0.3 + 0.0j, -0.7 + 1.2j, 1.5 - 2.0j, -2.5 + 0.4j):
+        obs_resp, xu = transfer(lam)
+        np.testing.assert_allclose(obs_resp, xu, atol=1e-8)  # the observer reproduces x0
+        char = 1.0 - (P @ obs_resp)[0, 0]
+        np.testing.assert_allclose(
+            char,
+            np.linalg.det(lam * np.eye(2) - A29 - B29 @ P) / np.linalg.det(lam * np.eye(2) - A29),
+            atol=1e-8,
+        )
+    # and the characteristic matrix vanishes exactly at eig(A + BP)
+    for lam in np.linalg.eigvals(A29 + B29 @ P):
+        obs_resp, _ = transfer(complex(lam))
+        assert abs(1.0 - (P @ obs_resp)[0, 0]) < 1e-8
+
+
 def test_closed_loop_deadbeat_and_decay_of_A_plus_BP():
     """(33)-(35) on the double integrator (29), u = P x̂ with eig(A + BP) = {−1, −2}: for t ≥ T the state
     is the state-feedback trajectory of (42) (Lemma 4) and decays at the rate of eig(A + BP)."""
