@@ -348,6 +348,9 @@ class FiniteWindow(AbstractObserver):
     @property
     def reset_period(self):
         """h = T / n_chunks: at t0 + kh the buffer of window pieces shifts and x̂ is recomputed by (14)."""
+        Tc = concrete_value(self.T)
+        if Tc is not None:  # concrete even inside jit (a closed-over T), so simulate can count segments
+            return float(Tc) / self.n_chunks
         return self.T / self.n_chunks
 
     def _window_design(self) -> _Window:
