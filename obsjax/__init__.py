@@ -30,3 +30,10 @@ from .tuning._tune import risk_measure as risk_measure
 from .tuning._tune import tune as tune
 
 __version__ = "0.1.0"
+from .observers._kreisselmeier import Kreisselmeier as Kreisselmeier
+from .observers._kreisselmeier import kreisselmeier_form as kreisselmeier_form
+from .observers._luders_narendra import LudersNarendra as LudersNarendra
+from .observers._luders_narendra import luders_narendra_form as luders_narendra_form
+from .observers._kudva_narendra import KudvaNarendra as KudvaNarendra
+from .observers._kudva_narendra import ErrorModel1 as ErrorModel1
+from .observers._kudva_narendra import ErrorModel2 as ErrorModel2

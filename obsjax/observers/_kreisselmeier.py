@@ -5,6 +5,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import as_float_array, positive, vector
 from ._adaptive_common import (
@@ -12,6 +13,7 @@ from ._adaptive_common import (
     check_gain,
     check_stable_roots,
     gain_array,
+    gain_matrix,
     poly_from_roots,
 )
 from ._base import AbstractObserver
@@ -106,7 +108,7 @@ class Kreisselmeier(AbstractObserver):
     **Example:**::
 
         obs = obsjax.Kreisselmeier(2, poles=[-1., -2.], G=5.0, scheme="integral", q=0.5)
-        plant = obsjax.LTI([[-3., 1.], [-2., 0.]], [[1.], [2.]], [[1., 0.]])   # a = (3, 2), b = (1, 2)
+        plant = obsjax.kreisselmeier_form(a=[2., 2.], b=[1., 1.])   # (s + 1)/(s² + 2s + 2)
         traj = obsjax.simulate(plant, obs, x0, jnp.zeros(2), ts, u=obsjax.signals.multisine([1., 1.], [1., 3.]))
         a_hat, b_hat = obs.parameters(jax.tree_util.tree_map(lambda v: v[-1], traj.z))
     """
@@ -263,18 +265,72 @@ class Kreisselmeier(AbstractObserver):
         f, _, _ = self._design()
         return jnp.concatenate([f - jnp.asarray(a), jnp.asarray(b)])
 
+    def averaged_rate(self, a, b, amplitudes, frequencies):
+        """Predicted exponential rate of ‖p − p*‖ by averaging, for a multisine input (NumPy, no simulation).
+
+        For small gains the parameter error obeys ṗ ≈ −G M̄ (p − p*) with M̄ = R̄ (gradient, (6.16)),
+        M̄ = Σ_{k,l} Q_kl avg(s^k/L Z (s^l/L Z)ᴴ) (generalised, (6.19)), or M̄ = R̄/q (integral, (6.23),
+        once R(t) of (6.24a) has reached its mean R̄/q); the slowest rate is λ_min(G M̄).
+        R̄ is :func:`mean_regressor_covariance`.
+        """
+        n = self.n
+        poles = np.asarray(self.poles)
+        G = np.asarray(gain_matrix(self.G, 2 * n))
+        if self.scheme == "generalized":
+            Qm = np.asarray(gain_matrix(self.Q, 2 * n))
+            ell = float(self.filter_pole)
+
+            def weight(w):
+                v = np.array([(1j * w) ** k for k in range(2 * n)]) / (1j * w + ell) ** (2 * n - 1)
+                return complex(v @ Qm @ v.conj())
+
+            M = mean_regressor_covariance(a, b, poles, amplitudes, frequencies, weight)
+        else:
+            M = mean_regressor_covariance(a, b, poles, amplitudes, frequencies)
+            if self.scheme == "integral":
+                M = M / float(self.q)
+        return float(np.min(np.real(np.linalg.eigvals(G @ M))))
+
     def regressor(self, z: KreisselmeierState):
         """Z = [η₁; η₂] (the regressor of (6.13))."""
         return jnp.concatenate([z.eta1, z.eta2], axis=-1)
 
 
-def canonical_plant(a, b):
-    """(A, B, C) of the observable canonical form (6.2) for parameters a, b (for building test plants)."""
+def kreisselmeier_form(a, b):
+    """The plant of (6.2) as an :class:`obsjax.LTI`: A = [−a | I_{n−1}; 0], B = b, C = e_1ᵀ.
+
+    Its transfer function is (b_1 s^{n−1} + ... + b_n) / (s^n + a_1 s^{n−1} + ... + a_n).
+    """
+    from ..systems._plants import LTI
+
     a = as_float_array(a, "a")
     b = as_float_array(b, "b")
     if a.ndim != 1 or b.shape != a.shape:
-        raise ValueError(f"`a` and `b` must be vectors of the same length n, got {tuple(a.shape)} and {tuple(b.shape)}.")
+        raise ValueError(
+            f"`a` and `b` must be vectors of the same length n, got {tuple(a.shape)} and {tuple(b.shape)}."
+        )
     n = a.shape[0]
-    A = observer_form(a)
-    return A, b.reshape(n, 1), jnp.eye(1, n)
+    return LTI(observer_form(a), b.reshape(n, 1), jnp.eye(1, n))
 
+
+def mean_regressor_covariance(a, b, poles, amplitudes, frequencies, weight=None):
+    """Time average of Z Zᵀ (the excitation of (6.17)) for u = Σ A_k sin(ω_k t + φ_k), by the frequency response.
+
+    Z = [η₁; η₂] = H(s) u with H = [[s^{n−1}, ..., 1] N(s)/(D(s) d(s)); [s^{n−1}, ..., 1]/d(s)], N/D the
+    plant's transfer function of (6.2) and d(s) = det(sI − F); in steady state
+    R̄ = Σ_k (A_k²/2) Re(H(jω_k) H(jω_k)ᴴ) (distinct ω_k).  ``weight(ω)`` (a complex factor per frequency, applied before the real part)
+    gives the average of filtered regressors.  Computed with NumPy, independently of the simulation.
+    """
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    n = a.shape[0]
+    D = np.r_[1.0, a]
+    d = np.real(np.poly(np.asarray(poles)))
+    R = np.zeros((2 * n, 2 * n))
+    for A, w in zip(np.ravel(amplitudes), np.ravel(frequencies)):
+        s = 1j * w
+        basis = np.array([s ** (n - 1 - k) for k in range(n)]) / np.polyval(d, s)
+        H = np.r_[basis * np.polyval(b, s) / np.polyval(D, s), basis]
+        wt = 1.0 if weight is None else weight(w)
+        R += A**2 / 2 * np.real(wt * np.outer(H, H.conj()))
+    return R

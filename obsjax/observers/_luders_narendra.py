@@ -12,7 +12,7 @@ from ._base import AbstractObserver
 
 
 def luders_narendra_form(a, b, lambdas):
-    """(A, B, C) of the canonical form (5.2) for parameters a, b and known Λ = diag(−λ_2, ..., −λ_n).
+    """The plant of the canonical form (5.2) as an :class:`obsjax.LTI`, for parameters a, b and known Λ = diag(−λ_2, ..., −λ_n).
 
         A = [[a_1, 1, ..., 1], [a_2, −λ_2, 0, ...], ..., [a_n, 0, ..., −λ_n]],  B = b,  C = e_1ᵀ.
 
@@ -30,7 +30,9 @@ def luders_narendra_form(a, b, lambdas):
         raise ValueError(f"`lambdas` must have length {n} or {n - 1}, got {lam.shape[0]}.")
     A = jnp.zeros((n, n)).at[:, 0].set(a).at[0, 1:].set(1.0)
     A = A.at[jnp.arange(1, n), jnp.arange(1, n)].set(-lam)
-    return A, b.reshape(n, 1), jnp.eye(1, n)
+    from ..systems._plants import LTI
+
+    return LTI(A, b.reshape(n, 1), jnp.eye(1, n))
 
 
 class LudersNarendraState(eqx.Module):
@@ -80,9 +82,9 @@ class LudersNarendra(AbstractObserver):
 
     **Example:**::
 
-        A, B, C = obsjax.observers.luders_narendra_form(a=[-3., -2.], b=[1., 1.], lambdas=[2., 1.])
+        plant = obsjax.luders_narendra_form(a=[-3., -2.], b=[1., 1.], lambdas=[2., 1.])
         obs = obsjax.LudersNarendra(2, lambdas=[2., 1.], c=5., d=5.)
-        traj = obsjax.simulate(obsjax.LTI(A, B, C), obs, x0, xhat0, ts, u=u)
+        traj = obsjax.simulate(plant, obs, x0, xhat0, ts, u=u)
     """
 
     lambdas: jax.Array
