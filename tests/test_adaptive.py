@@ -509,3 +509,21 @@ def test_kudva_narendra_bad_input(kwargs, match):
 def test_error_model_2_bad_h():
     with pytest.raises(ValueError, match="`H` must equal"):
         obsjax.ErrorModel2(-jnp.eye(2), jnp.array([[1.0], [0.0]]), 1.0, jnp.eye(2), H=jnp.array([[0.0, 1.0]]))
+
+
+# =========================================================================== guards under jit
+def test_guards_survive_jit():
+    """Gains updated under jit (as tune does) are checked by eqx.error_if in prepare()."""
+    k = obsjax.Kreisselmeier(2, [-1.0, -2.0], jnp.ones(4), scheme="integral", q=1.0)
+    ln = obsjax.LudersNarendra(2, [1.0, 1.0], 1.0, 1.0)
+    kn = obsjax.KudvaNarendra(2, 1, -jnp.eye(2), 1.0, 1.0, jnp.eye(2))
+    cases = [
+        (lambda v: eqx.tree_at(lambda o: o.G, k, v * jnp.ones(4)).prepare().G, "`G` must be > 0"),
+        (lambda v: eqx.tree_at(lambda o: o.q, k, v).prepare().q, "`q` must be > 0"),
+        (lambda v: eqx.tree_at(lambda o: o.c, ln, v * jnp.ones(2)).prepare().c, "`c` must be > 0"),
+        (lambda v: eqx.tree_at(lambda o: o.K, kn, -v * jnp.eye(2)).prepare().K, "`K` must be stable"),
+    ]
+    for fn, match in cases:
+        assert jnp.all(jnp.isfinite(jax.jit(fn)(1.0)))
+        with pytest.raises(Exception, match=match):
+            jax.block_until_ready(jax.jit(fn)(-1.0))

@@ -133,3 +133,15 @@ def check_stable_roots(roots, name: str, size: int | None = None) -> jnp.ndarray
                     f"`{name}` must come in complex-conjugate pairs (a real polynomial), got {v.tolist()}."
                 )
     return arr
+
+
+def traced_positive(arr, name: str):
+    """``eqx.error_if`` guard (survives jit) that a scalar/vector gain is > 0 or a matrix gain is s.p.d."""
+    import equinox as eqx
+
+    arr = jnp.asarray(arr)
+    if arr.ndim <= 1:
+        bad = jnp.any(~(arr > 0))
+    else:
+        bad = jnp.any(~(jnp.linalg.eigvalsh(0.5 * (arr + arr.T)) > 0))
+    return eqx.error_if(arr, bad, f"`{name}` must be > 0 (positive definite for a matrix).")

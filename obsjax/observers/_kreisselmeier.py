@@ -15,6 +15,7 @@ from ._adaptive_common import (
     gain_array,
     gain_matrix,
     poly_from_roots,
+    traced_positive,
 )
 from ._base import AbstractObserver
 
@@ -181,6 +182,15 @@ class Kreisselmeier(AbstractObserver):
         l_asc = l_desc[::-1]  # l_0, ..., l_{k−1}
         Ac = jnp.eye(k, k=1).at[-1, :].set(-l_asc)
         return Ac, l_asc
+
+    def prepare(self):
+        """Guards that survive ``jit``: G, Q > 0, q > 0, ℓ > 0 and Re(poles) < 0 (``eqx.error_if``)."""
+        new = eqx.tree_at(lambda o: (o.G, o.Q), self, (traced_positive(self.G, "G"), traced_positive(self.Q, "Q")))
+        new = eqx.tree_at(lambda o: o.filter_pole, new, traced_positive(self.filter_pole, "filter_pole"))
+        if self.q is not None:
+            new = eqx.tree_at(lambda o: o.q, new, traced_positive(self.q, "q"))
+        poles = eqx.error_if(self.poles, jnp.any(jnp.real(self.poles) >= 0), "`poles` must satisfy Re < 0.")
+        return eqx.tree_at(lambda o: o.poles, new, poles)
 
     def check(self):
         check_gain(self.G, "G")

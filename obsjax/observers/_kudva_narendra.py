@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value, matrix
-from ._adaptive_common import check_gain, gain_array, lyapunov, solve_gain
+from ._adaptive_common import check_gain, gain_array, lyapunov, solve_gain, traced_positive
 from ._base import AbstractObserver
 
 
@@ -90,6 +90,18 @@ class KudvaNarendra(AbstractObserver):
         self.Q = _spd(Q, "Q", n)
         self.A0 = jnp.zeros((n, n)) if A0 is None else matrix(A0, "A0", (n, n))
         self.B0 = jnp.zeros((n, m)) if B0 is None else matrix(B0, "B0", (n, m))
+
+    def prepare(self):
+        """Guards that survive ``jit`` (``eqx.error_if``): Γ₁, Γ₂, Q positive (definite), K Hurwitz."""
+        # K is Hurwitz iff the solution P of KᵀP + PK = −Q (Q > 0) is positive definite (GPU-friendly test).
+        P = lyapunov(self.K, self.Q)
+        K = eqx.error_if(self.K, jnp.any(~(jnp.linalg.eigvalsh(P) > 0)), "`K` must be stable (Hurwitz).")
+        return eqx.tree_at(
+            lambda o: (o.K, o.Gamma1, o.Gamma2, o.Q),
+            self,
+            (K, traced_positive(self.Gamma1, "Gamma1"), traced_positive(self.Gamma2, "Gamma2"),
+             traced_positive(self.Q, "Q")),
+        )
 
     def check(self):
         _stable_matrix(self.K, "K", self.n)

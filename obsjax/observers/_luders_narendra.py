@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array, concrete_value, positive, vector
+from ._adaptive_common import traced_positive
 from ._base import AbstractObserver
 
 
@@ -105,6 +106,14 @@ class LudersNarendra(AbstractObserver):
         self.d = _rates(d, "d", n)
         self.a0 = jnp.zeros(n) if a0 is None else vector(a0, "a0", n)
         self.b0 = jnp.zeros(n) if b0 is None else vector(b0, "b0", n)
+
+    def prepare(self):
+        """Guards that survive ``jit`` (``eqx.error_if``): λ_i, c_i, d_i > 0."""
+        return eqx.tree_at(
+            lambda o: (o.lambdas, o.c, o.d),
+            self,
+            (traced_positive(self.lambdas, "lambdas"), traced_positive(self.c, "c"), traced_positive(self.d, "d")),
+        )
 
     def check(self):
         positive(self.lambdas, "lambdas")
