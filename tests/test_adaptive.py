@@ -31,9 +31,12 @@ from obsjax._reproduce.adaptive import (
 from obsjax.observers import mean_regressor_covariance, observer_form, resolvent_numerators
 from obsjax.observers._adaptive_common import lyapunov, poly_from_roots
 
-K2_T1, K2_NUM = 300.0, 601  # horizon and grid of every 2nd-order Kreisselmeier run (one compile per scheme)
+K2_T1, K2_NUM = (
+    300.0,
+    601,
+)  # horizon and grid of every 2nd-order Kreisselmeier run (one compile per scheme)
 LN_T1, LN_NUM = 200.0, 401  # the same for the 2nd-order Lüders–Narendra runs
-LN_KW = dict(rtol=1e-9, atol=1e-11, max_steps=400_000)
+LN_KW = {"rtol": 1e-9, "atol": 1e-11, "max_steps": 400_000}
 
 
 # =========================================================================== Kreisselmeier (chapter 6)
@@ -43,13 +46,17 @@ def test_resolvent_numerators_match_numpy():
         f = poly_from_roots(jnp.asarray(poles))
         F = np.asarray(observer_form(f))
         n = F.shape[0]
-        np.testing.assert_allclose(np.poly(F), np.real(np.poly(np.asarray(poles))), atol=1e-12)  # eig(F) = poles
+        np.testing.assert_allclose(
+            np.poly(F), np.real(np.poly(np.asarray(poles))), atol=1e-12
+        )  # eig(F) = poles
         T = np.asarray(resolvent_numerators(jnp.asarray(F), f))
         for s in (0.3 + 1.1j, -0.7 + 0.2j, 2.0):
             rhs_basis = np.linalg.solve(s * np.eye(n) - F.T, np.eye(n)[:, 0])
             # (6.8): (sI − Fᵀ)⁻¹ e1 = [s^{n−1}, ..., 1]/det(sI − F)
             np.testing.assert_allclose(
-                rhs_basis, np.array([s ** (n - 1 - k) for k in range(n)]) / np.prod(s - np.asarray(poles)), rtol=1e-10
+                rhs_basis,
+                np.array([s ** (n - 1 - k) for k in range(n)]) / np.prod(s - np.asarray(poles)),
+                rtol=1e-10,
             )
             for i in range(n):
                 lhs = np.linalg.solve(s * np.eye(n) - F, np.eye(n)[:, i])
@@ -64,31 +71,54 @@ def test_parametrized_observer_at_matching_point_is_luenberger():
     ex = KREISSELMEIER_2
     n = 2
     plant = obsjax.kreisselmeier_form(ex["a"], ex["b"])
-    obs = obsjax.Kreisselmeier(n, ex["poles"], 1e-300 * np.ones(2 * n), a0=ex["a"], b0=ex["b"])  # adaptation off
+    obs = obsjax.Kreisselmeier(
+        n, ex["poles"], 1e-300 * np.ones(2 * n), a0=ex["a"], b0=ex["b"]
+    )  # adaptation off
     x0, xhat0 = jnp.array([1.0, -2.0]), jnp.array([0.5, 0.5])
     ts = jnp.linspace(0.0, K2_T1, K2_NUM)
-    traj = obsjax.simulate(plant, obs, x0, xhat0, ts, u=obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"]),
-                           max_steps=200_000)
+    traj = obsjax.simulate(
+        plant,
+        obs,
+        x0,
+        xhat0,
+        ts,
+        u=obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"]),
+        max_steps=200_000,
+    )
     F = np.asarray(observer_form(poly_from_roots(jnp.asarray(ex["poles"]))))
     k = 41  # t <= 20
-    expected = np.stack([scipy.linalg.expm(F * t) @ np.asarray(xhat0 - x0) for t in np.asarray(ts[:k])])
+    expected = np.stack(
+        [scipy.linalg.expm(F * t) @ np.asarray(xhat0 - x0) for t in np.asarray(ts[:k])]
+    )
     np.testing.assert_allclose(np.asarray(traj.error[:k]), expected, atol=2e-6)
     # (6.14): ŷ − y = cᵀ e^{Ft} (x̂0 − x0)
     out = np.asarray(jax_output(obs, traj))[:k] - np.asarray(traj.y[:k, 0])
     np.testing.assert_allclose(out, expected[:, 0], atol=2e-6)
     # and the parameters did not move
-    np.testing.assert_allclose(np.asarray(traj.z.p[-1]), np.asarray(obs.matching_point(ex["a"], ex["b"])), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(traj.z.p[-1]), np.asarray(obs.matching_point(ex["a"], ex["b"])), atol=1e-12
+    )
 
 
 @pytest.fixture(scope="module")
 def k2_runs():
     """The three schemes on the 2nd-order example, u = sin 0.7t + sin 2t (two frequencies, n = 2)."""
     return {
-        ("gradient", 2.0): simulate_kreisselmeier(KREISSELMEIER_2, "gradient", gamma=2.0, t1=K2_T1, num=K2_NUM),
-        ("gradient", 4.0): simulate_kreisselmeier(KREISSELMEIER_2, "gradient", gamma=4.0, t1=K2_T1, num=K2_NUM),
-        ("generalized", 2.0): simulate_kreisselmeier(KREISSELMEIER_2, "generalized", gamma=2.0, t1=K2_T1, num=K2_NUM),
-        ("generalized", 4.0): simulate_kreisselmeier(KREISSELMEIER_2, "generalized", gamma=4.0, t1=K2_T1, num=K2_NUM),
-        ("integral", 2.0): simulate_kreisselmeier(KREISSELMEIER_2, "integral", gamma=2.0, q=0.2, t1=K2_T1, num=K2_NUM),
+        ("gradient", 2.0): simulate_kreisselmeier(
+            KREISSELMEIER_2, "gradient", gamma=2.0, t1=K2_T1, num=K2_NUM
+        ),
+        ("gradient", 4.0): simulate_kreisselmeier(
+            KREISSELMEIER_2, "gradient", gamma=4.0, t1=K2_T1, num=K2_NUM
+        ),
+        ("generalized", 2.0): simulate_kreisselmeier(
+            KREISSELMEIER_2, "generalized", gamma=2.0, t1=K2_T1, num=K2_NUM
+        ),
+        ("generalized", 4.0): simulate_kreisselmeier(
+            KREISSELMEIER_2, "generalized", gamma=4.0, t1=K2_T1, num=K2_NUM
+        ),
+        ("integral", 2.0): simulate_kreisselmeier(
+            KREISSELMEIER_2, "integral", gamma=2.0, q=0.2, t1=K2_T1, num=K2_NUM
+        ),
     }
 
 
@@ -107,11 +137,15 @@ def test_kreisselmeier_converges_second_order(k2_runs, scheme, gamma, horizon):
 
 def test_kreisselmeier_integral_converges_third_order():
     """3rd order, 3 frequencies, integral scheme: relative parameter error < 1e-3 from t = 150 on; x̂ → x."""
-    ts, err, traj, obs = simulate_kreisselmeier(KREISSELMEIER_3, "integral", gamma=2.0, q=0.2, t1=200.0, num=401)
+    ts, err, traj, obs = simulate_kreisselmeier(
+        KREISSELMEIER_3, "integral", gamma=2.0, q=0.2, t1=200.0, num=401
+    )
     assert np.all(err[ts >= 150.0] < 1e-3)
     assert float(traj.error_norm[-1]) < 1e-4
     a_hat, b_hat = obs.parameters(jax.tree_util.tree_map(lambda v: v[-1], traj.z))
-    np.testing.assert_allclose(np.r_[a_hat, b_hat], np.r_[KREISSELMEIER_3["a"], KREISSELMEIER_3["b"]], rtol=1e-3)
+    np.testing.assert_allclose(
+        np.r_[a_hat, b_hat], np.r_[KREISSELMEIER_3["a"], KREISSELMEIER_3["b"]], rtol=1e-3
+    )
 
 
 def test_richness_single_sinusoid_third_order():
@@ -122,7 +156,9 @@ def test_richness_single_sinusoid_third_order():
     ex = KREISSELMEIER_3
     G = kreisselmeier_gain(ex, 2.0)
     single = obsjax.signals.multisine([0.0, 1.0, 0.0], list(ex["frequencies"]))
-    ts, err, traj, obs = simulate_kreisselmeier(ex, "integral", G=G, q=0.2, t1=200.0, num=401, u=single)
+    ts, err, traj, obs = simulate_kreisselmeier(
+        ex, "integral", G=G, q=0.2, t1=200.0, num=401, u=single
+    )
     yhat = np.asarray(jax_output(obs, traj))
     out_err = np.abs(yhat - np.asarray(traj.y[:, 0]))
     assert out_err[ts >= 150.0].max() < 1e-4  # ŷ → y
@@ -150,7 +186,9 @@ def test_kreisselmeier_rates_match_averaging(k2_runs):
 
 
 def _param_loss(obs, plant, u, pstar, ts):
-    traj = obsjax.simulate(plant, obs, jnp.ones(2), jnp.zeros(2), ts, u=u, rtol=1e-9, atol=1e-11, max_steps=100_000)
+    traj = obsjax.simulate(
+        plant, obs, jnp.ones(2), jnp.zeros(2), ts, u=u, rtol=1e-9, atol=1e-11, max_steps=100_000
+    )
     e2 = jnp.sum((traj.z.p - pstar) ** 2, axis=-1)
     return jnp.sum(0.5 * (e2[1:] + e2[:-1]) * jnp.diff(ts))
 
@@ -163,7 +201,9 @@ def test_kreisselmeier_gradient_wrt_rates_matches_fd():
     plant = obsjax.kreisselmeier_form(ex["a"], ex["b"])
     u = obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"])
     kw = {"q": 0.5} if scheme == "integral" else {}
-    obs = obsjax.Kreisselmeier(2, ex["poles"], jnp.asarray(kreisselmeier_gain(ex, 2.0)), scheme=scheme, **kw)
+    obs = obsjax.Kreisselmeier(
+        2, ex["poles"], jnp.asarray(kreisselmeier_gain(ex, 2.0)), scheme=scheme, **kw
+    )
     pstar = obs.matching_point(jnp.asarray(ex["a"]), jnp.asarray(ex["b"]))
     ts = jnp.linspace(0.0, 20.0, 81)
     loss = eqx.filter_jit(lambda o: _param_loss(o, plant, u, pstar, ts))
@@ -177,7 +217,10 @@ def test_kreisselmeier_gradient_wrt_rates_matches_fd():
         assert float(grads.G[k]) == pytest.approx(float(fd), rel=1e-4, abs=1e-9)
     if scheme == "integral":
         hq = 1e-5
-        fd = (loss(eqx.tree_at(lambda o: o.q, obs, obs.q + hq)) - loss(eqx.tree_at(lambda o: o.q, obs, obs.q - hq))) / (2 * hq)
+        fd = (
+            loss(eqx.tree_at(lambda o: o.q, obs, obs.q + hq))
+            - loss(eqx.tree_at(lambda o: o.q, obs, obs.q - hq))
+        ) / (2 * hq)
         assert float(grads.q) == pytest.approx(float(fd), rel=1e-4)
 
 
@@ -195,11 +238,20 @@ def test_tuning_shortens_time_to_one_percent():
         e2 = jnp.sum((traj.z.p - pstar) ** 2, axis=-1)
         return jnp.sum(0.5 * (e2[1:] + e2[:-1]) * jnp.diff(traj.ts))
 
-    res = obsjax.tune(obs, obsjax.kreisselmeier_form(ex["a"], ex["b"]), where=lambda o: o.G, loss=loss,
-                      x0s=jnp.ones((1, 2)), xhat0s=jnp.zeros((1, 2)), ts=jnp.linspace(0.0, 150.0, 301),
-                      optimizer=optax.adam(0.1), steps=30, progress=False,
-                      u=obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"]),
-                      simulate_kwargs=dict(max_steps=100_000))
+    res = obsjax.tune(
+        obs,
+        obsjax.kreisselmeier_form(ex["a"], ex["b"]),
+        where=lambda o: o.G,
+        loss=loss,
+        x0s=jnp.ones((1, 2)),
+        xhat0s=jnp.zeros((1, 2)),
+        ts=jnp.linspace(0.0, 150.0, 301),
+        optimizer=optax.adam(0.1),
+        steps=30,
+        progress=False,
+        u=obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"]),
+        simulate_kwargs={"max_steps": 100_000},
+    )
     ts2, err2, _, _ = simulate_kreisselmeier(ex, "gradient", G=res.observer.G, t1=K2_T1, num=K2_NUM)
     after = time_to(ts2, err2, 1e-2)
     assert after < 0.8 * before, (before, after)
@@ -209,20 +261,26 @@ def test_tuning_shortens_time_to_one_percent():
 @pytest.mark.parametrize(
     "kwargs,match",
     [
-        (dict(n=2, poles=[-1.0], G=1.0), "poles"),
-        (dict(n=2, poles=[-1.0, 0.5], G=1.0), "left half-plane"),
-        (dict(n=2, poles=[-1.0 + 1j, -2.0], G=1.0), "conjugate"),
-        (dict(n=2, poles=[-1.0, -2.0], G=0.0), "`G` must be > 0"),
-        (dict(n=2, poles=[-1.0, -2.0], G=np.ones(3)), "`G` must be a scalar"),
-        (dict(n=2, poles=[-1.0, -2.0], G=np.triu(np.ones((4, 4)))), "`G` must be a symmetric"),
-        (dict(n=2, poles=[-1.0, -2.0], G=-np.eye(4)), "`G` must be positive definite"),
-        (dict(n=2, poles=[-1.0, -2.0], G=1.0, scheme="integral"), "`q`"),
-        (dict(n=2, poles=[-1.0, -2.0], G=1.0, scheme="integral", q=-1.0), "`q` must be > 0"),
-        (dict(n=2, poles=[-1.0, -2.0], G=1.0, scheme="gradient", q=1.0), "unused"),
-        (dict(n=2, poles=[-1.0, -2.0], G=1.0, scheme="lms"), "`scheme`"),
-        (dict(n=2, poles=[-1.0, -2.0], G=1.0, scheme="generalized", filter_pole=0.0), "filter_pole"),
-        (dict(n=2, poles=[-1.0, -2.0], G=1.0, a0=[1.0]), "`a0`"),
-        (dict(n=0, poles=[], G=1.0), "`n`"),
+        ({"n": 2, "poles": [-1.0], "G": 1.0}, "poles"),
+        ({"n": 2, "poles": [-1.0, 0.5], "G": 1.0}, "left half-plane"),
+        ({"n": 2, "poles": [-1.0 + 1j, -2.0], "G": 1.0}, "conjugate"),
+        ({"n": 2, "poles": [-1.0, -2.0], "G": 0.0}, "`G` must be > 0"),
+        ({"n": 2, "poles": [-1.0, -2.0], "G": np.ones(3)}, "`G` must be a scalar"),
+        ({"n": 2, "poles": [-1.0, -2.0], "G": np.triu(np.ones((4, 4)))}, "`G` must be a symmetric"),
+        ({"n": 2, "poles": [-1.0, -2.0], "G": -np.eye(4)}, "`G` must be positive definite"),
+        ({"n": 2, "poles": [-1.0, -2.0], "G": 1.0, "scheme": "integral"}, "`q`"),
+        (
+            {"n": 2, "poles": [-1.0, -2.0], "G": 1.0, "scheme": "integral", "q": -1.0},
+            "`q` must be > 0",
+        ),
+        ({"n": 2, "poles": [-1.0, -2.0], "G": 1.0, "scheme": "gradient", "q": 1.0}, "unused"),
+        ({"n": 2, "poles": [-1.0, -2.0], "G": 1.0, "scheme": "lms"}, "`scheme`"),
+        (
+            {"n": 2, "poles": [-1.0, -2.0], "G": 1.0, "scheme": "generalized", "filter_pole": 0.0},
+            "filter_pole",
+        ),
+        ({"n": 2, "poles": [-1.0, -2.0], "G": 1.0, "a0": [1.0]}, "`a0`"),
+        ({"n": 0, "poles": [], "G": 1.0}, "`n`"),
     ],
 )
 def test_kreisselmeier_bad_input(kwargs, match):
@@ -238,13 +296,15 @@ def test_kreisselmeier_form_bad_input():
 # =========================================================================== Lüders–Narendra (chapter 5)
 @pytest.fixture(scope="module")
 def ln2_run():
-    return simulate_luders_narendra(LUDERS_NARENDRA_2, gamma=5.0, t1=LN_T1, num=LN_NUM, rtol=1e-9, atol=1e-11)
+    return simulate_luders_narendra(
+        LUDERS_NARENDRA_2, gamma=5.0, t1=LN_T1, num=LN_NUM, rtol=1e-9, atol=1e-11
+    )
 
 
 def test_luders_narendra_lyapunov_non_increasing(ln2_run):
     """(5.11) with x̂_i(0) = x_i(0) (i ≥ 2): f ≡ 0 in (5.13), so V̇ = −λ1 e1² ≤ 0 along the simulation."""
     ex = LUDERS_NARENDRA_2
-    ts, _, traj, obs = ln2_run
+    _ts, _, traj, obs = ln2_run
     V = np.asarray(obs.lyapunov(traj.z, traj.y, jnp.asarray(ex["a"]), jnp.asarray(ex["b"])))
     assert V[-1] < 1e-6 * V[0]
     assert np.max(np.diff(V)) <= 1e-7 * V[0]
@@ -254,7 +314,7 @@ def test_luders_narendra_lyapunov_non_increasing(ln2_run):
     a, b = jnp.asarray(ex["a"]), jnp.asarray(ex["b"])
     for k in (0, 3, 40, 200):
         t, x = traj.ts[k], traj.x[k]
-        z = jax.tree_util.tree_map(lambda v: v[k], traj.z)
+        z = jax.tree_util.tree_map(lambda v, k=k: v[k], traj.z)
         dz = obs.vector_field(t, z, plant.h(t, x, u(t)), u(t))
         dx = plant.f(t, x, u(t))
         _, dV = jax.jvp(lambda zz, xx: obs.lyapunov(zz, xx[:1], a, b), (z, x), (dz, dx))
@@ -269,13 +329,23 @@ def test_luders_narendra_closed_form_59():
     obs = obsjax.LudersNarendra(2, ex["lambdas"], 3.0, 2.0, a0=[0.5, 0.5], b0=[0.0, 0.0])
     x0, xhat0 = jnp.array([1.0, 2.0]), jnp.array([0.0, -1.0])
     ts = jnp.linspace(0.0, LN_T1, LN_NUM)
-    traj = obsjax.simulate(plant, obs, x0, xhat0, ts, u=obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"]),
-                           **LN_KW)
+    traj = obsjax.simulate(
+        plant,
+        obs,
+        x0,
+        xhat0,
+        ts,
+        u=obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"]),
+        **LN_KW,
+    )
     phi = np.asarray(traj.z.alpha[:, 1]) - ex["a"][1]
     psi = np.asarray(traj.z.beta[:, 1]) - ex["b"][1]
     e2 = np.asarray(traj.error[:, 1])
-    expected = np.asarray(traj.z.v[:, 0]) * phi + np.asarray(traj.z.s[:, 0]) * psi + np.exp(
-        -ex["lambdas"][1] * np.asarray(ts)) * float(xhat0[1] - x0[1])
+    expected = (
+        np.asarray(traj.z.v[:, 0]) * phi
+        + np.asarray(traj.z.s[:, 0]) * psi
+        + np.exp(-ex["lambdas"][1] * np.asarray(ts)) * float(xhat0[1] - x0[1])
+    )
     np.testing.assert_allclose(e2, expected, atol=1e-7)
 
 
@@ -309,18 +379,35 @@ def test_luders_narendra_matches_scipy():
         e1 = xh[0] - x1
         dx = A @ x + b * uu
         w2 = -(c[1] * v**2 + d[1] * s**2) * e1
-        dxh = [al[0] * x1 + xh[1] + be[0] * uu - lam[0] * e1, al[1] * x1 - lam[1] * xh[1] + be[1] * uu + w2]
+        dxh = [
+            al[0] * x1 + xh[1] + be[0] * uu - lam[0] * e1,
+            al[1] * x1 - lam[1] * xh[1] + be[1] * uu + w2,
+        ]
         dal = [-c[0] * e1 * x1, -c[1] * e1 * v]
         dbe = [-d[0] * e1 * uu, -d[1] * e1 * s]
         return np.r_[dx, dxh, dal, dbe, -lam[1] * v + x1, -lam[1] * s + uu]
 
     x0, xh0 = np.array([1.0, -1.0]), np.array([0.0, 0.5])
-    sol = scipy.integrate.solve_ivp(rhs, (0, LN_T1), np.r_[x0, xh0, np.zeros(6)], method="DOP853", rtol=1e-11,
-                                    atol=1e-13, t_eval=np.linspace(0, LN_T1, LN_NUM))
+    sol = scipy.integrate.solve_ivp(
+        rhs,
+        (0, LN_T1),
+        np.r_[x0, xh0, np.zeros(6)],
+        method="DOP853",
+        rtol=1e-11,
+        atol=1e-13,
+        t_eval=np.linspace(0, LN_T1, LN_NUM),
+    )
     obs = obsjax.LudersNarendra(2, lam, c, d)
     plant = obsjax.luders_narendra_form(a, b, lam)
-    traj = obsjax.simulate(plant, obs, jnp.asarray(x0), jnp.asarray(xh0), jnp.linspace(0.0, LN_T1, LN_NUM),
-                           u=obsjax.signals.multisine([1.0, 1.0], [0.5, 3.0]), **LN_KW)
+    traj = obsjax.simulate(
+        plant,
+        obs,
+        jnp.asarray(x0),
+        jnp.asarray(xh0),
+        jnp.linspace(0.0, LN_T1, LN_NUM),
+        u=obsjax.signals.multisine([1.0, 1.0], [0.5, 3.0]),
+        **LN_KW,
+    )
     np.testing.assert_allclose(np.asarray(traj.xhat), sol.y[2:4].T, atol=1e-6)
     np.testing.assert_allclose(np.asarray(traj.z.alpha), sol.y[4:6].T, atol=1e-6)
     np.testing.assert_allclose(np.asarray(traj.z.beta), sol.y[6:8].T, atol=1e-6)
@@ -346,20 +433,22 @@ def test_luders_narendra_gradient_wrt_rates_matches_fd():
         for k in range(2):
             leaf = getattr(obs, name)
             step = jnp.zeros(2).at[k].set(h)
-            fp = loss(eqx.tree_at(lambda o: getattr(o, name), obs, leaf + step))
-            fm = loss(eqx.tree_at(lambda o: getattr(o, name), obs, leaf - step))
-            assert float(getattr(g, name)[k]) == pytest.approx(float((fp - fm) / (2 * h)), rel=1e-4, abs=1e-8)
+            fp = loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf + step))
+            fm = loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf - step))
+            assert float(getattr(g, name)[k]) == pytest.approx(
+                float((fp - fm) / (2 * h)), rel=1e-4, abs=1e-8
+            )
 
 
 @pytest.mark.parametrize(
     "kwargs,match",
     [
-        (dict(n=2, lambdas=[1.0], c=1.0, d=1.0), "`lambdas`"),
-        (dict(n=2, lambdas=[1.0, -1.0], c=1.0, d=1.0), "`lambdas` must be > 0"),
-        (dict(n=2, lambdas=[1.0, 1.0], c=0.0, d=1.0), "`c` must be > 0"),
-        (dict(n=2, lambdas=[1.0, 1.0], c=1.0, d=[1.0, 2.0, 3.0]), "`d`"),
-        (dict(n=2, lambdas=[1.0, 1.0], c=1.0, d=1.0, b0=[1.0]), "`b0`"),
-        (dict(n=0, lambdas=[], c=1.0, d=1.0), "`n`"),
+        ({"n": 2, "lambdas": [1.0], "c": 1.0, "d": 1.0}, "`lambdas`"),
+        ({"n": 2, "lambdas": [1.0, -1.0], "c": 1.0, "d": 1.0}, "`lambdas` must be > 0"),
+        ({"n": 2, "lambdas": [1.0, 1.0], "c": 0.0, "d": 1.0}, "`c` must be > 0"),
+        ({"n": 2, "lambdas": [1.0, 1.0], "c": 1.0, "d": [1.0, 2.0, 3.0]}, "`d`"),
+        ({"n": 2, "lambdas": [1.0, 1.0], "c": 1.0, "d": 1.0, "b0": [1.0]}, "`b0`"),
+        ({"n": 0, "lambdas": [], "c": 1.0, "d": 1.0}, "`n`"),
     ],
 )
 def test_luders_narendra_bad_input(kwargs, match):
@@ -385,17 +474,34 @@ def test_lyapunov_solution_matches_scipy():
     K = jnp.array([[-2.0, 1.0], [0.3, -1.5]])
     Q = jnp.array([[2.0, 0.5], [0.5, 1.0]])
     P = np.asarray(lyapunov(K, Q))
-    np.testing.assert_allclose(P, scipy.linalg.solve_continuous_lyapunov(np.asarray(K).T, -np.asarray(Q)), rtol=1e-12)
+    np.testing.assert_allclose(
+        P, scipy.linalg.solve_continuous_lyapunov(np.asarray(K).T, -np.asarray(Q)), rtol=1e-12
+    )
 
 
 @pytest.fixture(scope="module")
 def kn_run():
     Ap, Bp, plant, u = _kn_setup()
-    obs = obsjax.KudvaNarendra(2, 2, K=jnp.array([[-2.0, 0.0], [0.0, -2.0]]), Gamma1=jnp.array([0.02, 0.02]),
-                               Gamma2=jnp.array([0.02, 0.02]), Q=jnp.eye(2))
+    obs = obsjax.KudvaNarendra(
+        2,
+        2,
+        K=jnp.array([[-2.0, 0.0], [0.0, -2.0]]),
+        Gamma1=jnp.array([0.02, 0.02]),
+        Gamma2=jnp.array([0.02, 0.02]),
+        Q=jnp.eye(2),
+    )
     ts = jnp.linspace(0.0, 100.0, 401)
-    traj = obsjax.simulate(plant, obs, jnp.array([1.0, -1.0]), jnp.zeros(2), ts, u=u, rtol=1e-9, atol=1e-11,
-                           max_steps=100_000)
+    traj = obsjax.simulate(
+        plant,
+        obs,
+        jnp.array([1.0, -1.0]),
+        jnp.zeros(2),
+        ts,
+        u=u,
+        rtol=1e-9,
+        atol=1e-11,
+        max_steps=100_000,
+    )
     return Ap, Bp, obs, traj
 
 
@@ -408,7 +514,7 @@ def test_kudva_narendra_lyapunov(kn_run):
     assert V[-1] < 1e-8 * V[0]
     for k in (0, 5, 100):
         t, x = traj.ts[k], traj.x[k]
-        z = jax.tree_util.tree_map(lambda v: v[k], traj.z)
+        z = jax.tree_util.tree_map(lambda v, k=k: v[k], traj.z)
         dz, dx = obs.vector_field(t, z, x, u(t)), plant.f(t, x, u(t))
         _, dV = jax.jvp(lambda zz, xx: obs.lyapunov(zz, xx, Ap, Bp), (z, x), (dz, dx))
         e = z.xm - x
@@ -419,7 +525,10 @@ def test_kudva_narendra_identifies_mimo_plant(kn_run):
     """Two inputs with two sinusoids each: A_m → A_p, B_m → B_p (relative error < 1e-3 from t = 75)."""
     Ap, Bp, obs, traj = kn_run
     Am, Bm = obs.parameters(traj.z)
-    err = np.sqrt(np.sum((np.asarray(Am) - np.asarray(Ap)) ** 2, axis=(1, 2)) + np.sum((np.asarray(Bm) - np.asarray(Bp)) ** 2, axis=(1, 2)))
+    err = np.sqrt(
+        np.sum((np.asarray(Am) - np.asarray(Ap)) ** 2, axis=(1, 2))
+        + np.sum((np.asarray(Bm) - np.asarray(Bp)) ** 2, axis=(1, 2))
+    )
     rel = err / np.sqrt(np.sum(np.asarray(Ap) ** 2) + np.sum(np.asarray(Bp) ** 2))
     assert np.all(rel[np.asarray(traj.ts) >= 75.0] < 1e-3), rel[-1]
     assert float(traj.error_norm[-1]) < 1e-5
@@ -430,11 +539,17 @@ def test_kudva_narendra_error_is_error_model_1():
     key = jax.random.PRNGKey(0)
     k1, k2, k3, k4, k5, k6 = jax.random.split(key, 6)
     Ap, Bp = jax.random.normal(k1, (2, 2)), jax.random.normal(k2, (2, 3))
-    K, Q, G = jnp.array([[-2.0, 0.5], [-0.5, -1.0]]), jnp.array([[2.0, 0.3], [0.3, 1.0]]), jnp.array([[1.5, 0.2], [0.2, 0.7]])
+    K, Q, G = (
+        jnp.array([[-2.0, 0.5], [-0.5, -1.0]]),
+        jnp.array([[2.0, 0.3], [0.3, 1.0]]),
+        jnp.array([[1.5, 0.2], [0.2, 0.7]]),
+    )
     obs = obsjax.KudvaNarendra(2, 3, K, G, G, Q)
     em = obsjax.ErrorModel1(K, G, Q)
     z = obs.init(0.0, jax.random.normal(k3, (2,)), None)
-    z = eqx.tree_at(lambda s: (s.Am, s.Bm), z, (jax.random.normal(k4, (2, 2)), jax.random.normal(k5, (2, 3))))
+    z = eqx.tree_at(
+        lambda s: (s.Am, s.Bm), z, (jax.random.normal(k4, (2, 2)), jax.random.normal(k5, (2, 3)))
+    )
     xp, u = jax.random.normal(k6, (2,)), jnp.array([0.3, -1.0, 2.0])
     dz = obs.vector_field(0.0, z, xp, u)
     de_plant = dz.xm - (Ap @ xp + Bp @ u)
@@ -454,9 +569,15 @@ def test_error_model_2_converges_with_rich_input():
         return jnp.array([jnp.sin(t), jnp.cos(2.3 * t)])
 
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(lambda t, s, args: em.vector_field(t, s, V(t))), diffrax.Tsit5(), 0.0, 300.0, 0.01,
-        (jnp.array([1.0, -1.0]), jnp.array([[2.0, -1.0]])), saveat=diffrax.SaveAt(ts=jnp.linspace(0, 300, 601)),
-        stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-11), max_steps=100_000,
+        diffrax.ODETerm(lambda t, s, args: em.vector_field(t, s, V(t))),
+        diffrax.Tsit5(),
+        0.0,
+        300.0,
+        0.01,
+        (jnp.array([1.0, -1.0]), jnp.array([[2.0, -1.0]])),
+        saveat=diffrax.SaveAt(ts=jnp.linspace(0, 300, 601)),
+        stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-11),
+        max_steps=100_000,
     )
     W = np.asarray(em.lyapunov(sol.ys))
     assert np.max(np.diff(W)) <= 1e-9 * W[0]
@@ -466,14 +587,24 @@ def test_error_model_2_converges_with_rich_input():
 
 def test_kudva_narendra_gradient_wrt_gamma_matches_fd():
     Ap, Bp, plant, u = _kn_setup()
-    obs = obsjax.KudvaNarendra(2, 2, K=-2.0 * jnp.eye(2), Gamma1=jnp.array([0.5, 0.8]), Gamma2=jnp.array([0.7, 0.4]),
-                               Q=jnp.eye(2))
+    obs = obsjax.KudvaNarendra(
+        2,
+        2,
+        K=-2.0 * jnp.eye(2),
+        Gamma1=jnp.array([0.5, 0.8]),
+        Gamma2=jnp.array([0.7, 0.4]),
+        Q=jnp.eye(2),
+    )
     ts = jnp.linspace(0.0, 10.0, 41)
 
     @eqx.filter_jit
     def loss(o):
-        traj = obsjax.simulate(plant, o, jnp.array([1.0, -1.0]), jnp.zeros(2), ts, u=u, rtol=1e-9, atol=1e-11)
-        e2 = jnp.sum((traj.z.Am - Ap) ** 2, axis=(-2, -1)) + jnp.sum((traj.z.Bm - Bp) ** 2, axis=(-2, -1))
+        traj = obsjax.simulate(
+            plant, o, jnp.array([1.0, -1.0]), jnp.zeros(2), ts, u=u, rtol=1e-9, atol=1e-11
+        )
+        e2 = jnp.sum((traj.z.Am - Ap) ** 2, axis=(-2, -1)) + jnp.sum(
+            (traj.z.Bm - Bp) ** 2, axis=(-2, -1)
+        )
         return jnp.sum(0.5 * (e2[1:] + e2[:-1]) * jnp.diff(ts))
 
     g = eqx.filter_grad(loss)(obs)
@@ -482,25 +613,27 @@ def test_kudva_narendra_gradient_wrt_gamma_matches_fd():
         for k in range(2):
             leaf = getattr(obs, name)
             step = jnp.zeros(2).at[k].set(h)
-            fd = (loss(eqx.tree_at(lambda o: getattr(o, name), obs, leaf + step))
-                  - loss(eqx.tree_at(lambda o: getattr(o, name), obs, leaf - step))) / (2 * h)
+            fd = (
+                loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf + step))
+                - loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf - step))
+            ) / (2 * h)
             assert float(getattr(g, name)[k]) == pytest.approx(float(fd), rel=1e-4, abs=1e-8)
 
 
 @pytest.mark.parametrize(
     "kwargs,match",
     [
-        (dict(K=jnp.eye(2)), "`K` must be a stable"),
-        (dict(K=-jnp.eye(3)), "`K`"),
-        (dict(Q=-jnp.eye(2)), "`Q` must be positive definite"),
-        (dict(Q=jnp.array([[1.0, 1.0], [0.0, 1.0]])), "`Q` must be a symmetric"),
-        (dict(Gamma1=jnp.ones(3)), "`Gamma1`"),
-        (dict(Gamma2=-1.0), "`Gamma2` must be > 0"),
-        (dict(B0=jnp.zeros((2, 2))), "`B0`"),
+        ({"K": jnp.eye(2)}, "`K` must be a stable"),
+        ({"K": -jnp.eye(3)}, "`K`"),
+        ({"Q": -jnp.eye(2)}, "`Q` must be positive definite"),
+        ({"Q": jnp.array([[1.0, 1.0], [0.0, 1.0]])}, "`Q` must be a symmetric"),
+        ({"Gamma1": jnp.ones(3)}, "`Gamma1`"),
+        ({"Gamma2": -1.0}, "`Gamma2` must be > 0"),
+        ({"B0": jnp.zeros((2, 2))}, "`B0`"),
     ],
 )
 def test_kudva_narendra_bad_input(kwargs, match):
-    args = dict(n=2, m=1, K=-jnp.eye(2), Gamma1=1.0, Gamma2=1.0, Q=jnp.eye(2))
+    args = {"n": 2, "m": 1, "K": -jnp.eye(2), "Gamma1": 1.0, "Gamma2": 1.0, "Q": jnp.eye(2)}
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         obsjax.KudvaNarendra(**args)
@@ -508,7 +641,9 @@ def test_kudva_narendra_bad_input(kwargs, match):
 
 def test_error_model_2_bad_h():
     with pytest.raises(ValueError, match="`H` must equal"):
-        obsjax.ErrorModel2(-jnp.eye(2), jnp.array([[1.0], [0.0]]), 1.0, jnp.eye(2), H=jnp.array([[0.0, 1.0]]))
+        obsjax.ErrorModel2(
+            -jnp.eye(2), jnp.array([[1.0], [0.0]]), 1.0, jnp.eye(2), H=jnp.array([[0.0, 1.0]])
+        )
 
 
 # =========================================================================== guards under jit
@@ -521,7 +656,10 @@ def test_guards_survive_jit():
         (lambda v: eqx.tree_at(lambda o: o.G, k, v * jnp.ones(4)).prepare().G, "`G` must be > 0"),
         (lambda v: eqx.tree_at(lambda o: o.q, k, v).prepare().q, "`q` must be > 0"),
         (lambda v: eqx.tree_at(lambda o: o.c, ln, v * jnp.ones(2)).prepare().c, "`c` must be > 0"),
-        (lambda v: eqx.tree_at(lambda o: o.K, kn, -v * jnp.eye(2)).prepare().K, "`K` must be stable"),
+        (
+            lambda v: eqx.tree_at(lambda o: o.K, kn, -v * jnp.eye(2)).prepare().K,
+            "`K` must be stable",
+        ),
     ]
     for fn, match in cases:
         assert jnp.all(jnp.isfinite(jax.jit(fn)(1.0)))

@@ -18,24 +18,44 @@ import numpy as np
 
 # --------------------------------------------------------------------------- the examples
 #: Kreisselmeier, 2nd order: y = (s + 1)/(s² + 2s + 2) u, F with eigenvalues {-2, -2}.
-KREISSELMEIER_2 = dict(a=(2.0, 2.0), b=(1.0, 1.0), poles=(-2.0, -2.0), amplitudes=(1.0, 1.0), frequencies=(0.7, 2.0))
+KREISSELMEIER_2 = {
+    "a": (2.0, 2.0),
+    "b": (1.0, 1.0),
+    "poles": (-2.0, -2.0),
+    "amplitudes": (1.0, 1.0),
+    "frequencies": (0.7, 2.0),
+}
 #: Kreisselmeier, 3rd order: y = (s² + s + 1)/((s + 1)(s² + 2s + 2)) u, F with eigenvalues {-2, -2, -2}.
-KREISSELMEIER_3 = dict(
-    a=(3.0, 4.0, 2.0), b=(1.0, 1.0, 1.0), poles=(-2.0, -2.0, -2.0), amplitudes=(1.0, 1.0, 1.0),
-    frequencies=(0.5, 1.2, 3.0),
-)
+KREISSELMEIER_3 = {
+    "a": (3.0, 4.0, 2.0),
+    "b": (1.0, 1.0, 1.0),
+    "poles": (-2.0, -2.0, -2.0),
+    "amplitudes": (1.0, 1.0, 1.0),
+    "frequencies": (0.5, 1.2, 3.0),
+}
 #: Lüders–Narendra, 2nd order in the form (5.2), Λ = diag(-0.5), λ1 = 1.
-LUDERS_NARENDRA_2 = dict(a=(-1.0, -1.0), b=(1.0, -1.0), lambdas=(1.0, 0.5), amplitudes=(1.0, 1.0), frequencies=(0.5, 3.0))
+LUDERS_NARENDRA_2 = {
+    "a": (-1.0, -1.0),
+    "b": (1.0, -1.0),
+    "lambdas": (1.0, 0.5),
+    "amplitudes": (1.0, 1.0),
+    "frequencies": (0.5, 3.0),
+}
 #: Lüders–Narendra, 3rd order in the form (5.2), Λ = diag(-0.3, -1), λ1 = 0.5, four sinusoids.
-LUDERS_NARENDRA_3 = dict(
-    a=(-1.0, -1.0, -1.0), b=(1.0, 1.0, -1.0), lambdas=(0.5, 0.3, 1.0), amplitudes=(1.0, 1.0, 1.0, 1.0),
-    frequencies=(0.2, 0.8, 1.2, 3.0),
-)
+LUDERS_NARENDRA_3 = {
+    "a": (-1.0, -1.0, -1.0),
+    "b": (1.0, 1.0, -1.0),
+    "lambdas": (0.5, 0.3, 1.0),
+    "amplitudes": (1.0, 1.0, 1.0, 1.0),
+    "frequencies": (0.2, 0.8, 1.2, 3.0),
+}
 #: Kudva–Narendra, 2 states, 2 inputs, all states measured.
-KUDVA_NARENDRA = dict(
-    Ap=((-1.0, 0.5), (-0.5, -2.0)), Bp=((1.0, 0.0), (0.5, 1.0)),
-    amplitudes=((1.0, 1.0), (1.0, 1.0)), frequencies=((0.5, 1.7), (1.1, 2.9)),
-)
+KUDVA_NARENDRA = {
+    "Ap": ((-1.0, 0.5), (-0.5, -2.0)),
+    "Bp": ((1.0, 0.0), (0.5, 1.0)),
+    "amplitudes": ((1.0, 1.0), (1.0, 1.0)),
+    "frequencies": ((0.5, 1.7), (1.1, 2.9)),
+}
 
 
 def kreisselmeier_gain(example, gamma, scheme="gradient", filter_pole=1.0):
@@ -51,11 +71,18 @@ def kreisselmeier_gain(example, gamma, scheme="gradient", filter_pole=1.0):
     if scheme == "generalized":
 
         def weight(w):
-            v = np.array([(1j * w) ** k for k in range(2 * n)]) / (1j * w + filter_pole) ** (2 * n - 1)
+            v = np.array([(1j * w) ** k for k in range(2 * n)]) / (1j * w + filter_pole) ** (
+                2 * n - 1
+            )
             return complex(np.vdot(v, v))
 
     M = mean_regressor_covariance(
-        example["a"], example["b"], example["poles"], example["amplitudes"], example["frequencies"], weight
+        example["a"],
+        example["b"],
+        example["poles"],
+        example["amplitudes"],
+        example["frequencies"],
+        weight,
     )
     return gamma / np.diag(M)
 
@@ -107,8 +134,20 @@ def time_to(ts, err, level):
 
 
 # --------------------------------------------------------------------------- simulations
-def simulate_kreisselmeier(example, scheme, gamma=2.0, q=None, G=None, t1=300.0, num=601, x0=None, xhat0=None,
-                           u=None, filter_pole=1.0, **kw):
+def simulate_kreisselmeier(
+    example,
+    scheme,
+    gamma=2.0,
+    q=None,
+    G=None,
+    t1=300.0,
+    num=601,
+    x0=None,
+    xhat0=None,
+    u=None,
+    filter_pole=1.0,
+    **kw,
+):
     """Simulate one Kreisselmeier scheme on an example; returns (ts, relative parameter error, traj, obs)."""
     import jax.numpy as jnp
 
@@ -163,8 +202,9 @@ def rate_study(gamma=2.0, q=0.2, t1=300.0, num=601):
     ex = KREISSELMEIER_2
     out = {}
     for scheme in ("gradient", "generalized", "integral"):
-        ts, err, _, obs = simulate_kreisselmeier(ex, scheme, gamma=gamma, q=q if scheme == "integral" else None,
-                                                 t1=t1, num=num)
+        ts, err, _, obs = simulate_kreisselmeier(
+            ex, scheme, gamma=gamma, q=q if scheme == "integral" else None, t1=t1, num=num
+        )
         lo, hi = (20.0, 200.0) if scheme == "integral" else (t1 / 3, t1)
         out[scheme] = {
             "fitted": fit_rate(ts, err, lo=lo, hi=hi),
@@ -192,18 +232,31 @@ def tuning_study(steps=30, learning_rate=0.1, gamma=2.0, t_tune=150.0, t1=300.0,
         return jnp.sum(0.5 * (e2[1:] + e2[:-1]) * jnp.diff(traj.ts))
 
     res = obsjax.tune(
-        obs, obsjax.kreisselmeier_form(ex["a"], ex["b"]), where=lambda o: o.G, loss=loss,
-        x0s=jnp.ones((1, 2)), xhat0s=jnp.zeros((1, 2)), ts=jnp.linspace(0.0, t_tune, int(2 * t_tune) + 1),
-        optimizer=optax.adam(learning_rate), steps=steps, progress=False,
-        u=obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"]), simulate_kwargs=dict(max_steps=200_000),
+        obs,
+        obsjax.kreisselmeier_form(ex["a"], ex["b"]),
+        where=lambda o: o.G,
+        loss=loss,
+        x0s=jnp.ones((1, 2)),
+        xhat0s=jnp.zeros((1, 2)),
+        ts=jnp.linspace(0.0, t_tune, int(2 * t_tune) + 1),
+        optimizer=optax.adam(learning_rate),
+        steps=steps,
+        progress=False,
+        u=obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"]),
+        simulate_kwargs={"max_steps": 200_000},
     )
     ts2, err2, _, _ = simulate_kreisselmeier(ex, "gradient", G=res.observer.G, t1=t1, num=num)
     return {
-        "G_before": np.asarray(obs.G), "G_after": np.asarray(res.observer.G),
+        "G_before": np.asarray(obs.G),
+        "G_after": np.asarray(res.observer.G),
         "loss": np.asarray(res.history["loss"]),
-        "t_1pct_before": time_to(ts, err, 1e-2), "t_1pct_after": time_to(ts2, err2, 1e-2),
-        "t_1e-3_before": time_to(ts, err, 1e-3), "t_1e-3_after": time_to(ts2, err2, 1e-3),
-        "ts": ts, "err_before": err, "err_after": err2,
+        "t_1pct_before": time_to(ts, err, 1e-2),
+        "t_1pct_after": time_to(ts2, err2, 1e-2),
+        "t_1e-3_before": time_to(ts, err, 1e-3),
+        "t_1e-3_after": time_to(ts2, err2, 1e-3),
+        "ts": ts,
+        "err_before": err,
+        "err_after": err2,
     }
 
 
@@ -226,7 +279,9 @@ def reproduce(outdir: str) -> list[str]:
     runs = {
         "gradient (6.16)": simulate_kreisselmeier(ex, "gradient", gamma=2.0, t1=300.0),
         "generalized (6.19)": simulate_kreisselmeier(ex, "generalized", gamma=2.0, t1=300.0),
-        "integral (6.23), q = 0.2": simulate_kreisselmeier(ex, "integral", gamma=2.0, q=0.2, t1=300.0),
+        "integral (6.23), q = 0.2": simulate_kreisselmeier(
+            ex, "integral", gamma=2.0, q=0.2, t1=300.0
+        ),
     }
     fig, axes = plt.subplots(1, 4, figsize=(20, 4))
     truth = np.r_[ex["a"], ex["b"]]

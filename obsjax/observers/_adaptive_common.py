@@ -29,7 +29,9 @@ def gain_array(x, name: str, size: int) -> jnp.ndarray:
                 f"got shape {tuple(arr.shape)}."
             )
     else:
-        raise ValueError(f"`{name}` must be a scalar, vector or matrix, got shape {tuple(arr.shape)}.")
+        raise ValueError(
+            f"`{name}` must be a scalar, vector or matrix, got shape {tuple(arr.shape)}."
+        )
     check_gain(arr, name)
     return arr
 
@@ -48,9 +50,7 @@ def check_gain(arr, name: str) -> None:
             raise ValueError(f"`{name}` must be a symmetric matrix, got {v.tolist()}.")
         ev = np.linalg.eigvalsh(0.5 * (v + v.T))
         if not np.all(ev > 0):
-            raise ValueError(
-                f"`{name}` must be positive definite, got eigenvalues {ev.tolist()}."
-            )
+            raise ValueError(f"`{name}` must be positive definite, got eigenvalues {ev.tolist()}.")
 
 
 def gain_matrix(arr, size: int) -> jnp.ndarray:
@@ -98,9 +98,9 @@ def poly_from_roots(roots) -> jnp.ndarray:
     roots = jnp.asarray(roots)
     coeffs = jnp.ones((1,), dtype=jnp.result_type(roots.dtype, jnp.float64))
     for k in range(roots.shape[0]):
-        coeffs = jnp.concatenate([coeffs, jnp.zeros((1,), coeffs.dtype)]) - roots[k] * jnp.concatenate(
-            [jnp.zeros((1,), coeffs.dtype), coeffs]
-        )
+        coeffs = jnp.concatenate([coeffs, jnp.zeros((1,), coeffs.dtype)]) - roots[
+            k
+        ] * jnp.concatenate([jnp.zeros((1,), coeffs.dtype), coeffs])
     return jnp.real(coeffs[1:])
 
 
@@ -109,7 +109,9 @@ def check_stable_roots(roots, name: str, size: int | None = None) -> jnp.ndarray
     arr = jnp.asarray(roots)
     if arr.ndim == 0:
         arr = arr.reshape(1)
-    if not (jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.complexfloating)):
+    if not (
+        jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.complexfloating)
+    ):
         arr = arr.astype(jnp.float64)
     if arr.ndim != 1 or (size is not None and arr.shape[0] != size):
         raise ValueError(

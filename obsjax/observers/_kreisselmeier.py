@@ -148,7 +148,9 @@ class Kreisselmeier(AbstractObserver):
         self.G = gain_array(G, "G", 2 * n)
         if scheme == "integral":
             if q is None:
-                raise ValueError("`q` (the memory of the integral scheme (6.20)) is required for scheme='integral'.")
+                raise ValueError(
+                    "`q` (the memory of the integral scheme (6.20)) is required for scheme='integral'."
+                )
             q = as_float_array(q, "q")
             if q.ndim != 0:
                 raise ValueError(f"`q` must be a scalar, got shape {tuple(q.shape)}.")
@@ -156,7 +158,9 @@ class Kreisselmeier(AbstractObserver):
             self.q = q
         else:
             if q is not None:
-                raise ValueError(f"`q` is the memory of scheme='integral'; it is unused by scheme={scheme!r}.")
+                raise ValueError(
+                    f"`q` is the memory of scheme='integral'; it is unused by scheme={scheme!r}."
+                )
             self.q = None
         self.Q = gain_array(1.0 if Q is None else Q, "Q", 2 * n)
         fp = as_float_array(1.0 if filter_pole is None else filter_pole, "filter_pole")
@@ -185,11 +189,17 @@ class Kreisselmeier(AbstractObserver):
 
     def prepare(self):
         """Guards that survive ``jit``: G, Q > 0, q > 0, ℓ > 0 and Re(poles) < 0 (``eqx.error_if``)."""
-        new = eqx.tree_at(lambda o: (o.G, o.Q), self, (traced_positive(self.G, "G"), traced_positive(self.Q, "Q")))
-        new = eqx.tree_at(lambda o: o.filter_pole, new, traced_positive(self.filter_pole, "filter_pole"))
+        new = eqx.tree_at(
+            lambda o: (o.G, o.Q), self, (traced_positive(self.G, "G"), traced_positive(self.Q, "Q"))
+        )
+        new = eqx.tree_at(
+            lambda o: o.filter_pole, new, traced_positive(self.filter_pole, "filter_pole")
+        )
         if self.q is not None:
             new = eqx.tree_at(lambda o: o.q, new, traced_positive(self.q, "q"))
-        poles = eqx.error_if(self.poles, jnp.any(jnp.real(self.poles) >= 0), "`poles` must satisfy Re < 0.")
+        poles = eqx.error_if(
+            self.poles, jnp.any(jnp.real(self.poles) >= 0), "`poles` must satisfy Re < 0."
+        )
         return eqx.tree_at(lambda o: o.poles, new, poles)
 
     def check(self):
@@ -255,7 +265,9 @@ class Kreisselmeier(AbstractObserver):
         _, _, T = self._design()
         g, h = z.p[:n], z.p[n:]
         # (6.15a) with ξ_i = T_i η₁, ξ_{n+i} = T_i η₂ (6.10c)
-        return jnp.einsum("irk,k,i->r", T, z.eta1, g) + jnp.einsum("irk,k,i->r", T, z.eta2, h) + z.free
+        return (
+            jnp.einsum("irk,k,i->r", T, z.eta1, g) + jnp.einsum("irk,k,i->r", T, z.eta2, h) + z.free
+        )
 
     def output(self, z: KreisselmeierState):
         """ŷ = Zᵀ p + cᵀ e^{Ft} x̂0 (6.15b)."""

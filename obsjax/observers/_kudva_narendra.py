@@ -19,7 +19,9 @@ def _stable_matrix(K, name, n):
     if v is not None:
         ev = np.linalg.eigvals(v)
         if not np.all(ev.real < 0):
-            raise ValueError(f"`{name}` must be a stable (Hurwitz) matrix, got eigenvalues {ev.tolist()}.")
+            raise ValueError(
+                f"`{name}` must be a stable (Hurwitz) matrix, got eigenvalues {ev.tolist()}."
+            )
     return K
 
 
@@ -95,12 +97,18 @@ class KudvaNarendra(AbstractObserver):
         """Guards that survive ``jit`` (``eqx.error_if``): Γ₁, Γ₂, Q positive (definite), K Hurwitz."""
         # K is Hurwitz iff the solution P of KᵀP + PK = −Q (Q > 0) is positive definite (GPU-friendly test).
         P = lyapunov(self.K, self.Q)
-        K = eqx.error_if(self.K, jnp.any(~(jnp.linalg.eigvalsh(P) > 0)), "`K` must be stable (Hurwitz).")
+        K = eqx.error_if(
+            self.K, jnp.any(~(jnp.linalg.eigvalsh(P) > 0)), "`K` must be stable (Hurwitz)."
+        )
         return eqx.tree_at(
             lambda o: (o.K, o.Gamma1, o.Gamma2, o.Q),
             self,
-            (K, traced_positive(self.Gamma1, "Gamma1"), traced_positive(self.Gamma2, "Gamma2"),
-             traced_positive(self.Q, "Q")),
+            (
+                K,
+                traced_positive(self.Gamma1, "Gamma1"),
+                traced_positive(self.Gamma2, "Gamma2"),
+                traced_positive(self.Q, "Q"),
+            ),
         )
 
     def check(self):
@@ -191,7 +199,10 @@ class ErrorModel1(eqx.Module):
     def lyapunov(self, state):
         e, thetaT = state
         P = lyapunov(self.K, self.Q)
-        return 0.5 * (jnp.einsum("...i,ij,...j->...", e, P, e) + jnp.sum(thetaT * _left(self.Gamma, thetaT), axis=(-2, -1)))
+        return 0.5 * (
+            jnp.einsum("...i,ij,...j->...", e, P, e)
+            + jnp.sum(thetaT * _left(self.Gamma, thetaT), axis=(-2, -1))
+        )
 
 
 class ErrorModel2(eqx.Module):
@@ -243,4 +254,7 @@ class ErrorModel2(eqx.Module):
     def lyapunov(self, state):
         eps, thetaT = state
         P = lyapunov(self.K, self.Q)
-        return 0.5 * (jnp.einsum("...i,ij,...j->...", eps, P, eps) + jnp.sum(thetaT * _left(self.Gamma, thetaT), axis=(-2, -1)))
+        return 0.5 * (
+            jnp.einsum("...i,ij,...j->...", eps, P, eps)
+            + jnp.sum(thetaT * _left(self.Gamma, thetaT), axis=(-2, -1))
+        )

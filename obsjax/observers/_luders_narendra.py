@@ -23,7 +23,9 @@ def luders_narendra_form(a, b, lambdas):
     b = as_float_array(b, "b")
     n = a.shape[0]
     if a.ndim != 1 or b.shape != (n,):
-        raise ValueError(f"`a` and `b` must be vectors of the same length n, got {tuple(a.shape)} and {tuple(b.shape)}.")
+        raise ValueError(
+            f"`a` and `b` must be vectors of the same length n, got {tuple(a.shape)} and {tuple(b.shape)}."
+        )
     lam = as_float_array(lambdas, "lambdas").reshape(-1)
     if lam.shape[0] == n:
         lam = lam[1:]
@@ -112,7 +114,11 @@ class LudersNarendra(AbstractObserver):
         return eqx.tree_at(
             lambda o: (o.lambdas, o.c, o.d),
             self,
-            (traced_positive(self.lambdas, "lambdas"), traced_positive(self.c, "c"), traced_positive(self.d, "d")),
+            (
+                traced_positive(self.lambdas, "lambdas"),
+                traced_positive(self.c, "c"),
+                traced_positive(self.d, "d"),
+            ),
         )
 
     def check(self):
