@@ -100,6 +100,39 @@ def test_parametrized_observer_at_matching_point_is_luenberger():
     )
 
 
+def test_generalized_error_vanishes_at_matching_point():
+    """Lion's realisation of (6.18): with p = p* frozen the filtered generalised error 𝒵ᵀp* − Y decays to 0
+    (the filtered pair obeys y = Zᵀp* + cᵀe^{Ft}x0 too), and the filter states are successive derivatives:
+    d/dt (s^k/L Z) = s^{k+1}/L Z (no signal is differentiated)."""
+    ex = KREISSELMEIER_2
+    plant = obsjax.kreisselmeier_form(ex["a"], ex["b"])
+    G = 1e-300 * np.ones(4)
+    obs = obsjax.Kreisselmeier(2, ex["poles"], G, scheme="generalized", a0=ex["a"], b0=ex["b"])
+    u = obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"])
+    ts = jnp.linspace(0.0, K2_T1, K2_NUM)
+    traj = obsjax.simulate(
+        plant, obs, jnp.array([1.0, -2.0]), jnp.array([0.5, 0.5]), ts, u=u, max_steps=200_000
+    )
+    _, ell = obs._lion()
+
+    def filtered_regressor(z):  # 𝒵 of (6.18b) for the filtered Z: [s^k/L Z], k = 0..2n−1
+        Z = jnp.concatenate([z.eta1, z.eta2])
+        return jnp.concatenate([z.W, (Z - z.W @ ell)[:, None]], axis=1)
+
+    pstar = obs.matching_point(ex["a"], ex["b"])
+    E = []
+    for k in (0, 100, 300, 600):
+        z = jax.tree_util.tree_map(lambda v, k=k: v[k], traj.z)
+        Zf = filtered_regressor(z)
+        yc = traj.y[k, 0] - z.free[0]
+        Yf = jnp.concatenate([z.omega, (yc - ell @ z.omega)[None]])
+        E.append(float(jnp.linalg.norm(Zf.T @ pstar - Yf)))
+        # derivative structure of the filter: d/dt column k of W = column k+1 of 𝒵_f
+        dz = obs.vector_field(traj.ts[k], z, traj.y[k], u(traj.ts[k]))
+        np.testing.assert_allclose(np.asarray(dz.W), np.asarray(Zf[:, 1:]), atol=1e-12)
+    assert E[0] > 0.1 and E[-1] < 1e-7 * E[0] and E[2] < E[1] < E[0]
+
+
 @pytest.fixture(scope="module")
 def k2_runs():
     """The three schemes on the 2nd-order example, u = sin 0.7t + sin 2t (two frequencies, n = 2)."""
