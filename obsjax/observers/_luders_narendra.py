@@ -85,9 +85,11 @@ class LudersNarendra(AbstractObserver):
 
     **Example:**::
 
-        plant = obsjax.luders_narendra_form(a=[-3., -2.], b=[1., 1.], lambdas=[2., 1.])
-        obs = obsjax.LudersNarendra(2, lambdas=[2., 1.], c=5., d=5.)
-        traj = obsjax.simulate(plant, obs, x0, xhat0, ts, u=u)
+        plant = obsjax.luders_narendra_form(a=[-1., -1.], b=[1., -1.], lambdas=[1., .5])
+        obs = obsjax.LudersNarendra(2, lambdas=[1., .5], c=[28., 21.], d=[5., 5.])
+        u = obsjax.signals.multisine([1., 1.], [.5, 3.])
+        traj = obsjax.simulate(plant, obs, jnp.ones(2), jnp.array([0., 1.]), jnp.linspace(0., 200., 401), u=u)
+        alpha, beta = obs.parameters(traj.z)           # → (-1, -1) and (1, -1)
     """
 
     lambdas: jax.Array
