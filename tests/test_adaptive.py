@@ -226,16 +226,13 @@ def _param_loss(obs, plant, u, pstar, ts):
     return jnp.sum(0.5 * (e2[1:] + e2[:-1]) * jnp.diff(ts))
 
 
-def test_kreisselmeier_gradient_wrt_rates_matches_fd():
-    """d/dG and d/dq of ∫‖p − p*‖² dt (integral scheme: both rates): autodiff through diffrax against
-    central differences."""
-    scheme = "integral"
+def _check_kreisselmeier_gradients(scheme, extra):
     ex = KREISSELMEIER_2
     plant = obsjax.kreisselmeier_form(ex["a"], ex["b"])
     u = obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"])
     kw = {"q": 0.5} if scheme == "integral" else {}
     obs = obsjax.Kreisselmeier(
-        2, ex["poles"], jnp.asarray(kreisselmeier_gain(ex, 2.0)), scheme=scheme, **kw
+        2, ex["poles"], jnp.asarray(kreisselmeier_gain(ex, 2.0, scheme)), scheme=scheme, **kw
     )
     pstar = obs.matching_point(jnp.asarray(ex["a"]), jnp.asarray(ex["b"]))
     ts = jnp.linspace(0.0, 20.0, 81)
@@ -248,13 +245,26 @@ def test_kreisselmeier_gradient_wrt_rates_matches_fd():
         fm = loss(eqx.tree_at(lambda o: o.G, obs, obs.G - step))
         fd = (fp - fm) / (2 * h * obs.G[k])
         assert float(grads.G[k]) == pytest.approx(float(fd), rel=1e-4, abs=1e-9)
-    if scheme == "integral":
-        hq = 1e-5
+    for name in extra:  # scalar leaves
+        leaf = getattr(obs, name)
         fd = (
-            loss(eqx.tree_at(lambda o: o.q, obs, obs.q + hq))
-            - loss(eqx.tree_at(lambda o: o.q, obs, obs.q - hq))
-        ) / (2 * hq)
-        assert float(grads.q) == pytest.approx(float(fd), rel=1e-4)
+            loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf + h))
+            - loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf - h))
+        ) / (2 * h)
+        assert float(getattr(grads, name)) == pytest.approx(float(fd), rel=1e-4), name
+
+
+def test_kreisselmeier_gradient_wrt_rates_matches_fd():
+    """d/dG and d/dq of ∫‖p − p*‖² dt (integral scheme: both rates): autodiff through diffrax against
+    central differences."""
+    _check_kreisselmeier_gradients("integral", ("q",))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scheme,extra", [("generalized", ("Q", "filter_pole")), ("gradient", ())])
+def test_kreisselmeier_gradient_other_schemes_matches_fd(scheme, extra):
+    """The same check for the generalised law (G, Q, Lion's ℓ) and the gradient law (G)."""
+    _check_kreisselmeier_gradients(scheme, extra)
 
 
 @pytest.mark.slow
@@ -642,15 +652,20 @@ def test_kudva_narendra_gradient_wrt_gamma_matches_fd():
 
     g = eqx.filter_grad(loss)(obs)
     h = 1e-5
-    for name in ("Gamma1", "Gamma2"):
-        for k in range(2):
-            leaf = getattr(obs, name)
-            step = jnp.zeros(2).at[k].set(h)
-            fd = (
-                loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf + step))
-                - loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf - step))
-            ) / (2 * h)
-            assert float(getattr(g, name)[k]) == pytest.approx(float(fd), rel=1e-4, abs=1e-8)
+    # the rates Γ₁, Γ₂ (diagonals), and the model matrix K and Lyapunov weight Q (symmetric perturbation)
+    cases = [("Gamma1", (0,)), ("Gamma1", (1,)), ("Gamma2", (0,)), ("Gamma2", (1,))]
+    cases += [("K", (0, 1)), ("K", (1, 1)), ("Q", (0, 0)), ("Q", (0, 1))]
+    for name, idx in cases:
+        leaf = getattr(obs, name)
+        step = jnp.zeros(leaf.shape).at[idx].set(h)
+        if name == "Q":
+            step = 0.5 * (step + step.T)
+        fd = (
+            loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf + step))
+            - loss(eqx.tree_at(lambda o, name=name: getattr(o, name), obs, leaf - step))
+        ) / (2 * h)
+        directional = float(jnp.sum(getattr(g, name) * step) / h)
+        assert directional == pytest.approx(float(fd), rel=1e-4, abs=1e-8), (name, idx)
 
 
 @pytest.mark.parametrize(
