@@ -30,6 +30,11 @@ from .tuning._tune import risk_measure as risk_measure
 from .tuning._tune import tune as tune
 
 __version__ = "0.1.0"
+from .observers._generalized_inverse import GeneralizedInverse as GeneralizedInverse
+from .observers._generalized_inverse import GeneralizedInverseReduced as GeneralizedInverseReduced
+from .observers._minmax import MinMaxLuenberger as MinMaxLuenberger
+from .observers._minmax import minmax_algorithm as minmax_algorithm
+from .observers._minmax import minmax_initial_state as minmax_initial_state
 from .observers._kreisselmeier import Kreisselmeier as Kreisselmeier
 from .observers._kreisselmeier import kreisselmeier_form as kreisselmeier_form
 from .observers._luders_narendra import LudersNarendra as LudersNarendra
