@@ -16,6 +16,7 @@ import scipy.linalg
 
 import obsjax
 from obsjax import analysis as an
+from obsjax._checks import concrete_value
 
 CY = obsjax.chen_yen_example()
 SW = obsjax.switching_ltv_example()
@@ -311,6 +312,15 @@ def test_error_traced_negative_T_under_jit():
     assert float(f(0.5)) == 0.5
     with pytest.raises(Exception, match="T"):
         jax.block_until_ready(f(-0.5))
+
+    # A closed-over (concrete) observer stays concrete through prepare(), so simulate can count its reset
+    # segments under jit without `max_segments`.
+    @jax.jit
+    def g(x):
+        assert concrete_value(obs.prepare().T) is not None
+        return x
+
+    g(1.0)
 
 
 # ---------------------------------------------------------------- Kalman-Bucy baseline

@@ -12,7 +12,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float_array, positive
+from .._checks import as_float_array, concrete_value, positive
 from ..systems._plants import LTV
 from ._base import AbstractObserver
 
@@ -219,11 +219,20 @@ class LeastSquaresReset(AbstractObserver):
         return self.T
 
     def check(self) -> LeastSquaresReset:
-        """Value checks that survive jit: γ, p0, T > 0 (``eqx.error_if``)."""
-        gamma = eqx.error_if(self.gamma, self.gamma <= 0, "`gamma` must be > 0.")
-        p0 = eqx.error_if(self.p0, self.p0 <= 0, "`p0` must be > 0.")
-        T = eqx.error_if(self.T, self.T <= 0, "`T` (the reset period) must be > 0.")
-        return eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), self, (gamma, p0, T))
+        """Re-validate γ, p0, T > 0: ``ValueError`` for concrete values, ``eqx.error_if`` for traced ones.
+
+        Concrete leaves are returned untouched (so a concrete T stays concrete and ``simulate`` can count
+        the reset segments itself under ``jit``).
+        """
+        new = []
+        for name, leaf in (("gamma", self.gamma), ("p0", self.p0), ("T", self.T)):
+            if concrete_value(leaf) is not None:
+                positive(leaf, name)
+                new.append(leaf)
+            else:
+                what = "`T` (the reset period)" if name == "T" else f"`{name}`"
+                new.append(eqx.error_if(leaf, leaf <= 0, f"{what} must be > 0."))
+        return eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), self, tuple(new))
 
     def prepare(self) -> LeastSquaresReset:
         return self.check()
