@@ -1,1 +1,32 @@
-"""obsjax: differentiable state observers in JAX."""
+"""obsjax: differentiable, batched state observers for control systems, in JAX and diffrax.
+
+Importing obsjax turns on JAX's float64 mode (``jax_enable_x64``), because control designs are computed
+in double precision; this is the one global side effect of the import.  Set the environment variable
+``OBSJAX_NO_X64=1`` before the import to opt out (public entry points then raise instead of computing in
+float32).
+"""
+
+from ._config import enable_x64 as _enable_x64
+
+_enable_x64()
+
+from . import analysis as analysis
+from . import design as design
+from . import losses as losses
+from . import noise as noise
+from . import signals as signals
+from ._simulate import Trajectory as Trajectory
+from ._simulate import simulate as simulate
+from .observers._base import AbstractObserver as AbstractObserver
+from .observers._luenberger import FunctionalObserver as FunctionalObserver
+from .observers._luenberger import Luenberger as Luenberger
+from .observers._luenberger import ReducedOrder as ReducedOrder
+from .systems._plants import LTI as LTI
+from .systems._plants import LTV as LTV
+from .systems._plants import AbstractSystem as AbstractSystem
+from .systems._plants import Nonlinear as Nonlinear
+from .tuning._tune import TuneResult as TuneResult
+from .tuning._tune import risk_measure as risk_measure
+from .tuning._tune import tune as tune
+
+__version__ = "0.1.0"

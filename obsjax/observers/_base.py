@@ -47,6 +47,11 @@ class AbstractObserver(eqx.Module):
         """Period T of the resets at t0 + kT, or ``None`` for a smooth observer."""
         return None
 
+    def target(self, t, x):
+        """The quantity the estimate tracks: x itself, or a functional of it (``Trajectory.error`` is
+        ``estimate − target``)."""
+        return x
+
     def reset(self, t, z):
         """State just after a reset at time t (identity for smooth observers)."""
         return z
