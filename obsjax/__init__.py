@@ -30,3 +30,5 @@ from .tuning._tune import risk_measure as risk_measure
 from .tuning._tune import tune as tune
 
 __version__ = "0.1.0"
+from .observers._tlo import TrajectoryLinearization as TrajectoryLinearization
+from .observers._ekf import ExtendedKalman as ExtendedKalman
