@@ -129,6 +129,15 @@ def _dims(A: Callable, C: Callable, t) -> tuple[int, int]:
     return sa[0], sc[0]
 
 
+def _concrete_times(ts, why: str) -> np.ndarray:
+    if isinstance(ts, jax.core.Tracer):
+        v = concrete_value(ts)
+        if v is None:
+            raise ValueError(f"`ts` must be concrete ({why}); got a traced value.")
+        ts = v
+    return np.atleast_1d(np.asarray(ts, dtype=float))
+
+
 def ltv_observability_matrix(A: Callable, C: Callable, t) -> jax.Array:
     """Observability matrix Q(t) = [C; 𝓛C; …; 𝓛ⁿ⁻¹C] of (8), shape (n·m, n), rows grouped by power of 𝓛.
 
@@ -186,10 +195,7 @@ def ltv_observability_indices(A: Callable, C: Callable, ts, *, tol: float = 1e-9
         ltv_observability_indices(lambda t: A, lambda t: C, 0.0)   # (2, 2) for a generic 4x4, 2-output pair
     """
     require_x64("ltv_observability_indices")
-    tsv = concrete_value(jnp.asarray(ts, dtype=float))
-    if tsv is None:
-        raise ValueError("`ts` must be concrete (observability indices are static); got a traced value.")
-    tsv = np.atleast_1d(tsv)
+    tsv = _concrete_times(ts, "observability indices are static")
     n, m = _dims(A, C, tsv[0])
     stack = jax.jit(_lie_stack(A, C, n - 1))
     found = None
@@ -230,10 +236,7 @@ def strong_observability(A: Callable, C: Callable, ts, *, threshold: float = 1e-
     require_x64("strong_observability")
     if not threshold > 0:
         raise ValueError(f"`threshold` must be > 0, got {threshold}.")
-    tsv = concrete_value(jnp.asarray(ts, dtype=float))
-    if tsv is None:
-        raise ValueError("`ts` must be concrete for the strong-observability check; got a traced value.")
-    tsv = np.atleast_1d(tsv)
+    tsv = _concrete_times(ts, "the strong-observability check runs before tracing")
     n, m = _dims(A, C, tsv[0])
     Qfn = _lie_stack(A, C, n - 1)
 

@@ -91,8 +91,10 @@ def omega_function(omega, name: str = "omega") -> Callable:
     return lambda t: w + jnp.zeros_like(t)
 
 
-def check_rho_bar(rho_bar, name: str = "rho_bar", *, negative: bool = False) -> jax.Array:
-    """Validate nominal PD-eigenvalues: a real 1-D vector of distinct values (negative if asked)."""
+def check_rho_bar(
+    rho_bar, name: str = "rho_bar", *, negative: bool = False, distinct: bool = True
+) -> jax.Array:
+    """Validate nominal PD-eigenvalues: a real 1-D vector (of distinct values, negative, if asked)."""
     r = as_float_array(rho_bar, name)
     if r.ndim == 0:
         r = r.reshape(1)
@@ -104,7 +106,7 @@ def check_rho_bar(rho_bar, name: str = "rho_bar", *, negative: bool = False) -> 
     if c is not None:
         if negative and not np.all(c < 0):
             raise ValueError(f"`{name}` must be < 0 for a stable observer, got {c.tolist()}.")
-        if len(np.unique(c)) != len(c):
+        if distinct and len(np.unique(c)) != len(c):
             raise ValueError(
                 f"`{name}` must hold distinct values (the Vandermonde matrix V̄(ρ̄) of (21) must be "
                 f"invertible), got {c.tolist()}."
@@ -267,7 +269,7 @@ def pd_observer_gain(
     form = ltv_observer_canonical_form(A, C, t, indices=indices, threshold=threshold)
     idx = form.indices
     n, m = form.Tinv.shape[0], len(idx)
-    rho_bar = check_rho_bar(rho_bar)
+    rho_bar = check_rho_bar(rho_bar, distinct=False)  # distinct within each block (checked per block)
     if rho_bar.shape[0] != n:
         raise ValueError(f"`rho_bar` must have n = {n} entries (split as {idx}), got {rho_bar.shape[0]}.")
     w = omega_function(omega)

@@ -138,7 +138,7 @@ class TrajectoryLinearization(AbstractObserver):
             raise ValueError(f"`stiff_rate` must be > 0, got {stiff_rate}.")
         self.model = model
         self.nominal = nominal
-        self.rho_bar = check_rho_bar(rho_bar, "rho_bar", negative=True)
+        self.rho_bar = check_rho_bar(rho_bar, "rho_bar", negative=True, distinct=False)
         if self.rho_bar.shape[0] != model.n:
             raise ValueError(
                 f"`rho_bar` must hold n = {model.n} nominal PD-eigenvalues, got {self.rho_bar.shape[0]}."
@@ -166,7 +166,7 @@ class TrajectoryLinearization(AbstractObserver):
         e = concrete_value(self.eps)
         if e is not None and not e > 0:
             raise ValueError(f"`eps` must be > 0 (the high-gain factor, ω_H = ω/ε), got {float(e)}.")
-        check_rho_bar(self.rho_bar, "rho_bar", negative=True)
+        check_rho_bar(self.rho_bar, "rho_bar", negative=True, distinct=False)
         start = 0
         for p in self.indices:
             check_rho_bar(self.rho_bar[start : start + p], f"rho_bar[{start}:{start + p}]")
