@@ -6,6 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+try:  # jax >= 0.6
+    from jax.extend.core import concrete_or_error as _concrete_or_error
+except ImportError:  # pragma: no cover
+    _concrete_or_error = jax.core.concrete_or_error
+
 
 def as_float_array(x, name: str) -> jax.Array:
     """Convert to a floating JAX array (float64 under x64), naming ``name`` on failure."""
@@ -57,7 +62,7 @@ def is_concrete(x) -> bool:
     for leaf in leaves:
         if isinstance(leaf, jax.core.Tracer):
             try:
-                jax.core.concrete_or_error(None, leaf)
+                _concrete_or_error(None, leaf)
             except Exception:  # noqa: BLE001
                 return False
     return True
@@ -66,7 +71,7 @@ def is_concrete(x) -> bool:
 def concrete_value(x):
     """Concrete numpy value of ``x`` or ``None`` when it is traced (inside jit)."""
     try:
-        return np.asarray(jax.core.concrete_or_error(None, x))
+        return np.asarray(_concrete_or_error(None, x))
     except Exception:  # noqa: BLE001
         return None
 

@@ -125,8 +125,8 @@ def _check_ts(ts):
 
 
 def simulate(
-    plant: AbstractSystem,
-    observer: AbstractObserver,
+    plant,
+    observer,
     x0,
     xhat0,
     ts,
@@ -187,6 +187,7 @@ def simulate(
         raise ValueError(f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}.")
     if not isinstance(observer, AbstractObserver):
         raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
+    ts_np = concrete_value(ts)
     ts = _check_ts(ts)
     x0 = as_float_array(x0, "x0")
     if x0.shape != (plant.n,):
@@ -205,7 +206,8 @@ def simulate(
 
     noise_path = None
     if isinstance(noise, BandLimitedNoise):
-        noise_path = realise_band_limited(noise, key, _concrete_float(t0, "ts[0]"), _concrete_float(t1, "ts[-1]"), m)
+        t0c, t1c = _concrete_span(ts_np)
+        noise_path = realise_band_limited(noise, key, t0c, t1c, m)
     elif noise is not None and not isinstance(noise, WhiteNoise):
         raise ValueError(f"`noise` must be WhiteNoise or BandLimitedNoise, got {type(noise).__name__}.")
 
@@ -216,12 +218,11 @@ def simulate(
 
     # Terms, solver, step-size control.
     if isinstance(noise, WhiteNoise):
-        span = _concrete_float(t1, "ts[-1]") - _concrete_float(t0, "ts[0]")
+        t0c, t1c = _concrete_span(ts_np)
+        span = t1c - t0c
         if dt0 is None:
             dt0 = span / 2000.0
-        bm = diffrax.VirtualBrownianTree(
-            _concrete_float(t0, "ts[0]"), _concrete_float(t1, "ts[-1]"), tol=dt0 / 2, shape=(m,), key=key
-        )
+        bm = diffrax.VirtualBrownianTree(t0c, t1c, tol=dt0 / 2, shape=(m,), key=key)
         terms = diffrax.MultiTerm(
             diffrax.ODETerm(_drift), _MeasurementNoiseTerm(noise.sigma, bm)
         )
@@ -238,9 +239,9 @@ def simulate(
         ctrl = diffrax.PIDController(rtol=rtol, atol=atol)
     else:
         ctrl = diffrax.ConstantStepSize()
-        span_c = concrete_value(t1 - t0)
-        if span_c is not None and max_steps is not None:
-            max_steps = max(max_steps, int(math.ceil(float(span_c) / float(dt0))) + 16)
+        if ts_np is not None and max_steps is not None:
+            span_c = float(ts_np[-1] - ts_np[0])
+            max_steps = max(max_steps, int(math.ceil(span_c / float(dt0))) + 16)
     if jumps is not None:
         ctrl = diffrax.ClipStepSizeController(ctrl, jump_ts=jumps)
 
@@ -296,14 +297,13 @@ def simulate(
     return Trajectory(ts=ts, x=xs, xhat=xhat_s, y=y_s, error=error, z=zs, status=status)
 
 
-def _concrete_float(x, name):
-    v = concrete_value(x)
-    if v is None:
+def _concrete_span(ts_np):
+    if ts_np is None:
         raise ValueError(
-            f"`{name}` must be a concrete number here (noise paths are drawn on a grid fixed before "
-            "tracing): pass `ts` as a static/closed-over array rather than a traced argument."
+            "`ts` must be concrete when `noise` is given (noise paths are drawn on a grid fixed before "
+            "tracing): close over `ts` instead of passing it as a traced argument."
         )
-    return float(v)
+    return float(ts_np[0]), float(ts_np[-1])
 
 
 def num_segments(T, t0, t1) -> int | None:
@@ -339,12 +339,17 @@ def _segmented(observer, solve, state0, ts, T, max_segments):
 
     def body(carry, k):
         state, buf, ok = carry
-        s0 = jnp.minimum(t0 + k * T, t1)
-        s1 = jnp.minimum(t0 + (k + 1) * T, t1)
+        # min(t0 + kT, t1), with a tie (horizon a multiple of T) resolved to the fixed t1: the end of the
+        # horizon, like the save times, carries no T-derivative (jnp.minimum would split it 50/50).
+        a0, a1 = t0 + k * T, t0 + (k + 1) * T
+        s0 = jnp.where(a0 < t1, a0, t1)
+        s1 = jnp.where(a1 < t1, a1, t1)
         s1 = jnp.where(k == n_seg - 1, t1, s1)
         x, z = state
         z = jax.lax.cond(k > 0, lambda zz: observer.reset(s0, zz), lambda zz: zz, z)
-        ys, ok_k = solve(s0, s1, (x, z), jnp.clip(ts, s0, s1))
+        # Save times are fixed: they must not inherit a T-derivative from the clip (ties at reset instants).
+        save_ts = jnp.clip(ts, jax.lax.stop_gradient(s0), jax.lax.stop_gradient(s1))
+        ys, ok_k = solve(s0, s1, (x, z), save_ts)
         inside = seg_of == k
         buf = jax.tree_util.tree_map(
             lambda b, v: jnp.where(inside.reshape((-1,) + (1,) * (b.ndim - 1)), v[:-1], b), buf, ys

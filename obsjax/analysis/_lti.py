@@ -34,12 +34,23 @@ def obsv(A, C) -> jax.Array:
     return jnp.concatenate(blocks, axis=0)
 
 
+def _obsv_np(A, C) -> np.ndarray:
+    """Observability matrix in NumPy (for checks on concrete values, also while tracing)."""
+    A = np.asarray(A, dtype=float)
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    blocks = [C]
+    for _ in range(A.shape[0] - 1):
+        blocks.append(blocks[-1] @ A)
+    return np.concatenate(blocks, axis=0)
+
+
 def is_observable(A, C, tol: float | None = None) -> bool:
     """True when rank obsv(A, C) = n (checked on concrete values with an SVD rank test).
 
     The default tolerance is ``max(shape) · eps · σ_max`` on the observability matrix scaled column-wise.
     """
-    O = np.asarray(obsv(A, C))
+    _pair(A, C)
+    O = _obsv_np(A, C)
     n = O.shape[1]
     s = np.linalg.svd(O, compute_uv=False)
     if s[0] == 0:

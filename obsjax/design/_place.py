@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array, concrete_value
-from ..analysis._lti import _pair, is_observable, obsv
+from ..analysis._lti import _obsv_np, _pair, is_observable, obsv
 
 
 def _check_poles(poles, n):
@@ -87,7 +87,7 @@ def choose_reduction(A, C) -> int:
     best = None
     for idx, (L0, v) in enumerate(_cyclic_candidates(n, m)):
         Ak = A - (L0 * scale) @ C
-        O = np.asarray(obsv(Ak, (v @ C)[None, :]))
+        O = _obsv_np(Ak, (v @ C)[None, :])
         with np.errstate(all="ignore"):
             cond = np.linalg.cond(O)
         if not np.isfinite(cond):
@@ -128,7 +128,7 @@ def place(A, C, poles, *, reduction: int | None = None) -> jax.Array:
     Av, Cv = concrete_value(A), concrete_value(C)
     if Av is not None and Cv is not None and not is_observable(Av, Cv):
         raise ValueError(
-            f"(A, C) is not observable: rank obsv(A, C) = {np.linalg.matrix_rank(np.asarray(obsv(Av, Cv)))} < n = {n}; "
+            f"(A, C) is not observable: rank obsv(A, C) = {np.linalg.matrix_rank(_obsv_np(Av, Cv))} < n = {n}; "
             "the observer poles cannot be placed arbitrarily (thesis Lemma 1)."
         )
     if jnp.iscomplexobj(poles):
@@ -192,9 +192,9 @@ def observability_indices(A, C, tol: float | None = None) -> tuple[int, ...]:
 
     **Raises** ``ValueError`` when the pair is not observable.
     """
-    A = np.asarray(as_float_array(A, "A"))
-    C = np.asarray(as_float_array(C, "C"))
-    A, C = (np.asarray(a) for a in _pair(A, C))
+    _pair(A, C)
+    A = np.asarray(A, dtype=float)
+    C = np.atleast_2d(np.asarray(C, dtype=float))
     n, m = A.shape[0], C.shape[0]
     H = C.T
     kept = []
