@@ -18,6 +18,7 @@ from obsjax.design import (
     ltv_observability_indices,
     ltv_observer_canonical_form,
     pd_observer_gain,
+    rpdo_coefficients,
     strong_observability,
 )
 
@@ -79,6 +80,26 @@ def _jitted(n):
 
     form = jax.jit(lambda t: ltv_observer_canonical_form(A, C, t, indices=idx))
     return closed_loop, form, jax.jit(jax.vmap(Tf))
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted_tv(n):
+    """Ã_z(t) by (11) with the time-varying bandwidth ω(t) = 2 + sin t, and the RPDO β of each block."""
+    A, C, idx, rho = SYSTEMS[n]
+    Tf = _T_of(A, C, idx)
+
+    @jax.jit
+    def f(t):
+        T, Td = jax.jvp(Tf, (t,), (jnp.ones_like(t),))
+        K = pd_observer_gain(A, C, jnp.asarray(rho), omega_tv, t, indices=idx).Ko
+        Ti = jnp.linalg.inv(T)
+        blocks, start = [], 0
+        for p in idx:
+            blocks.append(rpdo_coefficients(jnp.asarray(rho[start : start + p]), omega_tv, t))
+            start += p
+        return T @ (A(t) + K @ C(t)) @ Ti + Td @ Ti, blocks
+
+    return f
 
 
 # -- (8)-(11): the canonical form ----------------------------------------------------------------------------
@@ -157,6 +178,23 @@ def test_constant_bandwidth_gives_lti_error_dynamics_with_eigenvalues_rho_omega(
         sol = solve_ivp(rhs, (0.3, 1.9), np.linalg.solve(T1, z0), rtol=1e-11, atol=1e-13, method="DOP853")
         Phi = scipy.linalg.expm(np.asarray(M1) * 1.6)
         np.testing.assert_allclose(np.asarray(T2) @ sol.y[:, -1], Phi @ z0, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("n", [3, 4])
+def test_time_varying_bandwidth_closed_loop_is_the_decoupled_observer_form_of_beta(n):
+    """Ã_z(t) (by (11), Ṫ by autodiff) is block diagonal, block i in observer form with last column −β_i(t),
+    β_i the RPDO whose modes are exp(ρ̄_k ∫ω) (checked in test_pd_spectrum)."""
+    _, _, idx, _ = SYSTEMS[n]
+    for t in (0.4, 2.2):
+        M, blocks = _jitted_tv(n)(jnp.asarray(t))
+        expected = np.zeros((n, n))
+        start = 0
+        for p, beta in zip(idx, blocks):
+            for j in range(1, p):
+                expected[start + j, start + j - 1] = 1.0
+            expected[start : start + p, start + p - 1] = -np.asarray(beta)
+            start += p
+        np.testing.assert_allclose(M, expected, atol=1e-8 * np.abs(expected).max())
 
 
 def test_time_varying_bandwidth_error_modes_follow_exp_integral_rho():
