@@ -366,7 +366,8 @@ def _ltv_disturbed():
 
 
 TS_G = jnp.linspace(0.0, 4.0, 81)
-KW_G = dict(dt0=0.02, adaptive=False)  # fixed steps: the loss is smooth in the parameters (clean FD)
+# fixed Heun steps: the loss is smooth in the parameters (clean FD), and a 2-stage solver compiles fast
+KW_G = dict(solver=diffrax.Heun(), dt0=0.01, adaptive=False)
 
 
 def _tradeoff(traj):
@@ -418,6 +419,24 @@ def test_tune_finds_an_interior_optimum_of_eps():
     assert grid[k - 1] < eps_star < grid[k + 1]
     assert Je(eps_star) <= vals.min() * 1.001
     assert Je(eps_star) < Je(0.7 * eps_star) and Je(eps_star) < Je(1.4 * eps_star)
+
+
+@pytest.mark.slow
+def test_gradient_along_the_running_estimate_matches_finite_differences():
+    """Van der Pol, nominal=None: K_o depends on x̂ through the Jacobians and their flow derivatives."""
+    h = lambda t, x, u: x[:1]  # noqa: E731
+    plant, model = obsjax.Nonlinear(vdp(0.5), h, 2, 1), obsjax.Nonlinear(vdp(0.0), h, 2, 1)
+    obs = obsjax.TrajectoryLinearization(model, [-1.0, -2.0], RampBandwidth(1.0, 3.0, 1.0), 0.3)
+
+    @jax.jit
+    def J(p):
+        o = eqx.tree_at(lambda o: (o.eps, o.omega.omega0, o.omega.omega1, o.omega.tau), obs, tuple(p))
+        return _tradeoff(obsjax.simulate(plant, o, jnp.array([2.0, 0.0]), jnp.zeros(2), TS_G, **KW_G))
+
+    p = jnp.array([0.3, 1.0, 3.0, 1.0])
+    g = jax.jit(jax.grad(J))(p)
+    fd = np.array([(J(p.at[i].add(1e-5)) - J(p.at[i].add(-1e-5))) / 2e-5 for i in range(4)])
+    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-8)
 
 
 # -- bad input ------------------------------------------------------------------------------------------------------
@@ -480,3 +499,31 @@ def test_nominal_must_be_callable():
 def test_bad_indices_are_refused():
     with pytest.raises(ValueError, match="`indices` must be 1 positive integers summing to n = 2"):
         obsjax.TrajectoryLinearization(_vdp_model(), [-1.0, -2.0], 1.0, 1.0, indices=(1,))
+
+
+def _losing_model():
+    """ẋ1 = x2, ẋ2 = 0, y = x1·x2: C_o = [x̂2, x̂1] vanishes at x̂ = 0 (not observable there)."""
+    return obsjax.Nonlinear(lambda t, x, u: jnp.array([x[1], 0.0 * x[0]]), lambda t, x, u: x[:1] * x[1:], 2, 1)
+
+
+def test_losing_strong_observability_along_the_estimate_stops_the_simulation():
+    model = _losing_model()
+    obs = obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 1.0, 1.0, indices=(2,))
+    with pytest.raises(Exception, match="lost strong observability"):
+        obsjax.simulate(model, obs, jnp.array([1.0, 1.0]), jnp.zeros(2), jnp.linspace(0.0, 1.0, 3))
+
+
+@pytest.mark.slow
+def test_losing_strong_observability_with_nan_policy_fails_only_that_trajectory():
+    model = _losing_model()
+    obs = obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 1.0, 1.0, indices=(2,), on_unobservable="nan")
+    run = jax.vmap(
+        lambda xh0: obsjax.simulate(model, obs, jnp.array([1.0, 1.0]), xh0, jnp.linspace(0.0, 1.0, 3), throw=False).status
+    )
+    status = run(jnp.array([[0.0, 0.0], [1.1, 0.9]]))
+    assert int(status[0]) != 0 and int(status[1]) == 0
+
+
+def test_bad_unobservable_policy_is_refused():
+    with pytest.raises(ValueError, match="`on_unobservable` must be"):
+        obsjax.TrajectoryLinearization(_vdp_model(), [-1.0, -2.0], 1.0, 1.0, on_unobservable="ignore")

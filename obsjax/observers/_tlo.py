@@ -93,6 +93,9 @@ class TrajectoryLinearization(AbstractObserver):
     - `threshold`: the strong-observability constant c: |det Q_0ᵀQ_0| < c stops the simulation
       (``eqx.error_if``) and |det QᵀQ| < c fails the `check_ts` check.
     - `stiff_rate`: see Stiffness.
+    - `on_unobservable`: ``"error"`` (default) raises at run time (``eqx.error_if``) when |det Q_0ᵀQ_0|
+      falls below `threshold` along the trajectory; ``"nan"`` makes the gain NaN instead, so that in a
+      vmapped study only that trajectory fails (``simulate(..., throw=False)`` reports status 2).
 
     **Example:** Van der Pol oscillator, y = x₁::
 
@@ -112,6 +115,7 @@ class TrajectoryLinearization(AbstractObserver):
     indices: tuple[int, ...] = eqx.field(static=True)
     threshold: float = eqx.field(static=True, default=1e-10)
     stiff_rate: float = eqx.field(static=True, default=50.0)
+    on_unobservable: str = eqx.field(static=True, default="error")
 
     def __init__(
         self,
@@ -125,6 +129,7 @@ class TrajectoryLinearization(AbstractObserver):
         check_ts=None,
         threshold: float = 1e-10,
         stiff_rate: float = 50.0,
+        on_unobservable: str = "error",
     ):
         if not isinstance(model, AbstractSystem):
             raise ValueError(
@@ -136,6 +141,9 @@ class TrajectoryLinearization(AbstractObserver):
             raise ValueError(f"`threshold` must be > 0, got {threshold}.")
         if not stiff_rate > 0:
             raise ValueError(f"`stiff_rate` must be > 0, got {stiff_rate}.")
+        if on_unobservable not in ("error", "nan"):
+            raise ValueError(f"`on_unobservable` must be 'error' or 'nan', got {on_unobservable!r}.")
+        self.on_unobservable = on_unobservable
         self.model = model
         self.nominal = nominal
         self.rho_bar = check_rho_bar(rho_bar, "rho_bar", negative=True, distinct=False)
@@ -232,6 +240,8 @@ class TrajectoryLinearization(AbstractObserver):
         """K_o(t), shape (n, m) (multiplies ŷ − y)."""
         d = self.design(t, xhat, u)
         det = jnp.abs(jnp.linalg.det(d.form.Q0.T @ d.form.Q0))
+        if self.on_unobservable == "nan":
+            return jnp.where(det >= self.threshold, d.Ko, jnp.nan)
         return eqx.error_if(
             d.Ko,
             ~(det >= self.threshold),
