@@ -144,6 +144,8 @@ class TrajectoryLinearization(AbstractObserver):
         if on_unobservable not in ("error", "nan"):
             raise ValueError(f"`on_unobservable` must be 'error' or 'nan', got {on_unobservable!r}.")
         self.on_unobservable = on_unobservable
+        if check_ts is not None and nominal is None:
+            raise ValueError("`check_ts` checks strong observability along `nominal`; give `nominal` too.")
         self.model = model
         self.nominal = nominal
         self.rho_bar = check_rho_bar(rho_bar, "rho_bar", negative=True, distinct=False)
@@ -161,8 +163,6 @@ class TrajectoryLinearization(AbstractObserver):
             indices = ltv_observability_indices(A, C, 0.0 if check_ts is None else check_ts)
         self.indices = _check_indices(indices, model.n, model.m)
         if check_ts is not None:
-            if nominal is None:
-                raise ValueError("`check_ts` checks strong observability along `nominal`; give `nominal` too.")
             A, C = self._jacobian_fns(None, None)
             strong_observability(A, C, check_ts, threshold=self.threshold)
         self.check()
