@@ -24,7 +24,7 @@ RHO = {2: [-1.0, -2.5], 3: [-1.0, -2.0, -3.5], 4: [-0.5, -1.0, -2.0, -3.0]}
 
 def _pd_power(rho_fn, i):
     """t ↦ 𝒟_ρ^i{1} straight from the definition 𝒟_ρ{f} = ḟ + ρ f (independent of V̂ of (21))."""
-    g = lambda t: jnp.ones_like(t)  # noqa: E731
+    g = lambda t: jnp.ones_like(t)
     for _ in range(i):
         g = (lambda prev: lambda t: jax.grad(prev)(t) + rho_fn(t) * prev(t))(g)
     return g
@@ -35,7 +35,7 @@ def _synthesis_by_cofactors(rho_bar, omega, t):
     n = len(rho_bar)
     V = np.zeros((n + 1, n))
     for j, rb in enumerate(rho_bar):
-        rho_fn = lambda s, rb=rb: rb * omega(s)  # noqa: E731
+        rho_fn = lambda s, rb=rb: rb * omega(s)
         for i in range(n + 1):
             V[i, j] = float(_pd_power(rho_fn, i)(jnp.asarray(t)))
     Vn = V[:n]
@@ -59,8 +59,12 @@ def test_second_order_formulas_of_the_lemma(t):
 def test_synthesis_matches_cofactor_formula_and_modal_determinant(n):
     t = 0.9
     alpha_ref, Vn = _synthesis_by_cofactors(RHO[n], omega_tv, t)
-    np.testing.assert_allclose(pd_coefficients(jnp.array(RHO[n]), omega_tv, t), alpha_ref, rtol=1e-10)
-    np.testing.assert_allclose(pd_modal_matrix(jnp.array(RHO[n]), omega_tv, t), Vn, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        pd_coefficients(jnp.array(RHO[n]), omega_tv, t), alpha_ref, rtol=1e-10
+    )
+    np.testing.assert_allclose(
+        pd_modal_matrix(jnp.array(RHO[n]), omega_tv, t), Vn, rtol=1e-12, atol=1e-12
+    )
     # det V_n(ω) = ω^{n(n-1)/2} Π_{i<j} (ρ̄_j − ρ̄_i)  (proof of the Lemma)
     w = 2.0 + np.sin(t)
     prod = np.prod([RHO[n][j] - RHO[n][i] for i, j in itertools.combinations(range(n), 2)])
@@ -84,7 +88,9 @@ def test_lemma_scaling(n, eps):
     k = np.arange(1, n + 1)
     # constant ω: α_k(ω/ε) = ε^{-(n-k+1)} α_k(ω)
     np.testing.assert_allclose(
-        pd_coefficients(rho, 1.3 / eps, 0.0), eps ** (-(n - k + 1)) * pd_coefficients(rho, 1.3, 0.0), rtol=1e-11
+        pd_coefficients(rho, 1.3 / eps, 0.0),
+        eps ** (-(n - k + 1)) * pd_coefficients(rho, 1.3, 0.0),
+        rtol=1e-11,
     )
     # time-varying ω with τ = t/ε: α_k(ω_H(t), dt) = ε^{-(n-k+1)} α_k(ω(ετ), dτ)
     t = 0.8
@@ -103,17 +109,20 @@ def _ddt(fn, order):
 def test_modes_exp_integral_rho_solve_both_operators(n):
     """Defining property: y_j = exp(ρ̄_j ∫ω) solves the LPDO δⁿ + Σ α_k δ^{k-1} and the RPDO δⁿ + Σ δ^{k-1}∘β_k."""
     rho = jnp.array(RHO[n])
-    alpha = lambda s: pd_coefficients(rho, omega_tv, s)  # noqa: E731
-    beta = lambda s: rpdo_coefficients(rho, omega_tv, s)  # noqa: E731
+    alpha = lambda s: pd_coefficients(rho, omega_tv, s)
+    beta = lambda s: rpdo_coefficients(rho, omega_tv, s)
 
     @jax.jit
     def residuals(t, rb):
-        y = lambda s: jnp.exp(rb * omega_int(s))  # noqa: E731
+        y = lambda s: jnp.exp(rb * omega_int(s))
         top = _ddt(y, n)(t)
         lp = top + sum(alpha(t)[k - 1] * _ddt(y, k - 1)(t) for k in range(1, n + 1))
-        if n == 4:  # the RPDO check at n = 4 nests 10 derivatives (minutes to compile); n = 2, 3 cover it
+        # the RPDO check at n = 4 nests 10 derivatives (minutes to compile); n = 2, 3 cover it
+        if n == 4:
             return jnp.abs(lp) / jnp.abs(top)
-        rp = top + sum(_ddt(lambda s, k=k: beta(s)[k - 1] * y(s), k - 1)(t) for k in range(1, n + 1))
+        rp = top + sum(
+            _ddt(lambda s, k=k: beta(s)[k - 1] * y(s), k - 1)(t) for k in range(1, n + 1)
+        )
         return jnp.abs(jnp.stack([lp, rp])) / jnp.abs(top)
 
     for t in (0.3, 1.9):

@@ -26,7 +26,9 @@ from obsjax.design import (
 
 
 def A3(t):
-    return jnp.array([[-1.0, 1 + 0.5 * jnp.sin(t), 0.0], [0.0, 0.0, 1.0], [0.3 * jnp.cos(t), -1.0, -0.5]])
+    return jnp.array(
+        [[-1.0, 1 + 0.5 * jnp.sin(t), 0.0], [0.0, 0.0, 1.0], [0.3 * jnp.cos(t), -1.0, -0.5]]
+    )
 
 
 def C3(t):
@@ -63,7 +65,7 @@ def _T_of(A, C, idx):
     return lambda s: jnp.linalg.inv(ltv_observer_canonical_form(A, C, s, indices=idx).Tinv)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _jitted(n):
     """Jitted per-system helpers (compiled once per system, reused across tests and ε)."""
     A, C, idx, rho = SYSTEMS[n]
@@ -82,7 +84,7 @@ def _jitted(n):
     return closed_loop, form, jax.jit(jax.vmap(Tf))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _jitted_tv(n):
     """Ã_z(t) by (11) with the time-varying bandwidth ω(t) = 2 + sin t, and the RPDO β of each block."""
     A, C, idx, rho = SYSTEMS[n]
@@ -132,8 +134,8 @@ def test_canonical_form_matches_definition_11(n):
 
 
 def test_strong_observability_failure_names_the_time():
-    A = lambda t: jnp.array([[0.0, 1.0], [0.0, 0.0]])  # noqa: E731
-    C = lambda t: jnp.array([[t - 1.0, 0.0]])  # noqa: E731  (det QᵀQ = (t − 1)^4)
+    A = lambda t: jnp.array([[0.0, 1.0], [0.0, 0.0]])
+    C = lambda t: jnp.array([[t - 1.0, 0.0]])
     with pytest.raises(ValueError, match=r"not strongly observable.*t = 1\b"):
         strong_observability(A, C, np.linspace(0.0, 2.0, 21))
     with pytest.raises(ValueError, match=r"not strongly observable.*t = 1\b"):
@@ -141,15 +143,15 @@ def test_strong_observability_failure_names_the_time():
 
 
 def test_unobservable_pair_is_refused():
-    A = lambda t: jnp.zeros((2, 2))  # noqa: E731
-    C = lambda t: jnp.array([[1.0, 0.0]])  # noqa: E731
+    A = lambda t: jnp.zeros((2, 2))
+    C = lambda t: jnp.array([[1.0, 0.0]])
     with pytest.raises(ValueError, match="not observable at t = 0"):
         ltv_observability_indices(A, C, 0.0)
 
 
 def test_changing_observability_indices_are_refused():
-    A = lambda t: jnp.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])  # noqa: E731
-    C = lambda t: jnp.array([[1.0, 0.0, 0.0], [0.0, t, 0.0]])  # noqa: E731
+    A = lambda t: jnp.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+    C = lambda t: jnp.array([[1.0, 0.0, 0.0], [0.0, t, 0.0]])
     with pytest.raises(ValueError, match="indices of .* change at t = 1"):
         ltv_observability_indices(A, C, [0.0, 1.0])
 
@@ -161,7 +163,7 @@ def test_changing_observability_indices_are_refused():
 def test_constant_bandwidth_gives_lti_error_dynamics_with_eigenvalues_rho_omega(n):
     from scipy.integrate import solve_ivp
 
-    A, C, idx, rho = SYSTEMS[n]
+    A, C, _, rho = SYSTEMS[n]
     closed_loop, _, _ = _jitted(n)
     for eps in (1.0, 0.5):
         M1, _, T1, _ = closed_loop(jnp.asarray(0.3), 1.5, eps)
@@ -172,10 +174,13 @@ def test_constant_bandwidth_gives_lti_error_dynamics_with_eigenvalues_rho_omega(
         # the closed loop A + K_o C integrated by SciPy in the original coordinates, mapped by T, equals
         # exp(Ã_z t) z0 (SciPy expm)
         z0 = np.arange(1.0, n + 1)
-        rhs = lambda t, x: np.asarray(  # noqa: E731
-            (A(t) + closed_loop(jnp.asarray(t), 1.5, eps)[1] @ C(t)) @ x
+
+        def rhs(t, x, eps=eps):
+            return np.asarray((A(t) + closed_loop(jnp.asarray(t), 1.5, eps)[1] @ C(t)) @ x)
+
+        sol = solve_ivp(
+            rhs, (0.3, 1.9), np.linalg.solve(T1, z0), rtol=1e-11, atol=1e-13, method="DOP853"
         )
-        sol = solve_ivp(rhs, (0.3, 1.9), np.linalg.solve(T1, z0), rtol=1e-11, atol=1e-13, method="DOP853")
         Phi = scipy.linalg.expm(np.asarray(M1) * 1.6)
         np.testing.assert_allclose(np.asarray(T2) @ sol.y[:, -1], Phi @ z0, rtol=1e-6, atol=1e-9)
 
@@ -184,7 +189,7 @@ def test_constant_bandwidth_gives_lti_error_dynamics_with_eigenvalues_rho_omega(
 def test_time_varying_bandwidth_closed_loop_is_the_decoupled_observer_form_of_beta(n):
     """Ã_z(t) (by (11), Ṫ by autodiff) is block diagonal, block i in observer form with last column −β_i(t),
     β_i the RPDO whose modes are exp(ρ̄_k ∫ω) (checked in test_pd_spectrum)."""
-    _, _, idx, _ = SYSTEMS[n]
+    idx = SYSTEMS[n][2]
     for t in (0.4, 2.2):
         M, blocks = _jitted_tv(n)(jnp.asarray(t))
         expected = np.zeros((n, n))
@@ -203,10 +208,17 @@ def test_time_varying_bandwidth_error_modes_follow_exp_integral_rho():
     A, C, idx, rho = SYSTEMS[4]
     plant = obsjax.LTV(A, C)
     obs = obsjax.TrajectoryLinearization(
-        plant, rho, omega_tv, 1.0, nominal=lambda t: (jnp.zeros(4), jnp.zeros(0)), check_ts=np.linspace(0, 3, 7)
+        plant,
+        rho,
+        omega_tv,
+        1.0,
+        nominal=lambda t: (jnp.zeros(4), jnp.zeros(0)),
+        check_ts=np.linspace(0, 3, 7),
     )
     ts = jnp.linspace(0.0, 3.0, 31)
-    traj = obsjax.simulate(plant, obs, jnp.array([1.0, -1.0, 0.5, 0.0]), jnp.zeros(4), ts, rtol=1e-11, atol=1e-13)
+    traj = obsjax.simulate(
+        plant, obs, jnp.array([1.0, -1.0, 0.5, 0.0]), jnp.zeros(4), ts, rtol=1e-11, atol=1e-13
+    )
     Ts = _jitted(4)[2](ts)
     z = jnp.einsum("tij,tj->ti", Ts, traj.error)
     W = np.asarray(omega_int(ts))
@@ -254,7 +266,9 @@ def duffing(d):
 def _high_gain_study(plant, model, rho, x0, solver):
     obs = obsjax.TrajectoryLinearization(model, rho, 2.0, 1.0)
     run = eqx.filter_jit(
-        lambda o: obsjax.simulate(plant, o, x0, jnp.zeros(model.n), TS_HG, solver=solver, throw=False)
+        lambda o: obsjax.simulate(
+            plant, o, x0, jnp.zeros(model.n), TS_HG, solver=solver, throw=False
+        )
     )
     ss, pk = [], []
     for eps in EPS:
@@ -267,7 +281,7 @@ def _high_gain_study(plant, model, rho, x0, solver):
 
 
 def test_high_gain_van_der_pol_steady_state_falls_peak_grows():
-    h = lambda t, x, u: x[:1]  # noqa: E731
+    h = lambda t, x, u: x[:1]
     plant, model = obsjax.Nonlinear(vdp(0.5), h, 2, 1), obsjax.Nonlinear(vdp(0.0), h, 2, 1)
     ss, pk = _high_gain_study(plant, model, [-1.0, -2.0], jnp.array([2.0, 0.0]), diffrax.Tsit5())
     assert np.all(np.diff(ss) < 0), ss
@@ -277,15 +291,17 @@ def test_high_gain_van_der_pol_steady_state_falls_peak_grows():
 
 
 def test_high_gain_mimo_duffing_steady_state_falls_peak_grows():
-    h = lambda t, x, u: jnp.array([x[0], x[2]])  # noqa: E731
+    h = lambda t, x, u: jnp.array([x[0], x[2]])
     plant, model = obsjax.Nonlinear(duffing(0.5), h, 4, 2), obsjax.Nonlinear(duffing(0.0), h, 4, 2)
-    ss, pk = _high_gain_study(plant, model, [-1.0, -2.0, -1.0, -2.0], jnp.array([1.0, 0.0, -1.0, 0.5]), diffrax.Tsit5())
+    ss, pk = _high_gain_study(
+        plant, model, [-1.0, -2.0, -1.0, -2.0], jnp.array([1.0, 0.0, -1.0, 0.5]), diffrax.Tsit5()
+    )
     assert np.all(np.diff(ss) < 0), ss
     assert np.all(np.diff(pk) > 0), pk
 
 
 def test_solver_rule_picks_implicit_for_small_eps():
-    h = lambda t, x, u: x[:1]  # noqa: E731
+    h = lambda t, x, u: x[:1]
     model = obsjax.Nonlinear(vdp(0.0), h, 2, 1)
     rates = []
     for eps in EPS:
@@ -294,27 +310,38 @@ def test_solver_rule_picks_implicit_for_small_eps():
         implicit = isinstance(obs.recommended_solver(), diffrax.Kvaerno5)
         assert implicit == (2.0 * 2.0 / eps > obs.stiff_rate)
     assert rates == pytest.approx([4.0 / e for e in EPS])
-    assert isinstance(obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 2.0, 0.05).recommended_solver(), diffrax.Kvaerno5)
-    assert isinstance(obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 2.0, 1.0).recommended_solver(), diffrax.Tsit5)
+    assert isinstance(
+        obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 2.0, 0.05).recommended_solver(),
+        diffrax.Kvaerno5,
+    )
+    assert isinstance(
+        obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 2.0, 1.0).recommended_solver(),
+        diffrax.Tsit5,
+    )
     # a time-varying bandwidth is judged by its largest value on the given times
     ramp = obsjax.TrajectoryLinearization(model, [-1.0, -2.0], RampBandwidth(0.5, 40.0, 1.0), 1.0)
     assert isinstance(ramp.recommended_solver([0.0]), diffrax.Tsit5)
     assert isinstance(ramp.recommended_solver(np.linspace(0, 10, 11)), diffrax.Kvaerno5)
     # traced ε: cannot judge, so implicit
-    assert jax.jit(lambda e: jnp.asarray(
-        isinstance(eqx.tree_at(lambda o: o.eps, ramp, e).recommended_solver(), diffrax.Kvaerno5)))(1.0)
+    assert jax.jit(
+        lambda e: jnp.asarray(
+            isinstance(eqx.tree_at(lambda o: o.eps, ramp, e).recommended_solver(), diffrax.Kvaerno5)
+        )
+    )(1.0)
 
 
 @pytest.mark.slow
 def test_implicit_solver_agrees_with_explicit_at_small_eps():
-    h = lambda t, x, u: x[:1]  # noqa: E731
+    h = lambda t, x, u: x[:1]
     plant, model = obsjax.Nonlinear(vdp(0.5), h, 2, 1), obsjax.Nonlinear(vdp(0.0), h, 2, 1)
     obs = obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 2.0, 0.05)
     solver = obs.recommended_solver()
     assert isinstance(solver, diffrax.Kvaerno5)
     x0 = jnp.array([2.0, 0.0])
     a = obsjax.simulate(plant, obs, x0, jnp.zeros(2), TS_HG, solver=solver)
-    b = obsjax.simulate(plant, obs, x0, jnp.zeros(2), TS_HG, solver=diffrax.Tsit5(), rtol=1e-9, atol=1e-11)
+    b = obsjax.simulate(
+        plant, obs, x0, jnp.zeros(2), TS_HG, solver=diffrax.Tsit5(), rtol=1e-9, atol=1e-11
+    )
     np.testing.assert_allclose(a.xhat, b.xhat, atol=1e-3 * float(jnp.max(jnp.abs(b.xhat))))
 
 
@@ -356,10 +383,13 @@ def test_ekf_wrong_shape_P0_is_refused():
 
 def _ltv_disturbed():
     """n = 2 LTV plant with a non-vanishing disturbance the model lacks (a matched model error)."""
-    A = lambda t: jnp.array([[0.0, 1.0], [-1.0 - 0.3 * jnp.sin(t), -0.4]])  # noqa: E731
-    C = lambda t: jnp.array([[1.0, 0.0]])  # noqa: E731
+    A = lambda t: jnp.array([[0.0, 1.0], [-1.0 - 0.3 * jnp.sin(t), -0.4]])
+    C = lambda t: jnp.array([[1.0, 0.0]])
     plant = obsjax.Nonlinear(
-        lambda t, x, u: A(t) @ x + jnp.array([0.0, 0.6 * jnp.sin(1.3 * t)]), lambda t, x, u: C(t) @ x, 2, 1
+        lambda t, x, u: A(t) @ x + jnp.array([0.0, 0.6 * jnp.sin(1.3 * t)]),
+        lambda t, x, u: C(t) @ x,
+        2,
+        1,
     )
     model = obsjax.LTV(A, C)
     return plant, model
@@ -373,20 +403,27 @@ KW_G = dict(solver=diffrax.Heun(), dt0=0.01, adaptive=False)
 def _tradeoff(traj):
     """Steady-state error (t ≥ 2) against peaking: mean ‖x̃‖² late + 0.05·peak."""
     late = TS_G >= 2.0
-    return jnp.sum(jnp.where(late, traj.error_norm**2, 0.0)) / jnp.sum(late) + 0.05 * obsjax.losses.peak(traj)
+    steady = jnp.sum(jnp.where(late, traj.error_norm**2, 0.0)) / jnp.sum(late)
+    return steady + 0.05 * obsjax.losses.peak(traj)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _gradient_problem():
     plant, model = _ltv_disturbed()
     obs = obsjax.TrajectoryLinearization(
-        model, [-1.0, -2.0], RampBandwidth(1.0, 3.0, 1.0), 0.3, nominal=lambda t: (jnp.zeros(2), jnp.zeros(0))
+        model,
+        [-1.0, -2.0],
+        RampBandwidth(1.0, 3.0, 1.0),
+        0.3,
+        nominal=lambda t: (jnp.zeros(2), jnp.zeros(0)),
     )
     x0 = jnp.array([1.5, 0.0])
 
     @jax.jit
     def J(p):
-        o = eqx.tree_at(lambda o: (o.eps, o.omega.omega0, o.omega.omega1, o.omega.tau), obs, tuple(p))
+        o = eqx.tree_at(
+            lambda o: (o.eps, o.omega.omega0, o.omega.omega1, o.omega.tau), obs, tuple(p)
+        )
         return _tradeoff(obsjax.simulate(plant, o, x0, jnp.zeros(2), TS_G, **KW_G))
 
     return plant, obs, x0, J
@@ -406,12 +443,20 @@ def test_tune_finds_an_interior_optimum_of_eps():
     plant, obs, x0, J = _gradient_problem()
     w = obs.omega
     res = obsjax.tune(
-        eqx.tree_at(lambda o: o.eps, obs, jnp.asarray(0.8)), plant, where=lambda o: o.eps, loss=_tradeoff,
-        x0s=x0[None], xhat0s=jnp.zeros((1, 2)), ts=TS_G, optimizer=optax.adam(0.15), steps=20,
-        progress=False, simulate_kwargs=KW_G,
+        eqx.tree_at(lambda o: o.eps, obs, jnp.asarray(0.8)),
+        plant,
+        where=lambda o: o.eps,
+        loss=_tradeoff,
+        x0s=x0[None],
+        xhat0s=jnp.zeros((1, 2)),
+        ts=TS_G,
+        optimizer=optax.adam(0.15),
+        steps=20,
+        progress=False,
+        simulate_kwargs=KW_G,
     )
     eps_star = float(res.observer.eps)
-    Je = lambda e: float(J(jnp.array([e, w.omega0, w.omega1, w.tau])))  # noqa: E731
+    Je = lambda e: float(J(jnp.array([e, w.omega0, w.omega1, w.tau])))
     grid = np.geomspace(0.06, 1.0, 9)
     vals = np.array([Je(e) for e in grid])
     k = int(np.argmin(vals))
@@ -424,14 +469,18 @@ def test_tune_finds_an_interior_optimum_of_eps():
 @pytest.mark.slow
 def test_gradient_along_the_running_estimate_matches_finite_differences():
     """Van der Pol, nominal=None: K_o depends on x̂ through the Jacobians and their flow derivatives."""
-    h = lambda t, x, u: x[:1]  # noqa: E731
+    h = lambda t, x, u: x[:1]
     plant, model = obsjax.Nonlinear(vdp(0.5), h, 2, 1), obsjax.Nonlinear(vdp(0.0), h, 2, 1)
     obs = obsjax.TrajectoryLinearization(model, [-1.0, -2.0], RampBandwidth(1.0, 3.0, 1.0), 0.3)
 
     @jax.jit
     def J(p):
-        o = eqx.tree_at(lambda o: (o.eps, o.omega.omega0, o.omega.omega1, o.omega.tau), obs, tuple(p))
-        return _tradeoff(obsjax.simulate(plant, o, jnp.array([2.0, 0.0]), jnp.zeros(2), TS_G, **KW_G))
+        o = eqx.tree_at(
+            lambda o: (o.eps, o.omega.omega0, o.omega.omega1, o.omega.tau), obs, tuple(p)
+        )
+        return _tradeoff(
+            obsjax.simulate(plant, o, jnp.array([2.0, 0.0]), jnp.zeros(2), TS_G, **KW_G)
+        )
 
     p = jnp.array([0.3, 1.0, 3.0, 1.0])
     g = jax.jit(jax.grad(J))(p)
@@ -477,13 +526,20 @@ def test_check_ts_needs_nominal():
 
 
 def test_nominal_losing_strong_observability_names_the_time():
-    f = lambda t, x, u: jnp.array([x[1], 0.0 * x[0]])  # noqa: E731
-    h = lambda t, x, u: jnp.array([x[0] * x[1]])  # noqa: E731  C_o = [x̄2, x̄1]
+    f = lambda t, x, u: jnp.array([x[1], 0.0 * x[0]])
+    h = lambda t, x, u: jnp.array([x[0] * x[1]])
     model = obsjax.Nonlinear(f, h, 2, 1)
-    nominal = lambda t: (jnp.array([0.0 * t, t - 2.0]), jnp.zeros(0))  # noqa: E731  C_o = [t − 2, 0]
+    nominal = lambda t: (jnp.array([0.0 * t, t - 2.0]), jnp.zeros(0))
     with pytest.raises(ValueError, match=r"not strongly observable.*t = 2\b"):
-        obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 1.0, 1.0, nominal=nominal, indices=(2,),
-                                       check_ts=np.linspace(0.0, 3.0, 7))
+        obsjax.TrajectoryLinearization(
+            model,
+            [-1.0, -2.0],
+            1.0,
+            1.0,
+            nominal=nominal,
+            indices=(2,),
+            check_ts=np.linspace(0.0, 3.0, 7),
+        )
 
 
 def test_model_must_be_a_plant():
@@ -503,7 +559,9 @@ def test_bad_indices_are_refused():
 
 def _losing_model():
     """ẋ1 = x2, ẋ2 = 0, y = x1·x2: C_o = [x̂2, x̂1] vanishes at x̂ = 0 (not observable there)."""
-    return obsjax.Nonlinear(lambda t, x, u: jnp.array([x[1], 0.0 * x[0]]), lambda t, x, u: x[:1] * x[1:], 2, 1)
+    return obsjax.Nonlinear(
+        lambda t, x, u: jnp.array([x[1], 0.0 * x[0]]), lambda t, x, u: x[:1] * x[1:], 2, 1
+    )
 
 
 def test_losing_strong_observability_along_the_estimate_stops_the_simulation():
@@ -516,9 +574,15 @@ def test_losing_strong_observability_along_the_estimate_stops_the_simulation():
 @pytest.mark.slow
 def test_losing_strong_observability_with_nan_policy_fails_only_that_trajectory():
     model = _losing_model()
-    obs = obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 1.0, 1.0, indices=(2,), on_unobservable="nan")
+    obs = obsjax.TrajectoryLinearization(
+        model, [-1.0, -2.0], 1.0, 1.0, indices=(2,), on_unobservable="nan"
+    )
     run = jax.vmap(
-        lambda xh0: obsjax.simulate(model, obs, jnp.array([1.0, 1.0]), xh0, jnp.linspace(0.0, 1.0, 3), throw=False).status
+        lambda xh0: (
+            obsjax.simulate(
+                model, obs, jnp.array([1.0, 1.0]), xh0, jnp.linspace(0.0, 1.0, 3), throw=False
+            ).status
+        )
     )
     status = run(jnp.array([[0.0, 0.0], [1.1, 0.9]]))
     assert int(status[0]) != 0 and int(status[1]) == 0
@@ -526,4 +590,6 @@ def test_losing_strong_observability_with_nan_policy_fails_only_that_trajectory(
 
 def test_bad_unobservable_policy_is_refused():
     with pytest.raises(ValueError, match="`on_unobservable` must be"):
-        obsjax.TrajectoryLinearization(_vdp_model(), [-1.0, -2.0], 1.0, 1.0, on_unobservable="ignore")
+        obsjax.TrajectoryLinearization(
+            _vdp_model(), [-1.0, -2.0], 1.0, 1.0, on_unobservable="ignore"
+        )

@@ -37,9 +37,11 @@ def van_der_pol(d: float = 0.5, mu: float = 1.0):
     import obsjax
 
     def f(dd):
-        return lambda t, x, u: jnp.array([x[1], mu * (1 - x[0] ** 2) * x[1] - x[0] + dd * jnp.sin(2 * t)])
+        return lambda t, x, u: jnp.array(
+            [x[1], mu * (1 - x[0] ** 2) * x[1] - x[0] + dd * jnp.sin(2 * t)]
+        )
 
-    h = lambda t, x, u: x[:1]  # noqa: E731
+    h = lambda t, x, u: x[:1]
     return obsjax.Nonlinear(f(d), h, 2, 1), obsjax.Nonlinear(f(0.0), h, 2, 1)
 
 
@@ -61,7 +63,7 @@ def coupled_duffing(d: float = 0.5, k: float = 0.5):
 
         return ff
 
-    h = lambda t, x, u: jnp.array([x[0], x[2]])  # noqa: E731
+    h = lambda t, x, u: jnp.array([x[0], x[2]])
     return obsjax.Nonlinear(f(d), h, 4, 2), obsjax.Nonlinear(f(0.0), h, 4, 2)
 
 
@@ -78,7 +80,9 @@ def high_gain_study(plant, model, rho_bar, x0, *, omega=2.0, eps_list=EPS, ts=TS
         name = type(solver).__name__
         if name not in runners:
             runners[name] = eqx.filter_jit(
-                lambda o: obsjax.simulate(plant, o, x0, jnp.zeros(model.n), ts, solver=solver, throw=False)
+                lambda o: obsjax.simulate(
+                    plant, o, x0, jnp.zeros(model.n), ts, solver=solver, throw=False
+                )
             )
         return runners[name]
 
@@ -142,7 +146,7 @@ def ekf_comparison(benchmark="vdp", *, sigma=0.02, eps=0.2, ts=TS_HG, seed=0, re
     return rows, trajs
 
 
-def pd_modes_study(ts=np.linspace(0.0, 3.0, 61)):
+def pd_modes_study(ts=None):
     """The 4-state, 2-output LTV example with ω(t) = 2 + sin t: canonical error outputs and the fitted
     combinations of exp(ρ̄_k ∫ω).  Returns (ts, outputs (T, 2), fits (T, 2), relative residuals)."""
     import obsjax
@@ -162,14 +166,17 @@ def pd_modes_study(ts=np.linspace(0.0, 3.0, 61)):
         return jnp.array([[1.0, 0.0, 0.1 * jnp.sin(t), 0.0], [0.0, 0.0, 1.0, 0.0]])
 
     rho = [-1.0, -2.0, -1.5, -3.0]
+    ts = np.linspace(0.0, 3.0, 61) if ts is None else ts
     plant = obsjax.LTV(A, C)
     obs = obsjax.TrajectoryLinearization(
         plant, rho, lambda t: 2.0 + jnp.sin(t), 1.0, nominal=lambda t: (jnp.zeros(4), jnp.zeros(0))
     )
     ts = jnp.asarray(ts)
-    traj = obsjax.simulate(plant, obs, jnp.array([1.0, -1.0, 0.5, 0.0]), jnp.zeros(4), ts, rtol=1e-10, atol=1e-12)
+    traj = obsjax.simulate(
+        plant, obs, jnp.array([1.0, -1.0, 0.5, 0.0]), jnp.zeros(4), ts, rtol=1e-10, atol=1e-12
+    )
     idx = obs.indices
-    Tf = lambda s: jnp.linalg.inv(ltv_observer_canonical_form(A, C, s, indices=idx).Tinv)  # noqa: E731
+    Tf = lambda s: jnp.linalg.inv(ltv_observer_canonical_form(A, C, s, indices=idx).Tinv)
     z = jnp.einsum("tij,tj->ti", jax.jit(jax.vmap(Tf))(ts), traj.error)
     W = np.asarray(2.0 * ts + 1.0 - jnp.cos(ts))
     d = np.cumsum(idx) - 1
@@ -222,7 +229,9 @@ def reproduce(outdir: str) -> list[str]:
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for i in range(outs.shape[1]):
         ax.semilogy(ts, np.abs(outs[:, i]), lw=2.5, alpha=0.5, label=f"|z_d{i + 1}(t)| simulated")
-        ax.semilogy(ts, np.abs(fits[:, i]), "k--", lw=1, label=f"Σ c_k exp(ρ̄_k ∫ω), residual {res[i]:.1e}")
+        ax.semilogy(
+            ts, np.abs(fits[:, i]), "k--", lw=1, label=f"Σ c_k exp(ρ̄_k ∫ω), residual {res[i]:.1e}"
+        )
     ax.set_xlabel("t")
     ax.set_title("PD-spectrum of the TLO error, ω(t) = 2 + sin t (n = 4, m = 2)")
     ax.grid(True, which="both", alpha=0.3)
@@ -235,12 +244,22 @@ def reproduce(outdir: str) -> list[str]:
 
     plant, model = van_der_pol()
     vdp = high_gain_study(plant, model, [-1.0, -2.0], jnp.array([2.0, 0.0]))
-    paths.append(_hg_figure(vdp, "Van der Pol, TLO, ρ̄ = (−1, −2), ω = 2", os.path.join(outdir, "huang_zhu_high_gain_vdp.png")))
+    paths.append(
+        _hg_figure(
+            vdp,
+            "Van der Pol, TLO, ρ̄ = (−1, −2), ω = 2",
+            os.path.join(outdir, "huang_zhu_high_gain_vdp.png"),
+        )
+    )
 
     plant, model = coupled_duffing()
     duf = high_gain_study(plant, model, [-1.0, -2.0, -1.0, -2.0], jnp.array([1.0, 0.0, -1.0, 0.5]))
     paths.append(
-        _hg_figure(duf, "coupled Duffing (m = 2), TLO, ω = 2", os.path.join(outdir, "huang_zhu_high_gain_duffing.png"))
+        _hg_figure(
+            duf,
+            "coupled Duffing (m = 2), TLO, ω = 2",
+            os.path.join(outdir, "huang_zhu_high_gain_duffing.png"),
+        )
     )
 
     for bench, title in (("vdp", "Van der Pol"), ("duffing", "coupled Duffing (m = 2)")):
@@ -249,7 +268,8 @@ def reproduce(outdir: str) -> list[str]:
         for name, traj in trajs.items():
             r = rows[name]
             ax.semilogy(
-                np.asarray(traj.ts), np.asarray(traj.error_norm),
+                np.asarray(traj.ts),
+                np.asarray(traj.error_norm),
                 label=f"{name}: peak {r['peak']:.2f}, steady {r['steady']:.3f}, {1e3 * r['seconds']:.0f} ms",
             )
         ax.set_xlabel("t")

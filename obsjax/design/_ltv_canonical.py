@@ -172,7 +172,9 @@ def _indices_from_Q(Qs: np.ndarray, tol: float) -> tuple[int, ...] | None:
     return tuple(p) if len(rows) == n else None
 
 
-def ltv_observability_indices(A: Callable, C: Callable, ts, *, tol: float = 1e-9) -> tuple[int, ...]:
+def ltv_observability_indices(
+    A: Callable, C: Callable, ts, *, tol: float = 1e-9
+) -> tuple[int, ...]:
     """Observability indices p_1, …, p_m of the LTV pair (8) (fixed lexicographic basis).
 
     The rows c_1, …, c_m, 𝓛c_1, …, 𝓛c_m, 𝓛²c_1, … are searched in that order and a row is kept when it is
@@ -196,7 +198,7 @@ def ltv_observability_indices(A: Callable, C: Callable, ts, *, tol: float = 1e-9
     """
     require_x64("ltv_observability_indices")
     tsv = _concrete_times(ts, "observability indices are static")
-    n, m = _dims(A, C, tsv[0])
+    n, _ = _dims(A, C, tsv[0])
     stack = jax.jit(_lie_stack(A, C, n - 1))
     found = None
     for tk in tsv:
@@ -299,7 +301,9 @@ def _check_indices(indices, n: int, m: int) -> tuple[int, ...]:
     try:
         idx = tuple(int(v) for v in indices)
     except TypeError:
-        raise ValueError(f"`indices` must be a sequence of {m} positive integers, got {indices!r}.") from None
+        raise ValueError(
+            f"`indices` must be a sequence of {m} positive integers, got {indices!r}."
+        ) from None
     if len(idx) != m or any(v < 1 for v in idx) or sum(idx) != n:
         raise ValueError(
             f"`indices` must be {m} positive integers summing to n = {n}, got {idx} (sum {sum(idx)})."

@@ -40,12 +40,12 @@ from ._ltv_canonical import (
 )
 
 __all__ = [
-    "RampBandwidth",
-    "pd_modal_matrix",
-    "pd_coefficients",
-    "rpdo_coefficients",
-    "pd_observer_gain",
     "PDObserverGain",
+    "RampBandwidth",
+    "pd_coefficients",
+    "pd_modal_matrix",
+    "pd_observer_gain",
+    "rpdo_coefficients",
 ]
 
 
@@ -84,7 +84,9 @@ def omega_function(omega, name: str = "omega") -> Callable:
         return omega
     w = as_float_array(omega, name)
     if w.ndim != 0:
-        raise ValueError(f"`{name}` must be a positive scalar or a callable of t, got shape {tuple(w.shape)}.")
+        raise ValueError(
+            f"`{name}` must be a positive scalar or a callable of t, got shape {tuple(w.shape)}."
+        )
     c = concrete_value(w)
     if c is not None and not c > 0:
         raise ValueError(f"`{name}` must be > 0 (a bandwidth), got {float(c)}.")
@@ -99,7 +101,9 @@ def check_rho_bar(
     if r.ndim == 0:
         r = r.reshape(1)
     if r.ndim != 1 or r.shape[0] == 0:
-        raise ValueError(f"`{name}` must be a non-empty 1-D vector of real numbers, got shape {tuple(r.shape)}.")
+        raise ValueError(
+            f"`{name}` must be a non-empty 1-D vector of real numbers, got shape {tuple(r.shape)}."
+        )
     if jnp.issubdtype(r.dtype, jnp.complexfloating):
         raise ValueError(f"`{name}` must be real (PD-spectrum ρ_k = ρ̄_k ω(t)), got complex values.")
     c = concrete_value(r)
@@ -220,7 +224,8 @@ def rpdo_coefficients(rho_bar, omega, t) -> jax.Array:
     if n == 1:
         return pd_coefficients(rho_bar, omega, t)
     omega_function(omega)  # validate
-    dalpha = time_derivatives(lambda s: pd_coefficients(rho_bar, omega, s), t, n - 1)  # (n, n): [r, j]
+    # dalpha[r, j] = α_{j+1}^{(r)}(t)
+    dalpha = time_derivatives(lambda s: pd_coefficients(rho_bar, omega, s), t, n - 1)
     return jnp.einsum("krj,rj->k", jnp.asarray(_rpdo_map(n)), dalpha)
 
 
@@ -268,10 +273,13 @@ def pd_observer_gain(
     require_x64("pd_observer_gain")
     form = ltv_observer_canonical_form(A, C, t, indices=indices, threshold=threshold)
     idx = form.indices
-    n, m = form.Tinv.shape[0], len(idx)
-    rho_bar = check_rho_bar(rho_bar, distinct=False)  # distinct within each block (checked per block)
+    n = form.Tinv.shape[0]
+    # distinct within each block (checked per block below)
+    rho_bar = check_rho_bar(rho_bar, distinct=False)
     if rho_bar.shape[0] != n:
-        raise ValueError(f"`rho_bar` must have n = {n} entries (split as {idx}), got {rho_bar.shape[0]}.")
+        raise ValueError(
+            f"`rho_bar` must have n = {n} entries (split as {idx}), got {rho_bar.shape[0]}."
+        )
     w = omega_function(omega)
     eps = as_float_array(eps, "eps")
     ce = concrete_value(eps)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,7 +21,9 @@ def _covariance(x, name: str, size: int, *, definite: bool) -> jax.Array:
             raise ValueError(f"`{name}` as a diagonal must have length {size}, got {a.shape[0]}.")
         a = jnp.diag(a)
     if a.shape != (size, size):
-        raise ValueError(f"`{name}` must be a scalar, a length-{size} diagonal or a ({size}, {size}) matrix, got shape {tuple(a.shape)}.")
+        raise ValueError(
+            f"`{name}` must be a scalar, a length-{size} diagonal or a ({size}, {size}) matrix, got shape {tuple(a.shape)}."
+        )
     v = concrete_value(a)
     if v is not None:
         if not np.allclose(v, v.T, rtol=1e-10, atol=1e-12):
@@ -31,7 +32,9 @@ def _covariance(x, name: str, size: int, *, definite: bool) -> jax.Array:
         if definite and not ev.min() > 0:
             raise ValueError(f"`{name}` must be positive definite, got eigenvalues {ev.tolist()}.")
         if not definite and ev.min() < -1e-12 * max(1.0, abs(ev).max()):
-            raise ValueError(f"`{name}` must be positive semidefinite, got eigenvalues {ev.tolist()}.")
+            raise ValueError(
+                f"`{name}` must be positive semidefinite, got eigenvalues {ev.tolist()}."
+            )
     return a
 
 
@@ -71,7 +74,7 @@ class ExtendedKalman(AbstractObserver):
         self.R = _covariance(R, "R", model.m, definite=True)
         self.P0 = _covariance(P0, "P0", model.n, definite=False)
 
-    def check(self) -> "ExtendedKalman":
+    def check(self) -> ExtendedKalman:
         _covariance(self.Q, "Q", self.model.n, definite=False)
         _covariance(self.R, "R", self.model.m, definite=True)
         _covariance(self.P0, "P0", self.model.n, definite=False)

@@ -136,16 +136,22 @@ class TrajectoryLinearization(AbstractObserver):
                 f"`model` must be an obsjax plant (Nonlinear, LTV, LTI), got {type(model).__name__}."
             )
         if nominal is not None and not callable(nominal):
-            raise ValueError(f"`nominal` must be None or a callable t -> (xbar, ubar), got {type(nominal).__name__}.")
+            raise ValueError(
+                f"`nominal` must be None or a callable t -> (xbar, ubar), got {type(nominal).__name__}."
+            )
         if not threshold > 0:
             raise ValueError(f"`threshold` must be > 0, got {threshold}.")
         if not stiff_rate > 0:
             raise ValueError(f"`stiff_rate` must be > 0, got {stiff_rate}.")
         if on_unobservable not in ("error", "nan"):
-            raise ValueError(f"`on_unobservable` must be 'error' or 'nan', got {on_unobservable!r}.")
+            raise ValueError(
+                f"`on_unobservable` must be 'error' or 'nan', got {on_unobservable!r}."
+            )
         self.on_unobservable = on_unobservable
         if check_ts is not None and nominal is None:
-            raise ValueError("`check_ts` checks strong observability along `nominal`; give `nominal` too.")
+            raise ValueError(
+                "`check_ts` checks strong observability along `nominal`; give `nominal` too."
+            )
         self.model = model
         self.nominal = nominal
         self.rho_bar = check_rho_bar(rho_bar, "rho_bar", negative=True, distinct=False)
@@ -168,12 +174,14 @@ class TrajectoryLinearization(AbstractObserver):
         self.check()
 
     # ------------------------------------------------------------------ validation
-    def check(self) -> "TrajectoryLinearization":
+    def check(self) -> TrajectoryLinearization:
         if self.eps.ndim != 0:
             raise ValueError(f"`eps` must be a scalar, got shape {tuple(self.eps.shape)}.")
         e = concrete_value(self.eps)
         if e is not None and not e > 0:
-            raise ValueError(f"`eps` must be > 0 (the high-gain factor, ω_H = ω/ε), got {float(e)}.")
+            raise ValueError(
+                f"`eps` must be > 0 (the high-gain factor, ω_H = ω/ε), got {float(e)}."
+            )
         check_rho_bar(self.rho_bar, "rho_bar", negative=True, distinct=False)
         start = 0
         for p in self.indices:
@@ -202,7 +210,11 @@ class TrajectoryLinearization(AbstractObserver):
 
             def xu(s):
                 xb, ub = self.nominal(s)
-                ub = jnp.zeros((self.model.p,)) if ub is None else jnp.asarray(ub).reshape(self.model.p)
+                ub = (
+                    jnp.zeros((self.model.p,))
+                    if ub is None
+                    else jnp.asarray(ub).reshape(self.model.p)
+                )
                 return jnp.asarray(xb), ub
 
         else:
@@ -228,12 +240,25 @@ class TrajectoryLinearization(AbstractObserver):
         t = jnp.asarray(t, dtype=float)
         if self.nominal is None:
             if xhat is None:
-                raise ValueError("`xhat` is needed for the gain along the running estimate (nominal=None).")
+                raise ValueError(
+                    "`xhat` is needed for the gain along the running estimate (nominal=None)."
+                )
             xhat = jnp.asarray(xhat, dtype=float)
-            u = self._input_zeros() if u is None else jnp.asarray(u, dtype=float).reshape(self.model.p)
+            u = (
+                self._input_zeros()
+                if u is None
+                else jnp.asarray(u, dtype=float).reshape(self.model.p)
+            )
         A, C = self._jacobian_fns(t, xhat, u)
         return pd_observer_gain(
-            A, C, self.rho_bar, self.omega, t, eps=self.eps, indices=self.indices, threshold=self.threshold
+            A,
+            C,
+            self.rho_bar,
+            self.omega,
+            t,
+            eps=self.eps,
+            indices=self.indices,
+            threshold=self.threshold,
         )
 
     def gain(self, t, xhat=None, u=None) -> jax.Array:
