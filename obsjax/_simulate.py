@@ -269,7 +269,7 @@ def simulate(
         xs, zs = jax.tree_util.tree_map(lambda a: a[:-1], ys)
         ok_all = ok
     else:
-        xs, zs, ok_all = _segmented(observer, solve, state0, ts, T, max_segments)
+        xs, zs, ok_all = _segmented(observer, solve, state0, ts, T, max_segments, ts_np)
 
     # Algebraic outputs at the save times.
     def outputs(t, x, z):
@@ -318,13 +318,16 @@ def num_segments(T, t0, t1) -> int | None:
     return max(1, int(math.ceil(r - 1e-9 * max(1.0, r))))
 
 
-def _segmented(observer, solve, state0, ts, T, max_segments):
+def _segmented(observer, solve, state0, ts, T, max_segments, ts_np=None):
     t0, t1 = ts[0], ts[-1]
-    n_seg = max_segments if max_segments is not None else num_segments(T, t0, t1)
+    n_seg = max_segments
+    if n_seg is None and ts_np is not None:
+        n_seg = num_segments(T, ts_np[0], ts_np[-1])
     if n_seg is None:
         raise ValueError(
-            "The observer's reset period T is traced (inside jit), so the number of reset segments cannot be "
-            "computed: pass `max_segments` (≥ (t1 − t0)/T) to obsjax.simulate."
+            "The number of reset segments ceil((ts[-1] − ts[0]) / T) cannot be computed because the reset "
+            "period T or the save times ts are traced (inside jit): pass `max_segments` (≥ (t1 − t0)/T) to "
+            "obsjax.simulate."
         )
     T = jnp.asarray(T)
     T = eqx.error_if(

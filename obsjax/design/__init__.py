@@ -15,3 +15,10 @@ from ._pd_spectrum import pd_coefficients as pd_coefficients
 from ._pd_spectrum import pd_modal_matrix as pd_modal_matrix
 from ._pd_spectrum import pd_observer_gain as pd_observer_gain
 from ._pd_spectrum import rpdo_coefficients as rpdo_coefficients
+from ._ginverse import LovassNagyT as LovassNagyT
+from ._ginverse import is_one_inverse as is_one_inverse
+from ._ginverse import lovass_nagy_T as lovass_nagy_T
+from ._ginverse import moore_penrose as moore_penrose
+from ._ginverse import null_space_basis as null_space_basis
+from ._ginverse import one_inverse as one_inverse
+from ._ginverse import solvability_residual as solvability_residual

@@ -1,0 +1,269 @@
+"""Reproduce the examples of Chaisanguanmitt's slides (002_74dc3fe675433a48.txt) on Lovass-Nagy observers,
+min-max initial-state estimation and their combination with a Luenberger observer.
+
+``reproduce(outdir)`` writes:
+
+- ``lovass_nagy_reduced_w.png``: w1, w2 and their estimates ("new w") for the 4th-order example, t ∈ [0, 5]
+  (slides' two trajectory figures), with the error norm on a log scale against the e^{−5t} law, and the
+  slides' own final form for comparison (it does not converge: see GeneralizedInverseReduced);
+- ``minmax_fig3.png``: ‖x(k) − x̂(k)‖ of the min-max estimate (exact data and data with |δy| ≤ ε);
+- ``minmax_fig4.png``: the Algorithm's quantity ‖ȳ + ε·1 − ψ x̃0‖∞ − θ̂ against the window length;
+- ``minmax_fig5.png``: ‖x − x̂_minmax‖ − ‖x − x̂_combined‖ under the model error P(k) (free response, as in
+  the slides), and the same with a persistent input, where the claim does not hold.
+"""
+
+from __future__ import annotations
+
+import os
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+import obsjax
+from obsjax.observers._base import AbstractObserver
+from obsjax.observers._minmax import propagate, window_regression
+
+
+# --- continuous-time example (reduced order) -----------------------------------------------------------
+def alpha(t):
+    return -0.4 * jnp.exp(jnp.sin(0.3 * t) - 0.5)
+
+
+def beta(t):
+    return 0.4 * jnp.cos(0.3 * t) - 0.5
+
+
+def A_continuous(t):
+    return jnp.array(
+        [
+            [-10.0, -10.0 * alpha(t), 0.0, 1.0],
+            [1.0, 0.0, 0.0, 1.0],
+            [0.0, -1.0, -5.0, 0.0],
+            [0.0, 0.0, -4.0 / beta(t), 0.0],
+        ]
+    )
+
+
+B_CONT = jnp.array([[1.0], [0.0], [0.0], [1.0]])
+A12 = jnp.array([[0.0, 1.0], [0.0, 1.0]])
+C1_SLIDES = jnp.array([[0.0, 0.0], [0.5, 0.5]])
+
+
+def reduced_example(F=None, S=None):
+    """(plant, observer) of the slides' example: F = −5I, C = A12, C^{1} = [[0, 0], [0.5, 0.5]] and T from
+    :func:`obsjax.design.lovass_nagy_T` with the free first column S(t) = [cos t, sin t] (so det T = β/4)."""
+    F = -5.0 * jnp.eye(2) if F is None else F
+    S = (lambda t: jnp.stack([jnp.cos(t), jnp.sin(t)])) if S is None else S
+    plant = obsjax.LTV(
+        A_continuous, lambda t: jnp.hstack([jnp.eye(2), jnp.zeros((2, 2))]), lambda t: B_CONT
+    )
+    T = obsjax.design.lovass_nagy_T(lambda t: A_continuous(t)[2:, 2:], A12, F, S)
+    obs = obsjax.GeneralizedInverseReduced(plant, F, T, C1=C1_SLIDES, horizon=(0.0, 5.0))
+    return plant, obs
+
+
+class SlidesReducedForm(AbstractObserver):
+    """The slides' final reduced form, kept only to show its bias: G from their (12) (with T A21 C), and
+    ṗ = F(p + Gy) − G A11 y − G B1 u + T B2 u (no T A21 y, no Ġ y)."""
+
+    ref: obsjax.GeneralizedInverseReduced
+
+    def G(self, t):
+        _A11, A12_, A21, A22, _B1, _B2 = self.ref.blocks(t)
+        T = self.ref.T_of(t)
+        return (self.ref.Tdot_of(t) + T @ A22 + T @ A21 @ A12_ - self.ref.F @ T) @ self.ref.C1_of(t)
+
+    def init(self, t0, xhat0, y0):
+        return self.ref.T_of(t0) @ xhat0[2:] - self.G(t0) @ y0
+
+    def vector_field(self, t, z, y, u):
+        A11, _, _, _, B1, B2 = self.ref.blocks(t)
+        G = self.G(t)
+        return self.ref.F @ (z + G @ y) - G @ A11 @ y - G @ B1 @ u + self.ref.T_of(t) @ B2 @ u
+
+    def estimate(self, t, z, y):
+        return jnp.concatenate([y, jnp.linalg.solve(self.ref.T_of(t), z + self.G(t) @ y)])
+
+
+def run_reduced(u=None, t1=5.0, num=201):
+    """Simulate the slides' example from y0 = w0 = [−1, 2], z0 = [2, −1]; returns (traj, traj_slides)."""
+    plant, obs = reduced_example()
+    x0 = jnp.array([-1.0, 2.0, -1.0, 2.0])
+    z0 = jnp.array([2.0, -1.0])
+    xhat0 = jnp.concatenate([x0[:2], jnp.linalg.solve(obs.T_of(0.0), z0)])  # so that z(0) = z0
+    ts = jnp.linspace(0.0, t1, num)
+
+    @eqx.filter_jit
+    def sim(o):
+        return obsjax.simulate(plant, o, x0, xhat0, ts, u=u, rtol=1e-9, atol=1e-11)
+
+    return sim(obs), sim(SlidesReducedForm(obs))
+
+
+# --- discrete-time examples ---------------------------------------------------------------------------
+def alpha_k(k):
+    return -0.4 * np.exp(np.sin(0.3 * k) - 0.5)
+
+
+def beta_k(k):
+    return 0.4 * np.cos(0.3 * k) - 0.5
+
+
+def A_minmax(k):
+    return (
+        np.array(
+            [
+                [10, 10 * alpha_k(k), 1, 0],
+                [-2, 0, -1, -1],
+                [0, -1, -5, 0],
+                [-1, 2, 4 / beta_k(k), -5],
+            ]
+        )
+        / 20.0
+    )
+
+
+B_MINMAX = np.array([[1.0], [1.0], [0.0], [1.0]])
+C_MINMAX = np.array([[0.0, 0.0, 0.0, 1.0]])
+
+
+def A_comb(k):
+    return (
+        np.array(
+            [
+                [-10, 10 * alpha_k(k), 0, -1],
+                [-1, -10, -5, 5],
+                [0, -1, -5, 0],
+                [-1, 0, -4 / beta_k(k), 0],
+            ]
+        )
+        / 20.0
+    )
+
+
+P_ERR = 0.02 * np.array([[1, 1, 1, 1], [1, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]], dtype=float)
+B_COMB = np.ones((4, 1))
+C_COMB = np.fliplr(np.eye(4))
+F_COMB = 0.01 * np.diag([-10.0, -20.0, -30.0, -40.0])
+X0_DISCRETE = np.array([10.0, 10.0, 0.0, 0.0])
+
+
+def minmax_study(N=30, eps=0.05, seed=0):
+    """Figures 3-4: windows k0 = 0, N' = 4..N; exact data and data with uniform |δy| ≤ ε."""
+    us = np.sin(0.5 * np.arange(N))[:, None]
+    As = np.stack([A_minmax(k) for k in range(N)])
+    xs = propagate(As, B_MINMAX, X0_DISCRETE, us)
+    ys = xs @ C_MINMAX.T
+    ys_noisy = ys + np.random.default_rng(seed).uniform(-eps, eps, ys.shape)
+    Ns = np.arange(4, N + 1)
+    out = {"N": Ns, "err_exact": [], "err_noisy": [], "err_ls": [], "gap": []}
+    for n_ in Ns:
+        x0e, _ = obsjax.minmax_initial_state(
+            As[:n_], B_MINMAX, C_MINMAX, ys[: n_ + 1], us[:n_], eps
+        )
+        alg = obsjax.minmax_algorithm(As[:n_], B_MINMAX, C_MINMAX, ys_noisy[: n_ + 1], us[:n_], eps)
+        ybar, psi = window_regression(As[:n_], B_MINMAX, C_MINMAX, ys_noisy[: n_ + 1], us[:n_])
+        x_ls = np.linalg.lstsq(psi, ybar, rcond=None)[0]
+        out["err_exact"].append(np.linalg.norm(propagate(As, B_MINMAX, x0e, us) - xs, axis=1).max())
+        out["err_noisy"].append(
+            np.linalg.norm(propagate(As, B_MINMAX, alg.x_minmax, us) - xs, axis=1).max()
+        )
+        out["err_ls"].append(np.linalg.norm(propagate(As, B_MINMAX, x_ls, us) - xs, axis=1).max())
+        out["gap"].append(alg.gap)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def combination_study(K=40, window=5, forced=False):
+    """Figure 5: plant A(k) + P(k), model A(k); returns (ks, e_minmax, e_combined)."""
+    us = np.sin(0.5 * np.arange(K))[:, None] if forced else np.zeros((K, 1))
+    As_true = np.stack([A_comb(k) + P_ERR for k in range(K)])
+    xs = propagate(As_true, B_COMB, X0_DISCRETE, us)
+    ys = xs @ C_COMB.T
+    obs = obsjax.MinMaxLuenberger(A_comb, B_COMB, C_COMB, F_COMB, window=window)
+    res = obs.run(ys, us)
+    e_mm = np.linalg.norm(res.xhat_minmax - xs[res.ks], axis=1)
+    e_c = np.linalg.norm(res.xhat - xs[res.ks], axis=1)
+    return res.ks, e_mm, e_c
+
+
+def reproduce(outdir: str) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    os.makedirs(outdir, exist_ok=True)
+    paths = []
+
+    traj, traj_s = run_reduced()
+    ts = np.asarray(traj.ts)
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
+    for i in range(2):
+        ax[i].plot(ts, traj.x[:, 2 + i], "k", label=f"w({i + 1})")
+        ax[i].plot(ts, traj.xhat[:, 2 + i], "C0--", label=f"new w({i + 1}) (derived form)")
+        ax[i].plot(ts, traj_s.xhat[:, 2 + i], "C3:", label="slides' final form")
+        ax[i].set_xlabel("t")
+        ax[i].set_ylim(np.min(traj.x[:, 2 + i]) - 3, np.max(traj.x[:, 2 + i]) + 3)
+        ax[i].legend(fontsize=7)
+        ax[i].set_title(f"w({i + 1}) and new w({i + 1})")
+    ax[2].semilogy(ts, np.linalg.norm(traj.error, axis=1), "C0", label="‖ŵ − w‖ derived form")
+    ax[2].semilogy(ts, np.linalg.norm(traj_s.error, axis=1), "C3:", label="slides' final form")
+    e0 = float(np.linalg.norm(traj.error[0]))
+    ax[2].semilogy(ts, e0 * 40 * np.exp(-5 * ts), "k--", lw=0.8, label="∝ e^{−5t}")
+    ax[2].axvline(2.5, color="gray", lw=0.5)
+    ax[2].set_xlabel("t")
+    ax[2].legend(fontsize=7)
+    ax[2].set_title("estimation error")
+    fig.tight_layout()
+    paths.append(os.path.join(outdir, "lovass_nagy_reduced_w.png"))
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    st = minmax_study()
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    ax.semilogy(st["N"], st["err_exact"] + 1e-16, "o-", label="exact data")
+    ax.semilogy(st["N"], st["err_noisy"], "s-", label="min-max, |δy| ≤ ε = 0.05")
+    ax.semilogy(st["N"], st["err_ls"], "^-", label="least squares, same data")
+    ax.set_xlabel("window length N")
+    ax.set_ylabel("max_k ‖x(k) − x̂(k)‖")
+    ax.set_title("Figure 3: min-max state error")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    paths.append(os.path.join(outdir, "minmax_fig3.png"))
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    ax.plot(st["N"], st["gap"], "o-")
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_xlabel("window length N")
+    ax.set_ylabel("‖ȳ + ε·1 − ψ x̃0‖∞ − θ̂")
+    ax.set_title("Figure 4: zero to LP accuracy (θ̂ = θ̃ + ε)")
+    fig.tight_layout()
+    paths.append(os.path.join(outdir, "minmax_fig4.png"))
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
+    for a, forced, title in [
+        (ax[0], False, "free response (slides)"),
+        (ax[1], True, "input u = sin(0.5k)"),
+    ]:
+        ks, e_mm, e_c = combination_study(forced=forced)
+        a.plot(ks, e_mm - e_c, "o-")
+        a.axhline(0.0, color="k", lw=0.5)
+        a.set_xlabel("k")
+        a.set_ylabel("‖x − x̂_minmax‖ − ‖x − x̂_combined‖")
+        a.set_title(f"Figure 5, {title}")
+    fig.tight_layout()
+    paths.append(os.path.join(outdir, "minmax_fig5.png"))
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    return paths
+
+
+if __name__ == "__main__":  # pragma: no cover
+    import sys
+
+    print("\n".join(reproduce(sys.argv[1] if len(sys.argv) > 1 else "lovass_nagy_figures")))

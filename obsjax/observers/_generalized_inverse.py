@@ -1,0 +1,350 @@
+"""Lovass-Nagy full-state and reduced-order LTV observers by matrix {1}-inverses (Chaisanguanmitt, slides).
+
+Full-state (slides (1)-(9) and steps 1-6): for ẋ = A x + B u, y = C x and an invertible T(t),
+
+    ż = F z + G y + T B u,     G = (Ṫ + T A − F T) C^{1},     x̂ = T⁻¹ z,
+
+which needs the solvability condition (Ṫ + T A − F T)(I − C^{1} C) = 0; then d/dt(z − T x) = F (z − T x).
+
+Reduced order, derived here (the slides' derivation (5)-(13) has two slips, see
+:class:`GeneralizedInverseReduced`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import concrete_value, matrix
+from ._base import AbstractObserver
+
+
+def _time_grid(horizon, num):
+    t0, t1 = (float(h) for h in horizon)
+    if not t1 > t0:
+        raise ValueError(f"`horizon` must be (t0, t1) with t1 > t0, got {horizon}.")
+    return np.linspace(t0, t1, int(num))
+
+
+@eqx.filter_jit
+def _solvability_on_grid(obs, ts):
+    return jax.vmap(obs.solvability)(ts)
+
+
+def _check_over(obs, ts, what):
+    """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time."""
+    ts = jnp.asarray(ts, dtype=float)
+    res, scale, det = _solvability_on_grid(obs, ts)
+    res, scale, det = (concrete_value(v) for v in (res, scale, det))
+    if res is None or scale is None or det is None:
+        return  # traced (inside jit/grad): the caller checks with concrete values
+    ts = np.asarray(ts)
+    rel = res / np.maximum(scale, 1.0)
+    i = int(np.argmax(rel))
+    if not np.all(np.isfinite(rel)) or rel[i] > obs.rtol:
+        j = i if np.all(np.isfinite(rel)) else int(np.argmax(~np.isfinite(rel)))
+        raise ValueError(
+            f"{what}: the Lovass-Nagy solvability condition fails: the residual "
+            f"‖(Ṫ + T·Ā − F·T)(I − C^{{1}}·C)‖ = {res[j]:.3e} (relative {rel[j]:.3e} > rtol = "
+            f"{obs.rtol:.1e}) at t = {ts[j]:.6g}; G·C = Ṫ + T·Ā − F·T has no solution G there. "
+            f"Choose T(t) with obsjax.design.lovass_nagy_T or change F."
+        )
+    # det T is continuous: a sign change between grid points means T is singular in between.
+    k = int(np.argmin(np.abs(det)))
+    flips = np.nonzero(np.sign(det[:-1]) * np.sign(det[1:]) < 0)[0]
+    tiny = np.abs(det[k]) <= 1e-12 * max(float(np.abs(det).max()), 1.0)
+    if not np.all(np.isfinite(det)) or tiny or flips.size:
+        if flips.size and not tiny:
+            j = int(flips[0])
+            where = f"changes sign between t = {ts[j]:.6g} and t = {ts[j + 1]:.6g} ({det[j]:.3e} → {det[j + 1]:.3e})"
+        else:
+            where = f"= {det[k]:.3e} at t = {ts[k]:.6g}"
+        raise ValueError(
+            f"{what}: `T` must be invertible over the horizon (det T ≠ 0), found det T {where}."
+        )
+
+
+class GeneralizedInverse(AbstractObserver):
+    """Lovass-Nagy full-state LTV observer (slides, (2), (6)-(9), procedure steps 1-6).
+
+        ż = F z + G y + T B u,      G(t) = (Ṫ + T A − F T) C^{1},      x̂ = T⁻¹ z          (2), (8)
+
+    valid when (Ṫ + T A − F T)(I − C^{1} C) = 0 and det T ≠ 0; then d/dt(z − T x) = F (z − T x) (7).
+    Ṫ is computed by automatic differentiation of ``T`` (``jax.jacfwd`` in t).
+
+    **Arguments:**
+
+    - `model`: the observer's plant model (``obsjax.LTV`` or ``obsjax.LTI``: ``A_of``, ``B_of``, ``C_of``).
+    - `F`: (n, n) constant observer matrix with the desired eigenvalues (a leaf).
+    - `T`: callable t -> (n, n), differentiable (e.g. from :func:`obsjax.design.lovass_nagy_T`).
+    - `C1`: optional constant (n, m) {1}-inverse of C (Moore–Penrose of C(t) when ``None``).
+    - `horizon`: optional (t0, t1): the condition and det T ≠ 0 are checked on `num_checks` points of
+      it at construction (and by :meth:`check`); with ``None`` only t = 0 is checked.  Use
+      :meth:`check_horizon` for another horizon.
+    - `rtol`: relative tolerance on the solvability residual.
+
+    **Example:**
+
+        T = obsjax.design.lovass_nagy_T(plant.A_of, C, F, S)
+        obs = obsjax.GeneralizedInverse(plant, F, T, horizon=(0.0, 5.0))
+        traj = obsjax.simulate(plant, obs, x0, xhat0, ts)
+    """
+
+    model: eqx.Module
+    F: jax.Array
+    T: Callable
+    C1: jax.Array | None
+    horizon: tuple[float, float] | None = eqx.field(static=True)
+    num_checks: int = eqx.field(static=True)
+    rtol: float = eqx.field(static=True)
+
+    def __init__(self, model, F, T, C1=None, *, horizon=None, num_checks=201, rtol=1e-7):
+        n, m = int(model.n), int(model.m)
+        self.model = model
+        self.F = matrix(F, "F", (n, n))
+        if not callable(T):
+            raise ValueError("`T` must be a callable of t returning an (n, n) matrix.")  # noqa: TRY004 (project rule: ValueError)
+        T0 = jax.eval_shape(T, jnp.asarray(0.0))
+        if tuple(T0.shape) != (n, n):
+            raise ValueError(f"`T(t)` must return shape ({n}, {n}), got {tuple(T0.shape)}.")
+        self.T = T
+        self.C1 = None if C1 is None else matrix(C1, "C1", (n, m))
+        self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
+        self.num_checks = int(num_checks)
+        self.rtol = float(rtol)
+        self.check()
+
+    # --- the design quantities -------------------------------------------------------------------
+    def T_of(self, t):
+        return jnp.asarray(self.T(jnp.asarray(t, dtype=self.F.dtype)))
+
+    def Tdot_of(self, t):
+        return jax.jacfwd(self.T_of)(jnp.asarray(t, dtype=self.F.dtype))
+
+    def C1_of(self, t):
+        return jnp.linalg.pinv(self.model.C_of(t)) if self.C1 is None else self.C1
+
+    def M_of(self, t):
+        """M(t) = Ṫ + T A − F T (slides (9))."""
+        T = self.T_of(t)
+        return self.Tdot_of(t) + T @ self.model.A_of(t) - self.F @ T
+
+    def G_of(self, t):
+        """G(t) = (Ṫ + T A − F T) C^{1} (step 5)."""
+        return self.M_of(t) @ self.C1_of(t)
+
+    def solvability(self, t):
+        """(‖M (I − C^{1}C)‖, scale ‖Ṫ‖ + ‖TA‖ + ‖FT‖, det T) at time t."""
+        T = self.T_of(t)
+        Td = self.Tdot_of(t)
+        A, C = self.model.A_of(t), self.model.C_of(t)
+        M = Td + T @ A - self.F @ T
+        P = jnp.eye(C.shape[1], dtype=M.dtype) - self.C1_of(t) @ C
+        scale = jnp.linalg.norm(Td) + jnp.linalg.norm(T @ A) + jnp.linalg.norm(self.F @ T)
+        return jnp.linalg.norm(M @ P), scale, jnp.linalg.det(T)
+
+    def check_horizon(self, t0, t1, num=201):
+        """Raise ValueError if the condition or det T ≠ 0 fails somewhere on [t0, t1]."""
+        _check_over(self, _time_grid((t0, t1), num), "GeneralizedInverse")
+        return self
+
+    def check(self):
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        _check_over(self, ts, "GeneralizedInverse")
+        return self
+
+    # --- the observer protocol -------------------------------------------------------------------
+    def init(self, t0, xhat0, y0):
+        return self.T_of(t0) @ jnp.asarray(xhat0)
+
+    def _T_G(self, t):
+        """(T, G) at t with Ṫ from one forward-mode pass (jax.jvp in t)."""
+        t = jnp.asarray(t, dtype=self.F.dtype)
+        T, Td = jax.jvp(self.T_of, (t,), (jnp.ones_like(t),))
+        G = (Td + T @ self.model.A_of(t) - self.F @ T) @ self.C1_of(t)
+        return T, G
+
+    def vector_field(self, t, z, y, u):
+        T, G = self._T_G(t)
+        dz = self.F @ z + G @ y
+        B = self.model.B_of(t)
+        if B.shape[1] > 0:
+            dz = dz + T @ (B @ u)
+        return dz
+
+    def estimate(self, t, z, y):
+        return jnp.linalg.solve(self.T_of(t), z)
+
+
+class GeneralizedInverseReduced(AbstractObserver):
+    """Lovass-Nagy reduced-order LTV observer, differentiation-free form (derived; cf. slides (3)-(13)).
+
+    The model is partitioned as x = [y; w] (C = [I, 0]):
+
+        ẏ = A11 y + A12 w + B1 u,     ẇ = A21 y + A22 w + B2 u,
+
+    so ȳ := ẏ − A11 y − B1 u = A12 w is a measurement of w, and A21 y + B2 u is a *known* input of the
+    w-subsystem (y is measured).  The observer ż = F z + G ȳ + T A21 y + T B2 u gives
+
+        d/dt(z − T w) = F z + (G A12 − Ṫ − T A22) w,
+
+    so with the design equation (replacing the slides' (11)-(12), which carry a spurious T A21 C term
+    because they write the input A21 y as A21 ȳ)
+
+        Ṫ + T A22 − F T = G A12,    G = (Ṫ + T A22 − F T) A12^{1},
+        solvable iff (Ṫ + T A22 − F T)(I − A12^{1} A12) = 0,
+
+    the defining property d/dt(z − T w) = F (z − T w) holds exactly.  To avoid ẏ, put z = p + G y; since
+    G is time-varying, ż = ṗ + Ġ y + G ẏ (the slides drop Ġ y), hence
+
+        ṗ = F (p + G y) + (T A21 − G A11 − Ġ) y + (T B2 − G B1) u,
+        z = p + G y,     ŵ = T⁻¹ z,     x̂ = [y; ŵ].
+
+    Ġ is computed by automatic differentiation (it involves T̈, so T must be twice differentiable).
+
+    **Arguments:**
+
+    - `model`: plant model with C = [I_m, 0] (``obsjax.LTV`` or ``obsjax.LTI``).
+    - `F`: (n−m, n−m) constant observer matrix (a leaf).
+    - `T`: callable t -> (n−m, n−m), twice differentiable (see :func:`obsjax.design.lovass_nagy_T`).
+    - `C1`: optional constant (n−m, m) {1}-inverse of A12; the Moore–Penrose inverse of A12(t) if None.
+    - `horizon`, `num_checks`, `rtol`: as in :class:`GeneralizedInverse`.
+
+    The observer state is p (n−m,).
+
+    **Example:** the slides' 4th-order example::
+
+        T = obsjax.design.lovass_nagy_T(A22, A12, -5 * jnp.eye(2), S)
+        obs = obsjax.GeneralizedInverseReduced(plant, -5 * jnp.eye(2), T,
+                                               C1=[[0., 0.], [0.5, 0.5]], horizon=(0., 5.))
+    """
+
+    model: eqx.Module
+    F: jax.Array
+    T: Callable
+    C1: jax.Array | None
+    horizon: tuple[float, float] | None = eqx.field(static=True)
+    num_checks: int = eqx.field(static=True)
+    rtol: float = eqx.field(static=True)
+
+    def __init__(self, model, F, T, C1=None, *, horizon=None, num_checks=201, rtol=1e-7):
+        n, m = int(model.n), int(model.m)
+        q = n - m
+        if q <= 0:
+            raise ValueError(
+                f"`model` must have fewer outputs than states for a reduced observer, got "
+                f"n = {n}, m = {m}."
+            )
+        C = concrete_value(jnp.asarray(model.C_of(jnp.asarray(0.0))))
+        expected = np.hstack([np.eye(m), np.zeros((m, q))])
+        if C is not None and (C.shape != expected.shape or not np.allclose(C, expected)):
+            raise ValueError(
+                f"`model` must be in the partitioned form x = [y; w], i.e. C = [I_{m}, 0] of shape "
+                f"({m}, {n}); got C(0) = {np.asarray(C).tolist()}. Transform the state first."
+            )
+        self.model = model
+        self.F = matrix(F, "F", (q, q))
+        if not callable(T):
+            raise ValueError(f"`T` must be a callable of t returning a ({q}, {q}) matrix.")  # noqa: TRY004 (project rule: ValueError)
+        T0 = jax.eval_shape(T, jnp.asarray(0.0))
+        if tuple(T0.shape) != (q, q):
+            raise ValueError(
+                f"`T(t)` must return shape ({q}, {q}) (n − m = {q}), got {tuple(T0.shape)}."
+            )
+        self.T = T
+        self.C1 = None if C1 is None else matrix(C1, "C1", (q, m))
+        self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
+        self.num_checks = int(num_checks)
+        self.rtol = float(rtol)
+        self.check()
+
+    @property
+    def m(self) -> int:
+        return int(self.model.m)
+
+    def blocks(self, t):
+        """(A11, A12, A21, A22, B1, B2) of the model at time t."""
+        m = self.m
+        A = jnp.asarray(self.model.A_of(t))
+        B = jnp.asarray(self.model.B_of(t))
+        return A[:m, :m], A[:m, m:], A[m:, :m], A[m:, m:], B[:m], B[m:]
+
+    def T_of(self, t):
+        return jnp.asarray(self.T(jnp.asarray(t, dtype=self.F.dtype)))
+
+    def Tdot_of(self, t):
+        return jax.jacfwd(self.T_of)(jnp.asarray(t, dtype=self.F.dtype))
+
+    def C1_of(self, t):
+        return jnp.linalg.pinv(self.blocks(t)[1]) if self.C1 is None else self.C1
+
+    def M_of(self, t):
+        """M(t) = Ṫ + T A22 − F T."""
+        T = self.T_of(t)
+        return self.Tdot_of(t) + T @ self.blocks(t)[3] - self.F @ T
+
+    def G_of(self, t):
+        """G(t) = (Ṫ + T A22 − F T) A12^{1}."""
+        return self.M_of(t) @ self.C1_of(t)
+
+    def Gdot_of(self, t):
+        return jax.jacfwd(self.G_of)(jnp.asarray(t, dtype=self.F.dtype))
+
+    def solvability(self, t):
+        """(‖M (I − A12^{1} A12)‖, scale, det T) at time t."""
+        T = self.T_of(t)
+        Td = self.Tdot_of(t)
+        _, A12, _, A22, _, _ = self.blocks(t)
+        M = Td + T @ A22 - self.F @ T
+        P = jnp.eye(A12.shape[1], dtype=M.dtype) - self.C1_of(t) @ A12
+        scale = jnp.linalg.norm(Td) + jnp.linalg.norm(T @ A22) + jnp.linalg.norm(self.F @ T)
+        return jnp.linalg.norm(M @ P), scale, jnp.linalg.det(T)
+
+    def check_horizon(self, t0, t1, num=201):
+        """Raise ValueError if the condition or det T ≠ 0 fails somewhere on [t0, t1]."""
+        _check_over(self, _time_grid((t0, t1), num), "GeneralizedInverseReduced")
+        return self
+
+    def check(self):
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        _check_over(self, ts, "GeneralizedInverseReduced")
+        return self
+
+    def z_of(self, t, p, y):
+        """z = p + G y, the estimate of T w."""
+        return p + self.G_of(t) @ y
+
+    # --- the observer protocol -------------------------------------------------------------------
+    def init(self, t0, xhat0, y0):
+        """p0 = T(t0) ŵ0 − G(t0) y0, with ŵ0 = xhat0[m:] (so z0 = T(t0) ŵ0)."""
+        w0 = jnp.asarray(xhat0)[self.m :]
+        return self.T_of(t0) @ w0 - self.G_of(t0) @ jnp.asarray(y0)
+
+    def init_from_z(self, t0, z0, y0):
+        """p0 = z0 − G(t0) y0 (the slides give z0 directly)."""
+        return jnp.asarray(z0) - self.G_of(t0) @ jnp.asarray(y0)
+
+    def _T_G(self, t):
+        """(T, G) at t with Ṫ from one forward-mode pass (jax.jvp in t)."""
+        T, Td = jax.jvp(self.T_of, (t,), (jnp.ones_like(t),))
+        G = (Td + T @ self.blocks(t)[3] - self.F @ T) @ self.C1_of(t)
+        return T, G
+
+    def vector_field(self, t, z, y, u):
+        p = z
+        t = jnp.asarray(t, dtype=self.F.dtype)
+        A11, _, A21, _, B1, B2 = self.blocks(t)
+        # T, G and Ġ in one nested forward-mode pass (the same quantities as T_of, G_of, Gdot_of)
+        (T, G), (_, Gdot) = jax.jvp(self._T_G, (t,), (jnp.ones_like(t),))
+        dp = self.F @ (p + G @ y) + (T @ A21 - G @ A11 - Gdot) @ y
+        if B1.shape[1] > 0:
+            dp = dp + (T @ B2 - G @ B1) @ u
+        return dp
+
+    def estimate(self, t, z, y):
+        w = jnp.linalg.solve(self.T_of(t), self.z_of(t, z, y))
+        return jnp.concatenate([jnp.asarray(y), w])

@@ -1,0 +1,417 @@
+"""Lovass-Nagy {1}-inverses, T(t) design and generalized-inverse observers (slides 002).
+
+Independent references: the defining property CXC = C and numpy's pinv; the closed form T = [S, βṠ/4]
+of the slides' example (derived by hand); finite-difference Ṫ for the design condition; the exact error
+law z − T w = expm(F t)(z0 − T0 w0) checked on a diffrax simulation of plant and observer written here
+(and by obsjax.simulate) with scipy.linalg.expm; central finite differences for gradients.
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+
+import obsjax
+from obsjax import LTV
+from obsjax.design import lovass_nagy_T, moore_penrose, one_inverse, solvability_residual
+
+
+# --- the slides' 4th-order example, transcribed independently ---------------------------------------
+def alpha(t):
+    return -0.4 * jnp.exp(jnp.sin(0.3 * t) - 0.5)
+
+
+def beta(t):
+    return 0.4 * jnp.cos(0.3 * t) - 0.5
+
+
+def A_ex(t):
+    return jnp.array(
+        [
+            [-10.0, -10.0 * alpha(t), 0.0, 1.0],
+            [1.0, 0.0, 0.0, 1.0],
+            [0.0, -1.0, -5.0, 0.0],
+            [0.0, 0.0, -4.0 / beta(t), 0.0],
+        ]
+    )
+
+
+B_ex = jnp.array([[1.0], [0.0], [0.0], [1.0]])
+A12 = jnp.array([[0.0, 1.0], [0.0, 1.0]])
+C1_slides = jnp.array([[0.0, 0.0], [0.5, 0.5]])
+F5 = -5.0 * jnp.eye(2)
+
+
+def S_ex(t):
+    return jnp.stack([jnp.cos(t), jnp.sin(t)])
+
+
+def reduced_plant():
+    return LTV(
+        lambda t: A_ex(t), lambda t: jnp.hstack([jnp.eye(2), jnp.zeros((2, 2))]), lambda t: B_ex
+    )
+
+
+def u_sin(t):
+    return jnp.array([jnp.sin(2.0 * t)])
+
+
+def simulate_pair(plant, vf_obs, x0, z0, ts, u, *, rtol=1e-10, atol=1e-12, dt=None):
+    """Plant and observer integrated together (independent of obsjax.simulate)."""
+
+    def vf(t, s, args):
+        x, z = s
+        uu = u(t)
+        y = plant.h(t, x, uu)
+        return plant.f(t, x, uu), vf_obs(t, z, y, uu)
+
+    if dt is None:
+        ctrl, dt0 = diffrax.PIDController(rtol=rtol, atol=atol), 1e-2
+    else:
+        ctrl, dt0 = diffrax.ConstantStepSize(), dt
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf),
+        diffrax.Tsit5(),
+        ts[0],
+        ts[-1],
+        dt0,
+        (x0, z0),
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=ctrl,
+        max_steps=100_000,
+    )
+    return sol.ys
+
+
+# --- {1}-inverses -----------------------------------------------------------------------------------
+def test_moore_penrose_is_the_slides_choice_and_numpy_pinv():
+    assert np.allclose(moore_penrose(A12), C1_slides)
+    C = np.random.default_rng(0).normal(size=(3, 5))
+    assert np.allclose(moore_penrose(C), np.linalg.pinv(C))
+
+
+@pytest.mark.parametrize("shape,rank", [((2, 2), 1), ((3, 5), 2), ((4, 3), 3)])
+def test_one_inverse_family(shape, rank):
+    rng = np.random.default_rng(1)
+    m, n = shape
+    C = rng.normal(size=(m, rank)) @ rng.normal(size=(rank, n))
+    for _ in range(3):
+        Y, Z = rng.normal(size=(n, m)), rng.normal(size=(n, m))
+        X = np.asarray(one_inverse(C, Y, Z))
+        assert np.allclose(C @ X @ C, C, atol=1e-10)
+        assert obsjax.design.is_one_inverse(X, C)
+    # The family contains every {1}-inverse: recover a given one (Y = X − C⁺, Z = C⁺C(X − C⁺)).
+    Cp = np.linalg.pinv(C)
+    Xg = np.asarray(one_inverse(C, rng.normal(size=(n, m)), rng.normal(size=(n, m))))
+    D = Xg - Cp
+    assert np.allclose(one_inverse(C, D, Cp @ C @ D), Xg, atol=1e-10)
+    if rank < min(m, n):
+        assert not obsjax.design.is_one_inverse(rng.normal(size=(n, m)), C)
+
+
+def test_solvability_residual_does_not_depend_on_the_one_inverse():
+    """I − XC projects onto null(C) for every {1}-inverse X: solvability of GC = M is choice-free; the
+    solution G = M X does depend on X, but all of them satisfy G C = M."""
+    rng = np.random.default_rng(2)
+    C = np.array([[0.0, 1.0], [0.0, 1.0]])
+    M_good = rng.normal(size=(2, 1)) @ np.array([[0.0, 1.0]])  # rows in the row space of C
+    M_bad = rng.normal(size=(2, 2))
+    Gs = []
+    for Y, Z in [(None, None), (rng.normal(size=(2, 2)), rng.normal(size=(2, 2)))]:
+        X = one_inverse(C, Y, Z)
+        assert np.allclose(solvability_residual(M_good, C, X), 0.0, atol=1e-12)
+        assert np.linalg.norm(solvability_residual(M_bad, C, X)) > 1e-3
+        G = M_good @ np.asarray(X)
+        assert np.allclose(G @ C, M_good, atol=1e-12)
+        Gs.append(G)
+    assert np.linalg.norm(Gs[0] - Gs[1]) > 1e-3
+
+
+def test_one_inverse_bad_shapes():
+    with pytest.raises(ValueError, match="`Y` must have shape"):
+        one_inverse(A12, Y=jnp.ones((3, 2)))
+
+
+def test_one_inverse_bad_Z_shape():
+    with pytest.raises(ValueError, match="`Z` must have shape"):
+        one_inverse(A12, Z=jnp.ones((2, 3)))
+
+
+# --- design of T -------------------------------------------------------------------------------------
+def test_lovass_nagy_T_closed_form_for_the_slides_example():
+    """By hand: with N = e1 and F = −5I the condition reads Ṫ_i1 = (4/β) T_i2, so T = [S, β Ṡ / 4]."""
+    T = lovass_nagy_T(lambda t: A_ex(t)[2:, 2:], A12, F5, S_ex)
+    for t in [0.0, 0.7, 3.1]:
+        Sd = np.array([-np.sin(t), np.cos(t)])
+        expected = np.column_stack([S_ex(t), float(beta(t)) / 4 * Sd])
+        assert np.allclose(T(t), expected, atol=1e-12)
+
+
+def test_lovass_nagy_T_condition_with_finite_difference_derivative():
+    """M (I − C⁺C) = 0 with Ṫ from central differences (not the autodiff used inside)."""
+    F = jnp.array([[-3.0, 1.0], [0.0, -4.0]])
+    T = lovass_nagy_T(
+        lambda t: A_ex(t)[2:, 2:], A12, F, lambda t: jnp.stack([1.0 + 0.2 * t, jnp.sin(t)])
+    )
+    h = 1e-5
+    for t in [0.2, 1.3, 4.0]:
+        Td = (np.asarray(T(t + h)) - np.asarray(T(t - h))) / (2 * h)
+        M = Td + np.asarray(T(t)) @ np.asarray(A_ex(t)[2:, 2:]) - np.asarray(F) @ np.asarray(T(t))
+        assert np.linalg.norm(solvability_residual(M, A12)) < 1e-7 * np.linalg.norm(M)
+        assert np.linalg.norm(M) > 1e-2  # not trivially zero
+
+
+def test_lovass_nagy_T_rank_deficient_K():
+    """Full-state design with y = [x1, x2]: K = (I − NNᵀ) A N = A12 block has rank 1 < 2."""
+    with pytest.raises(ValueError, match="K = .* full column rank 2"):
+        lovass_nagy_T(
+            A_ex,
+            jnp.hstack([jnp.eye(2), jnp.zeros((2, 2))]),
+            -jnp.eye(4),
+            lambda t: jnp.ones((4, 2)),
+        )
+
+
+def test_lovass_nagy_T_bad_S_shape():
+    with pytest.raises(ValueError, match=r"`S\(t\)` must return"):
+        lovass_nagy_T(lambda t: A_ex(t)[2:, 2:], A12, F5, lambda t: jnp.ones((2, 2)))
+
+
+# --- reduced-order observer ------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def reduced_run():
+    plant = reduced_plant()
+    T = lovass_nagy_T(lambda t: A_ex(t)[2:, 2:], A12, F5, S_ex)
+    obs = obsjax.GeneralizedInverseReduced(plant, F5, T, C1=C1_slides, horizon=(0.0, 5.0))
+    x0 = jnp.array([-1.0, 2.0, -1.0, 2.0])  # y0 = [-1, 2], w0 = [-1, 2]
+    z0 = jnp.array([2.0, -1.0])
+    ts = jnp.linspace(0.0, 5.0, 51)
+    # the slides give z0: choose x̂0 = [y0; T(0)⁻¹ z0] so that init gives z(0) = z0
+    xhat0 = jnp.concatenate([x0[:2], jnp.linalg.solve(obs.T_of(0.0), z0)])
+    sim = eqx.filter_jit(
+        lambda o, x0, xh0: obsjax.simulate(plant, o, x0, xh0, ts, u=u_sin, rtol=1e-10, atol=1e-12)
+    )
+    traj = sim(obs, x0, xhat0)
+    assert np.allclose(obs.z_of(0.0, traj.z[0], traj.y[0]), z0)
+    return plant, obs, ts, traj.x, traj.z, z0, traj
+
+
+def test_reduced_defining_property_exact(reduced_run):
+    """z − T w = expm(F t)(z0 − T0 w0) (with F = −5I: e^{−5t}), to solver tolerance, under an input."""
+    _plant, obs, ts, xs, ps, z0, _traj = reduced_run
+    zs = jax.jit(jax.vmap(obs.z_of))(ts, ps, xs[:, :2])
+    Ts = jax.jit(jax.vmap(obs.T_of))(ts)
+    e = np.asarray(zs - jnp.einsum("tij,tj->ti", Ts, xs[:, 2:]))
+    e0 = np.asarray(z0 - obs.T_of(0.0) @ xs[0, 2:])
+    pred = np.stack([scipy.linalg.expm(np.asarray(F5) * float(t)) @ e0 for t in ts])
+    assert np.abs(e - pred).max() < 1e-7 * np.abs(e0).max()
+    assert np.abs(e0).max() > 1.0
+
+
+def test_reduced_reproduces_slides_convergence(reduced_run):
+    """Slides: 'the simulation is run for 5 unit time and convergence is observed after 2.5'."""
+    _plant, obs, ts, xs, ps, _z0, traj = reduced_run
+    xhat = jax.jit(jax.vmap(obs.estimate))(ts, ps, xs[:, :2])
+    assert np.allclose(traj.xhat, xhat)
+    err = np.linalg.norm(np.asarray(traj.error), axis=1)
+    assert np.allclose(xhat[:, :2], xs[:, :2])
+    i25 = int(np.argmin(np.abs(np.asarray(ts) - 2.5)))
+    assert err[0] > 10.0
+    assert err[i25] < 1e-3 * err[0]
+    assert np.all(err[i25:] < 1e-3 * err[0])
+
+
+def test_reduced_p_form_equals_form_with_ydot(reduced_run):
+    """The differentiation-free p-form (run by obsjax.simulate) and ż = Fz + G(ẏ − A11y − B1u) + TA21y +
+    TB2u with the plant's true ẏ (run by the harness here) give the same z."""
+    plant, obs, ts, xs, ps, z0, _traj = reduced_run
+
+    def vf_z(t, z, y, u, x):
+        A11, _A12, A21, _A22, B1, B2 = obs.blocks(t)
+        ydot = (plant.f(t, x, u))[:2]
+        return (
+            obs.F @ z + obs.G_of(t) @ (ydot - A11 @ y - B1 @ u) + obs.T_of(t) @ (A21 @ y + B2 @ u)
+        )
+
+    def vf(t, s, args):
+        x, z = s
+        uu = u_sin(t)
+        return plant.f(t, x, uu), vf_z(t, z, x[:2], uu, x)
+
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf),
+        diffrax.Tsit5(),
+        0.0,
+        5.0,
+        1e-2,
+        (xs[0], z0),
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
+    )
+    zs = jax.jit(jax.vmap(obs.z_of))(ts, ps, xs[:, :2])
+    assert np.abs(np.asarray(sol.ys[1] - zs)).max() < 1e-7
+
+
+def test_slides_reduced_form_violates_the_property(reduced_run):
+    """The slides' final form (G from their (12) with the T·A21·C term, no T·A21·y, no Ġ·y) leaves a
+    persistent bias in z − T w: the derivation matters for time-varying T."""
+    plant, obs, ts, xs, _ps, z0, _traj = reduced_run
+
+    def G_slides(t):
+        _A11, A12_, A21, A22, _B1, _B2 = obs.blocks(t)
+        T = obs.T_of(t)
+        M = obs.Tdot_of(t) + T @ A22 + T @ A21 @ A12_ - obs.F @ T
+        return M @ C1_slides
+
+    def vf_slides(t, p, y, u):
+        A11, _A12, _A21, _A22, B1, B2 = obs.blocks(t)
+        G = G_slides(t)
+        return obs.F @ (p + G @ y) - G @ A11 @ y - G @ B1 @ u + obs.T_of(t) @ B2 @ u
+
+    p0 = z0 - G_slides(0.0) @ xs[0, :2]
+    xs2, ps2 = simulate_pair(plant, vf_slides, xs[0], p0, ts, u_sin, rtol=1e-8, atol=1e-10)
+    zs = ps2 + jnp.einsum("tij,tj->ti", jax.jit(jax.vmap(G_slides))(ts), xs2[:, :2])
+    e = zs - jnp.einsum("tij,tj->ti", jax.jit(jax.vmap(obs.T_of))(ts), xs2[:, 2:])
+    assert np.abs(np.asarray(e[-10:])).max() > 1e-2  # does not decay like e^{-5t} (≈ 1e-11 here)
+
+
+# --- full-state observer ------------------------------------------------------------------------------
+C_full = jnp.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])  # y = [x1, x3]
+F_full = jnp.diag(jnp.array([-3.0, -4.0, -5.0, -6.0]))
+
+
+def S_full(t):
+    return jnp.array([[1.0, 0.0], [1.0, 0.2 * jnp.sin(t)], [0.0, 1.0], [0.3 * jnp.cos(t), 1.0]])
+
+
+def test_full_state_defining_property_and_convergence():
+    plant = LTV(A_ex, lambda t: C_full, lambda t: B_ex)
+    T = lovass_nagy_T(A_ex, C_full, F_full, S_full)
+    obs = obsjax.GeneralizedInverse(plant, F_full, T, horizon=(0.0, 3.0))
+    x0 = jnp.array([-1.0, 2.0, -1.0, 2.0])
+    xhat0 = jnp.zeros(4)
+    ts = jnp.linspace(0.0, 3.0, 31)
+    z0 = obs.init(0.0, xhat0, C_full @ x0)
+    xs, zs = simulate_pair(plant, obs.vector_field, x0, z0, ts, u_sin)
+    e = np.asarray(zs - jnp.einsum("tij,tj->ti", jax.jit(jax.vmap(obs.T_of))(ts), xs))
+    e0 = e[0]
+    pred = np.stack([scipy.linalg.expm(np.asarray(F_full) * float(t)) @ e0 for t in ts])
+    assert np.abs(e - pred).max() < 1e-7 * np.abs(e0).max()
+    xhat = jax.jit(jax.vmap(obs.estimate))(ts, zs, zs)
+    err = np.linalg.norm(np.asarray(xhat - xs), axis=1)
+    assert err[-1] < 1e-2 * err[0]
+    # G solves G C = Ṫ + TA − FT (the condition holds, so G C reproduces M exactly)
+    for t in [0.3, 2.2]:
+        assert np.allclose(obs.G_of(t) @ C_full, obs.M_of(t), atol=1e-9)
+
+
+# --- bad input ----------------------------------------------------------------------------------------
+def test_reduced_requires_partitioned_model():
+    plant = LTV(A_ex, lambda t: C_full[:, ::-1], lambda t: B_ex)
+    T = lovass_nagy_T(lambda t: A_ex(t)[2:, 2:], A12, F5, S_ex)
+    with pytest.raises(ValueError, match=r"partitioned form x = \[y; w\]"):
+        obsjax.GeneralizedInverseReduced(plant, F5, T)
+
+
+def test_reduced_solvability_failure_names_residual_and_time():
+    """T = I does not satisfy (Ṫ + T A22 − F T)(I − C⁺C) = 0 (its first column is [0, −4/β])."""
+    with pytest.raises(ValueError, match=r"residual .* at t = 0"):
+        obsjax.GeneralizedInverseReduced(
+            reduced_plant(), F5, lambda t: jnp.eye(2), horizon=(0.0, 5.0)
+        )
+
+
+def test_reduced_singular_T_over_horizon():
+    """S = [1, cos t] gives det T = (β/4)(−sin t), zero at t = π inside the horizon."""
+    T = lovass_nagy_T(lambda t: A_ex(t)[2:, 2:], A12, F5, lambda t: jnp.stack([1.0, jnp.cos(t)]))
+    with pytest.raises(ValueError, match=r"det T ≠ 0.*changes sign between t = 3\.1"):
+        obsjax.GeneralizedInverseReduced(reduced_plant(), F5, T, horizon=(0.5, 5.0), num_checks=401)
+
+
+def test_reduced_bad_F_shape():
+    T = lovass_nagy_T(lambda t: A_ex(t)[2:, 2:], A12, F5, S_ex)
+    with pytest.raises(ValueError, match="`F` must have shape"):
+        obsjax.GeneralizedInverseReduced(reduced_plant(), -jnp.eye(3), T)
+
+
+def test_reduced_bad_T_shape():
+    with pytest.raises(ValueError, match=r"`T\(t\)` must return shape \(2, 2\)"):
+        obsjax.GeneralizedInverseReduced(reduced_plant(), F5, lambda t: jnp.eye(3))
+
+
+def test_full_bad_T_shape():
+    plant = LTV(A_ex, lambda t: C_full, lambda t: B_ex)
+    with pytest.raises(ValueError, match=r"`T\(t\)` must return shape \(4, 4\)"):
+        obsjax.GeneralizedInverse(plant, F_full, lambda t: jnp.eye(2))
+
+
+def test_full_solvability_failure():
+    plant = LTV(A_ex, lambda t: C_full, lambda t: B_ex)
+    with pytest.raises(ValueError, match="solvability condition fails"):
+        obsjax.GeneralizedInverse(plant, F_full, lambda t: jnp.eye(4), horizon=(0.0, 1.0))
+
+
+def test_bad_horizon():
+    plant = LTV(A_ex, lambda t: C_full, lambda t: B_ex)
+    T = lovass_nagy_T(A_ex, C_full, F_full, S_full)
+    with pytest.raises(ValueError, match="`horizon` must be"):
+        obsjax.GeneralizedInverse(plant, F_full, T, horizon=(1.0, 0.0))
+
+
+# --- gradients with respect to F's eigenvalues ---------------------------------------------------------
+def _reduced_loss(lams, t1=1.0, dt=0.02):
+    plant = reduced_plant()
+    F = jnp.diag(lams)
+    T = lovass_nagy_T(lambda t: A_ex(t)[2:, 2:], A12, F, S_ex)
+    obs = obsjax.GeneralizedInverseReduced(plant, F, T, C1=C1_slides)
+    ts = jnp.linspace(0.0, t1, round(t1 / dt) + 1)
+    x0 = jnp.array([-1.0, 2.0, -1.0, 2.0])
+    p0 = obs.init(0.0, jnp.array([-1.0, 2.0, 0.5, 0.5]), x0[:2])
+    xs, ps = simulate_pair(plant, obs.vector_field, x0, p0, ts, u_sin, dt=dt)
+    err = jax.vmap(obs.estimate)(ts, ps, xs[:, :2]) - xs
+    return jnp.sum(err[1:] ** 2) * dt
+
+
+def _full_loss(lams, t1=1.0, dt=0.02):
+    plant = LTV(A_ex, lambda t: C_full, lambda t: B_ex)
+    F = jnp.diag(lams)
+    T = lovass_nagy_T(A_ex, C_full, F, S_full)
+    obs = obsjax.GeneralizedInverse(plant, F, T)
+    ts = jnp.linspace(0.0, t1, round(t1 / dt) + 1)
+    x0 = jnp.array([-1.0, 2.0, -1.0, 2.0])
+    z0 = obs.init(0.0, jnp.zeros(4), C_full @ x0)
+    xs, zs = simulate_pair(plant, obs.vector_field, x0, z0, ts, u_sin, dt=dt)
+    err = jax.vmap(obs.estimate)(ts, zs, zs) - xs
+    return jnp.sum(err[1:] ** 2) * dt
+
+
+@pytest.mark.parametrize(
+    "loss,lams",
+    [(_reduced_loss, [-4.0, -6.0]), (_full_loss, [-2.0, -3.0, -4.0, -5.0])],
+    ids=["reduced", "full"],
+)
+def test_gradient_wrt_F_eigenvalues_matches_finite_differences(loss, lams):
+    lams = jnp.array(lams)
+    f = jax.jit(loss)
+    g = np.asarray(jax.jit(jax.grad(loss))(lams))
+    h = 1e-5
+    fd = np.array(
+        [(f(lams.at[i].add(h)) - f(lams.at[i].add(-h))) / (2 * h) for i in range(lams.size)]
+    )
+    assert np.allclose(g, fd, rtol=1e-5, atol=1e-8 * np.abs(fd).max())
+    assert np.abs(g).max() > 1e-4
+
+
+def test_lti_constant_T_places_eigenvalues_of_F():
+    """LTI plant, constant S: T is constant and x̃̇ = (A − T⁻¹G C) x̃ with eig = eig(F) (numpy eig)."""
+    plant = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+    F = jnp.array([[-3.0, 1.0], [0.0, -4.0]])
+    T = lovass_nagy_T(plant.A, plant.C, F, lambda t: jnp.array([0.3, 1.0]))
+    obs = obsjax.GeneralizedInverse(plant, F, T, horizon=(0.0, 1.0), num_checks=5)
+    L = np.linalg.solve(np.asarray(T(0.0)), np.asarray(obs.G_of(0.0)))
+    eig = np.sort(np.linalg.eigvals(np.asarray(plant.A) - L @ np.asarray(plant.C)).real)
+    assert np.allclose(eig, [-4.0, -3.0], atol=1e-10)
+    assert np.allclose(obs.Tdot_of(0.5), 0.0)

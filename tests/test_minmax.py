@@ -1,0 +1,237 @@
+"""Min-max (ℓ∞) initial-state estimation and the min-max + Luenberger combination (slides 002).
+
+Independent references: the forward simulation written here (not the transition matrices inside); numpy
+least squares; a brute-force vertex enumeration of the Chebyshev problem; the identity θ̂(ε) = θ̂(0) + ε
+(max(|r + ε|, |r − ε|) = |r| + ε); the discrete error law z − T x = F^k (z0 − T0 x0) for an exact model.
+"""
+
+import itertools
+
+import numpy as np
+import pytest
+
+import obsjax
+from obsjax.observers._minmax import window_regression
+
+
+def alpha(k):
+    return -0.4 * np.exp(np.sin(0.3 * k) - 0.5)
+
+
+def beta(k):
+    return 0.4 * np.cos(0.3 * k) - 0.5
+
+
+def A_mm(k):  # slides, min-max example
+    return (
+        np.array(
+            [[10, 10 * alpha(k), 1, 0], [-2, 0, -1, -1], [0, -1, -5, 0], [-1, 2, 4 / beta(k), -5]]
+        )
+        / 20.0
+    )
+
+
+B_mm = np.array([[1.0], [1.0], [0.0], [1.0]])
+C_mm = np.array([[0.0, 0.0, 0.0, 1.0]])
+X0 = np.array([10.0, 10.0, 0.0, 0.0])
+
+
+def A_comb(k):  # slides, combination example
+    return (
+        np.array(
+            [
+                [-10, 10 * alpha(k), 0, -1],
+                [-1, -10, -5, 5],
+                [0, -1, -5, 0],
+                [-1, 0, -4 / beta(k), 0],
+            ]
+        )
+        / 20.0
+    )
+
+
+P_err = 0.02 * np.array([[1, 1, 1, 1], [1, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]], dtype=float)
+B_comb = np.ones((4, 1))
+C_comb = np.fliplr(np.eye(4))
+F_comb = 0.01 * np.diag([-10.0, -20.0, -30.0, -40.0])
+
+
+def simulate(A_of, B, C, x0, us):
+    x, xs, ys = np.array(x0, float), [], []
+    for k in range(len(us) + 1):
+        xs.append(x)
+        ys.append(C @ x)
+        if k < len(us):
+            x = A_of(k) @ x + B @ us[k]
+    return np.array(xs), np.array(ys)
+
+
+def data(N, noise=0.0, seed=0):
+    us = np.sin(0.5 * np.arange(N))[:, None]
+    xs, ys = simulate(A_mm, B_mm, C_mm, X0, us)
+    ys = ys + np.random.default_rng(seed).uniform(-noise, noise, ys.shape)
+    As = np.stack([A_mm(k) for k in range(N)])
+    return As, us, xs, ys
+
+
+def test_exact_data_recovers_x0_and_theta_is_eps():
+    As, us, _xs, ys = data(12)
+    x0, theta = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=0.05)
+    assert np.allclose(x0, X0, atol=1e-6)
+    assert theta == pytest.approx(0.05, abs=1e-8)
+    # window regression: ȳ = ψ x0 on exact data (ψ, ȳ against the forward simulation above)
+    ybar, psi = window_regression(As, B_mm, C_mm, ys, us)
+    assert np.allclose(psi @ X0, ybar, atol=1e-10)
+
+
+def test_minmax_value_is_chebyshev_plus_eps_and_same_estimate():
+    """max over |δ| ≤ ε adds ε: θ̂(ε) = θ̂(0) + ε, and the estimate solves the plain min ‖ȳ − ψx0‖∞."""
+    As, us, _xs, ys = data(10, noise=0.05)
+    ybar, psi = window_regression(As, B_mm, C_mm, ys, us)
+    _x_c, th_c = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=0.0)
+    for eps in [0.01, 0.3]:
+        x_e, th_e = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=eps)
+        assert th_e == pytest.approx(th_c + eps, abs=1e-8)
+        assert np.abs(ybar - psi @ x_e).max() == pytest.approx(th_c, abs=1e-8)
+
+
+def test_chebyshev_against_vertex_enumeration_and_least_squares():
+    """Independent: the LP optimum is at a vertex with n + 1 active rows ψ_i x + s_i θ = ȳ_i."""
+    As, us, _xs, ys = data(7, noise=0.05, seed=3)
+    ybar, psi = window_regression(As, B_mm, C_mm, ys, us)
+    r, n = psi.shape
+    best = np.inf
+    for rows in itertools.combinations(range(r), n + 1):
+        for signs in itertools.product([-1.0, 1.0], repeat=n + 1):
+            M = np.hstack([psi[list(rows)], np.array(signs)[:, None]])
+            if abs(np.linalg.det(M)) < 1e-12:
+                continue
+            sol = np.linalg.solve(M, ybar[list(rows)])
+            x, th = sol[:n], sol[n]
+            if th >= -1e-12 and np.abs(ybar - psi @ x).max() <= th + 1e-9:
+                best = min(best, th)
+    x_c, th_c = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=0.0)
+    assert th_c == pytest.approx(best, rel=1e-7, abs=1e-10)
+    x_ls = np.linalg.lstsq(psi, ybar, rcond=None)[0]
+    assert np.abs(ybar - psi @ x_ls).max() >= th_c - 1e-10  # Chebyshev minimises the ℓ∞ residual
+    assert (
+        np.linalg.norm(ybar - psi @ x_ls) <= np.linalg.norm(ybar - psi @ x_c) + 1e-10
+    )  # LS the ℓ2 one
+
+
+def test_slides_algorithm_inequality_figure4():
+    """Slides' Figure 4 quantity ‖ȳ + ε·1 − ψ x̃0‖∞ − θ̂ over growing windows.  It cannot be positive
+    (θ̂ = θ̃ + ε ≥ ‖ȳ + ε·1 − ψx̃0‖∞); on these data it is 0 to LP accuracy, i.e. the slides' '≥ 0' holds
+    only with equality: the min-max estimate coincides with the Chebyshev one."""
+    eps = 0.05
+    As, us, _xs, ys = data(20, noise=eps, seed=1)
+    gaps = []
+    for N in range(4, 21):
+        alg = obsjax.minmax_algorithm(As[:N], B_mm, C_mm, ys[: N + 1], us[:N], eps)
+        assert alg.theta_minmax == pytest.approx(alg.theta_cheb + eps, abs=1e-8)
+        assert alg.residual_minmax_shifted <= alg.theta_minmax + 1e-8
+        gaps.append(alg.gap)
+    gaps = np.array(gaps)
+    assert np.all(gaps <= 1e-8)
+    assert np.all(np.abs(gaps) <= 1e-8)
+
+
+def test_figure3_state_error_small_with_exact_data():
+    As, us, xs, ys = data(20)
+    x0, _ = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=0.0)
+    xhat = simulate(A_mm, B_mm, C_mm, x0, us)[0]
+    assert np.linalg.norm(xhat - xs, axis=1).max() < 1e-6
+
+
+def test_constant_and_stacked_matrices_agree():
+    A = A_mm(0)
+    us = np.zeros((6, 1))
+    _xs, ys = simulate(lambda k: A, B_mm, C_mm, X0, us)
+    a = obsjax.minmax_initial_state(A, B_mm, C_mm, ys, us, 0.0)[0]
+    b = obsjax.minmax_initial_state(np.stack([A] * 6), B_mm, np.stack([C_mm] * 7), ys, us, 0.0)[0]
+    assert np.allclose(a, b, atol=1e-8) and np.allclose(a, X0, atol=1e-6)
+
+
+# --- bad input -----------------------------------------------------------------------------------------
+def test_window_too_short_is_refused():
+    As, us, _xs, ys = data(2)
+    with pytest.raises(ValueError, match="rank 3 < n = 4"):
+        obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us)
+
+
+def test_negative_eps():
+    As, us, _xs, ys = data(6)
+    with pytest.raises(ValueError, match="`eps` must be >= 0"):
+        obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us, eps=-0.1)
+
+
+def test_stacked_A_wrong_length():
+    As, us, _xs, ys = data(6)
+    with pytest.raises(ValueError, match=r"`A` stacked over k must have shape \(6, 4, 4\)"):
+        obsjax.minmax_initial_state(As[:5], B_mm, C_mm, ys, us)
+
+
+def test_us_wrong_shape():
+    As, us, _xs, ys = data(6)
+    with pytest.raises(ValueError, match=r"`us` must have shape \(N, p\) = \(6, 1\)"):
+        obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us[:4])
+
+
+def test_nan_measurements():
+    As, us, _xs, ys = data(6)
+    ys[2] = np.nan
+    with pytest.raises(ValueError, match="`ys` must be finite"):
+        obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us)
+
+
+# --- the combination ----------------------------------------------------------------------------------
+def test_discrete_luenberger_error_law_exact_model():
+    """With the exact model, z − T x obeys z(k) − T x(k) = F^k (z0 − T0 x0) (T = I here)."""
+    K = 15
+    us = np.sin(0.5 * np.arange(K))[:, None]
+    xs, ys = simulate(A_comb, B_comb, C_comb, X0, us)
+    obs = obsjax.MinMaxLuenberger(A_comb, B_comb, C_comb, F_comb, window=3)
+    xhat0 = np.zeros(4)
+    xh = obs.luenberger(ys, us, xhat0)
+    for k in range(K + 1):
+        assert np.allclose(
+            xh[k] - xs[k], np.linalg.matrix_power(F_comb, k) @ (xhat0 - X0), atol=1e-12
+        )
+
+
+def test_combination_beats_pure_minmax_under_model_error_figure5():
+    """Slides' Figure 5: plant A(k) + P(k), model A(k); free response from x0 = [10, 10, 0, 0].  The
+    min-max start replayed through the Luenberger observer has a smaller error than the same start
+    propagated by the model, at every k (window W = 5)."""
+    K = 40
+    us = np.zeros((K, 1))
+    xs, ys = simulate(lambda k: A_comb(k) + P_err, B_comb, C_comb, X0, us)
+    obs = obsjax.MinMaxLuenberger(A_comb, B_comb, C_comb, F_comb, window=5, eps=0.0)
+    res = obs.run(ys, us)
+    e_comb = np.linalg.norm(res.xhat - xs[res.ks], axis=1)
+    e_mm = np.linalg.norm(res.xhat_minmax - xs[res.ks], axis=1)
+    assert np.all(e_mm - e_comb > 0)
+    assert e_comb.mean() < 0.5 * e_mm.mean()
+    # with the exact model both are exact (the difference is due to the model error P)
+    xs0, ys0 = simulate(A_comb, B_comb, C_comb, X0, us)
+    res0 = obs.run(ys0, us)
+    assert np.allclose(res0.xhat, xs0[res0.ks], atol=1e-7)
+    assert np.allclose(res0.xhat_minmax, xs0[res0.ks], atol=1e-7)
+
+
+def test_combination_solvability_failure():
+    """T = I needs (A − F)(I − C^{1}C) = 0: false with the single output of the min-max example."""
+    obs = obsjax.MinMaxLuenberger(A_mm, B_mm, C_mm, 0.5 * np.eye(4), window=5)
+    with pytest.raises(ValueError, match="fails at k = 0: residual"):
+        obs.gains(3)
+
+
+def test_combination_unstable_F():
+    with pytest.raises(ValueError, match="`F` must have its eigenvalues inside the unit circle"):
+        obsjax.MinMaxLuenberger(A_comb, B_comb, C_comb, 1.5 * np.eye(4), window=5)
+
+
+def test_combination_record_too_short():
+    obs = obsjax.MinMaxLuenberger(A_comb, B_comb, C_comb, F_comb, window=5)
+    with pytest.raises(ValueError, match="more than window"):
+        obs.run(np.zeros((4, 4)), np.zeros((3, 1)))
