@@ -30,6 +30,8 @@ from .tuning._tune import risk_measure as risk_measure
 from .tuning._tune import tune as tune
 
 __version__ = "0.1.0"
+from .observers._tlo import TrajectoryLinearization as TrajectoryLinearization
+from .observers._ekf import ExtendedKalman as ExtendedKalman
 from .observers._generalized_inverse import GeneralizedInverse as GeneralizedInverse
 from .observers._generalized_inverse import GeneralizedInverseReduced as GeneralizedInverseReduced
 from .observers._minmax import MinMaxLuenberger as MinMaxLuenberger
