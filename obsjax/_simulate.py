@@ -165,7 +165,9 @@ def simulate(
     - `controller`: output feedback ``controller(t, x̂) -> (p,)`` (closes the loop through the estimate).
     - `noise`: :class:`obsjax.noise.WhiteNoise` (an SDE; fixed steps, Euler–Maruyama by default, ``dt0``
       defaulting to span/2000) or :class:`obsjax.noise.BandLimitedNoise`; needs ``key``.
-    - `solver`: a diffrax solver (default ``Tsit5``; pass ``Kvaerno5()`` for stiff high-gain observers).
+    - `solver`: a diffrax solver.  Default: the observer's ``recommended_solver(ts)`` when it has one (the
+      high-gain :class:`obsjax.TrajectoryLinearization` returns the implicit ``Kvaerno5`` when
+      max|ρ̄|·ω/ε makes the problem stiff), else ``Tsit5``.
     - `rtol`, `atol`: tolerances of the adaptive PID controller.
     - `dt0`, `adaptive`: ``adaptive=False`` with ``dt0`` gives fixed steps.
     - `max_steps`: per solve (per segment for resetting observers).
@@ -232,7 +234,10 @@ def simulate(
             max_steps = max(max_steps, int(math.ceil(span / dt0)) + 16)
     else:
         terms = diffrax.ODETerm(_drift)
-        solver = diffrax.Tsit5() if solver is None else solver
+        if solver is None:
+            # Observers that know their own stiffness (the high-gain TLO) pick the solver.
+            pick = getattr(observer, "recommended_solver", None)
+            solver = pick(ts_np) if pick is not None else diffrax.Tsit5()
 
     jumps = plant.jumps
     if adaptive:

@@ -593,3 +593,17 @@ def test_bad_unobservable_policy_is_refused():
         obsjax.TrajectoryLinearization(
             _vdp_model(), [-1.0, -2.0], 1.0, 1.0, on_unobservable="ignore"
         )
+
+
+@pytest.mark.slow
+def test_simulate_applies_the_solver_rule_by_default():
+    """solver=None in simulate uses the observer's recommended (implicit) solver at small ε."""
+    model = obsjax.Nonlinear(
+        lambda t, x, u: jnp.array([x[1], -x[0] + (1 - x[0] ** 2) * x[1]]), lambda t, x, u: x[:1], 2, 1
+    )
+    obs = obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 2.0, 0.05)
+    assert isinstance(obs.recommended_solver(), diffrax.Kvaerno5)
+    ts = jnp.linspace(0.0, 1.0, 11)
+    a = obsjax.simulate(model, obs, jnp.array([2.0, 0.0]), jnp.zeros(2), ts)
+    b = obsjax.simulate(model, obs, jnp.array([2.0, 0.0]), jnp.zeros(2), ts, solver=diffrax.Kvaerno5())
+    np.testing.assert_array_equal(np.asarray(a.xhat), np.asarray(b.xhat))
