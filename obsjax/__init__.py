@@ -30,15 +30,26 @@ from .tuning._tune import risk_measure as risk_measure
 from .tuning._tune import tune as tune
 
 __version__ = "0.1.0"
-from .montecarlo import MonteCarloResult as MonteCarloResult
-from .montecarlo import monte_carlo as monte_carlo
-from .observers._least_squares import LeastSquaresReset as LeastSquaresReset
-from .observers._least_squares import LeastSquaresState as LeastSquaresState
-from .observers._least_squares import chen_yen_example as chen_yen_example
-from .observers._kalman_bucy import KalmanBucy as KalmanBucy
-from .observers._kalman_bucy import KalmanBucyState as KalmanBucyState
+from .observers._tlo import TrajectoryLinearization as TrajectoryLinearization
+from .observers._ekf import ExtendedKalman as ExtendedKalman
 from .observers._generalized_inverse import GeneralizedInverse as GeneralizedInverse
 from .observers._generalized_inverse import GeneralizedInverseReduced as GeneralizedInverseReduced
 from .observers._minmax import MinMaxLuenberger as MinMaxLuenberger
 from .observers._minmax import minmax_algorithm as minmax_algorithm
 from .observers._minmax import minmax_initial_state as minmax_initial_state
+from .observers._kreisselmeier import Kreisselmeier as Kreisselmeier
+from .observers._kreisselmeier import kreisselmeier_form as kreisselmeier_form
+from .observers._luders_narendra import LudersNarendra as LudersNarendra
+from .observers._luders_narendra import luders_narendra_form as luders_narendra_form
+from .observers._kudva_narendra import KudvaNarendra as KudvaNarendra
+from .observers._kudva_narendra import ErrorModel1 as ErrorModel1
+from .observers._kudva_narendra import ErrorModel2 as ErrorModel2
+from .observers._finite_window import FiniteWindow as FiniteWindow
+from .observers._least_squares import LeastSquaresReset as LeastSquaresReset
+from .observers._least_squares import LeastSquaresState as LeastSquaresState
+from .observers._least_squares import chen_yen_example as chen_yen_example
+from .observers._kalman_bucy import KalmanBucy as KalmanBucy
+from .observers._kalman_bucy import KalmanBucyState as KalmanBucyState
+from .observers._least_squares import switching_ltv_example as switching_ltv_example
+from .montecarlo import MonteCarloResult as MonteCarloResult
+from .montecarlo import monte_carlo as monte_carlo

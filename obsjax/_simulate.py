@@ -165,7 +165,9 @@ def simulate(
     - `controller`: output feedback ``controller(t, x̂) -> (p,)`` (closes the loop through the estimate).
     - `noise`: :class:`obsjax.noise.WhiteNoise` (an SDE; fixed steps, Euler–Maruyama by default, ``dt0``
       defaulting to span/2000) or :class:`obsjax.noise.BandLimitedNoise`; needs ``key``.
-    - `solver`: a diffrax solver (default ``Tsit5``; pass ``Kvaerno5()`` for stiff high-gain observers).
+    - `solver`: a diffrax solver.  Default: the observer's ``recommended_solver(ts)`` when it has one (the
+      high-gain :class:`obsjax.TrajectoryLinearization` returns the implicit ``Kvaerno5`` when
+      max|ρ̄|·ω/ε makes the problem stiff), else ``Tsit5``.
     - `rtol`, `atol`: tolerances of the adaptive PID controller.
     - `dt0`, `adaptive`: ``adaptive=False`` with ``dt0`` gives fixed steps.
     - `max_steps`: per solve (per segment for resetting observers).
@@ -232,7 +234,10 @@ def simulate(
             max_steps = max(max_steps, int(math.ceil(span / dt0)) + 16)
     else:
         terms = diffrax.ODETerm(_drift)
-        solver = diffrax.Tsit5() if solver is None else solver
+        if solver is None:
+            # Observers that know their own stiffness (the high-gain TLO) pick the solver.
+            pick = getattr(observer, "recommended_solver", None)
+            solver = pick(ts_np) if pick is not None else diffrax.Tsit5()
 
     jumps = plant.jumps
     if adaptive:
@@ -269,7 +274,7 @@ def simulate(
         xs, zs = jax.tree_util.tree_map(lambda a: a[:-1], ys)
         ok_all = ok
     else:
-        xs, zs, ok_all = _segmented(observer, solve, state0, ts, T, max_segments)
+        xs, zs, ok_all = _segmented(observer, solve, state0, ts, T, max_segments, ts_np)
 
     # Algebraic outputs at the save times.
     def outputs(t, x, z):
@@ -318,13 +323,16 @@ def num_segments(T, t0, t1) -> int | None:
     return max(1, int(math.ceil(r - 1e-9 * max(1.0, r))))
 
 
-def _segmented(observer, solve, state0, ts, T, max_segments):
+def _segmented(observer, solve, state0, ts, T, max_segments, ts_np=None):
     t0, t1 = ts[0], ts[-1]
-    n_seg = max_segments if max_segments is not None else num_segments(T, t0, t1)
+    n_seg = max_segments
+    if n_seg is None and ts_np is not None:
+        n_seg = num_segments(T, ts_np[0], ts_np[-1])
     if n_seg is None:
         raise ValueError(
-            "The observer's reset period T is traced (inside jit), so the number of reset segments cannot be "
-            "computed: pass `max_segments` (≥ (t1 − t0)/T) to obsjax.simulate."
+            "The number of reset segments ceil((ts[-1] − ts[0]) / T) cannot be computed because the reset "
+            "period T or the save times ts are traced (inside jit): pass `max_segments` (≥ (t1 − t0)/T) to "
+            "obsjax.simulate."
         )
     T = jnp.asarray(T)
     T = eqx.error_if(

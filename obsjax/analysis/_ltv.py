@@ -89,8 +89,9 @@ def transition_matrix(plant, t, tau, *, rtol=_RTOL, atol=_ATOL, max_steps=65536)
         Phi = obsjax.analysis.transition_matrix(obsjax.chen_yen_example(), 10.0, 0.0)
     """
     _check_plant(plant)
-    return _transition(plant, jnp.asarray(t, dtype=float), jnp.asarray(tau, dtype=float), rtol, atol,
-                       max_steps)
+    return _transition(
+        plant, jnp.asarray(t, dtype=float), jnp.asarray(tau, dtype=float), rtol, atol, max_steps
+    )
 
 
 @eqx.filter_jit
@@ -165,7 +166,7 @@ def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL,
     if reference not in ("start", "end"):
         raise ValueError(f"`reference` must be 'start' or 'end', got {reference!r}.")
     a = _window(k, T, float(t0))
-    _, PhiT, G = _periods(plant, jnp.asarray([a]), jnp.asarray(T), 2, rtol, atol)
+    _, PhiT, G = _periods(plant, _pad(jnp.asarray([a])), jnp.asarray(T), 2, rtol, atol)
     PhiT, G = PhiT[0], G[0]
     if reference == "start":
         return G
@@ -191,7 +192,7 @@ def regressor_gramian(plant, k, T, *, t0=0.0, rtol=_RTOL, atol=_ATOL):
     _check_plant(plant)
     T = _pos_float(T, "T")
     a = _window(k, T, float(t0))
-    return _periods(plant, jnp.asarray([a]), jnp.asarray(T), 2, rtol, atol)[2][0]
+    return _periods(plant, _pad(jnp.asarray([a])), jnp.asarray(T), 2, rtol, atol)[2][0]
 
 
 class UniformObservability(NamedTuple):
@@ -337,13 +338,16 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
         Gs = _periods(w, _pad(starts), jnp.asarray(T), 2, rtol, atol)[2][:K]
 
     elif callable(w):
-        plant = None
         try:
             w0 = jnp.asarray(w(jnp.asarray(float(t0))))
         except Exception as e:  # noqa: BLE001
-            raise ValueError(f"`w` must be a callable of t returning an (n, m) array; it failed: {e}")
+            raise ValueError(
+                f"`w` must be a callable of t returning an (n, m) array; it failed: {e}"
+            )
         if w0.ndim not in (1, 2):
-            raise ValueError(f"`w(t)` must return an (n,) or (n, m) array, got shape {tuple(w0.shape)}.")
+            raise ValueError(
+                f"`w(t)` must return an (n,) or (n, m) array, got shape {tuple(w0.shape)}."
+            )
         n = w0.shape[0]
 
         def wm(t):
@@ -354,13 +358,16 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
                 ws = wm(s)
                 return ws @ ws.T
 
-            G = _solve(rhs, None, a, a + T, jnp.zeros((n, n)), diffrax.SaveAt(t1=True), rtol, atol,
-                       65536)[0]
+            G = _solve(
+                rhs, None, a, a + T, jnp.zeros((n, n)), diffrax.SaveAt(t1=True), rtol, atol, 65536
+            )[0]
             return 0.5 * (G + G.T)
 
         Gs = jax.jit(jax.vmap(gram))(starts)
     else:
-        raise ValueError(f"`w` must be a callable of t or an LTV/LTI plant, got {type(w).__name__}.")
+        raise ValueError(
+            f"`w` must be a callable of t or an LTV/LTI plant, got {type(w).__name__}."
+        )
 
     eig = np.asarray(jnp.linalg.eigvalsh(Gs))
     per = np.stack([eig[:, 0], eig[:, -1]], axis=1)
@@ -391,7 +398,9 @@ def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
     ts = jnp.asarray(ts, dtype=float)
     err = jnp.asarray(err, dtype=float)
     if err.shape[0] != ts.shape[0]:
-        raise ValueError(f"`error` must have {ts.shape[0]} rows (one per time), got shape {err.shape}.")
+        raise ValueError(
+            f"`error` must have {ts.shape[0]} rows (one per time), got shape {err.shape}."
+        )
     nrm = jnp.linalg.norm(err, axis=-1) if err.ndim == 2 else jnp.abs(err)
     mask = nrm > floor
     if t_min is not None:

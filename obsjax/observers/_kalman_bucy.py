@@ -74,19 +74,21 @@ class KalmanBucy(AbstractObserver):
         self.Rv = _spd(Rv, "Rv", m)
         self.P0 = _spd(P0, "P0", n)
 
-    def check(self) -> "KalmanBucy":
+    def check(self) -> KalmanBucy:
         """Value checks that survive jit: Rv and P0 positive definite (``eqx.error_if``)."""
         Rv = eqx.error_if(
-            self.Rv, jnp.linalg.eigvalsh(0.5 * (self.Rv + self.Rv.T)).min() <= 0,
+            self.Rv,
+            jnp.linalg.eigvalsh(0.5 * (self.Rv + self.Rv.T)).min() <= 0,
             "`Rv` must be positive definite.",
         )
         P0 = eqx.error_if(
-            self.P0, jnp.linalg.eigvalsh(0.5 * (self.P0 + self.P0.T)).min() <= 0,
+            self.P0,
+            jnp.linalg.eigvalsh(0.5 * (self.P0 + self.P0.T)).min() <= 0,
             "`P0` must be positive definite.",
         )
         return eqx.tree_at(lambda o: (o.Rv, o.P0), self, (Rv, P0))
 
-    def prepare(self) -> "KalmanBucy":
+    def prepare(self) -> KalmanBucy:
         return self.check()
 
     def init(self, t0, xhat0, y0):

@@ -12,7 +12,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float_array, positive
+from .._checks import as_float_array, concrete_value, positive
 from ..systems._plants import LTV
 from ._base import AbstractObserver
 
@@ -66,6 +66,55 @@ def chen_yen_example(B=None) -> LTV:
     return LTV(_example_A, _example_C, B=B)
 
 
+_SW_A1 = ((0.0, 1.0, 0.0), (-1.0, 0.1, 0.0), (0.5, 0.0, -0.3))
+_SW_C1 = ((1.0, 0.0, 0.0),)
+_SW_A2 = ((-0.2, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -2.0, 0.0))
+_SW_C2 = ((0.0, 0.0, 1.0),)
+
+
+class _Switching(eqx.Module):
+    # Mode index from the declared jump times themselves, so that the solver's t = nextafter(jump) is on the
+    # right side of every jump (floor(t / period) can be off by one at t = k * period in floating point).
+    jumps: jax.Array
+    first: jax.Array
+    second: jax.Array
+
+    def __call__(self, t):
+        odd = (jnp.sum(t >= self.jumps) % 2) == 1
+        return jnp.where(odd, self.second, self.first)
+
+
+def switching_ltv_example(period: float = 0.7, horizon: float = 60.0) -> LTV:
+    """A 3-state LTV plant with piecewise-constant parameters: Chen & Yen's discontinuous case.
+
+    On [2j·τ, (2j+1)·τ) mode 1 and on [(2j+1)·τ, (2j+2)·τ) mode 2, τ = `period`:
+
+        A1 = [[0, 1, 0], [-1, 0.1, 0], [0.5, 0, -0.3]],   C1 = [1, 0, 0]   (x3 unobservable)
+        A2 = [[-0.2, 0, 0], [0, 0, 1], [0, -2, 0]],       C2 = [0, 0, 1]   (x1 unobservable)
+
+    Neither mode is observable alone (rank 2 each), but the switched pair is uniformly observable for
+    windows T ≳ τ (α1 > 0), with observability indices that change with time, and no derivative of A or C
+    exists at the switches; mode 1's oscillator is slightly unstable.  The switching instants are declared
+    as ``jump_ts`` (up to `horizon`), so the solver steps onto them and gradients with respect to the reset
+    period T are exact.
+
+    **Returns:** an :class:`obsjax.LTV` with n = 3, m = 1.
+
+    **Example:**
+
+        plant = switching_ltv_example()
+        obs = LeastSquaresReset(plant, gamma=20.0, p0=1.0, T=0.93)
+    """
+    period = float(period)
+    if not period > 0:
+        raise ValueError(f"`period` must be > 0, got {period}.")
+    jumps = tuple(float(period * k) for k in range(1, int(horizon / period) + 1))
+    ja = jnp.asarray(jumps)
+    A = _Switching(ja, jnp.asarray(_SW_A1), jnp.asarray(_SW_A2))
+    C = _Switching(ja, jnp.asarray(_SW_C1), jnp.asarray(_SW_C2))
+    return LTV(A, C, jump_ts=jumps)
+
+
 class LeastSquaresState(NamedTuple):
     """State of :class:`LeastSquaresReset`.
 
@@ -85,7 +134,9 @@ def _scalar_gain(x, name):
         if arr.size == 1:
             arr = arr.reshape(())
         else:
-            raise ValueError(f"`{name}` must be a scalar, got an array of shape {tuple(arr.shape)}.")
+            raise ValueError(
+                f"`{name}` must be a scalar, got an array of shape {tuple(arr.shape)}."
+            )
     positive(arr, name)
     # a strongly typed float64 scalar, so observers built from ints or Python floats share one jit trace
     return jnp.asarray(arr, dtype=jnp.result_type(float))
@@ -167,14 +218,23 @@ class LeastSquaresReset(AbstractObserver):
     def reset_period(self):
         return self.T
 
-    def check(self) -> "LeastSquaresReset":
-        """Value checks that survive jit: γ, p0, T > 0 (``eqx.error_if``)."""
-        gamma = eqx.error_if(self.gamma, self.gamma <= 0, "`gamma` must be > 0.")
-        p0 = eqx.error_if(self.p0, self.p0 <= 0, "`p0` must be > 0.")
-        T = eqx.error_if(self.T, self.T <= 0, "`T` (the reset period) must be > 0.")
-        return eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), self, (gamma, p0, T))
+    def check(self) -> LeastSquaresReset:
+        """Re-validate γ, p0, T > 0: ``ValueError`` for concrete values, ``eqx.error_if`` for traced ones.
 
-    def prepare(self) -> "LeastSquaresReset":
+        Concrete leaves are returned untouched (so a concrete T stays concrete and ``simulate`` can count
+        the reset segments itself under ``jit``).
+        """
+        new = []
+        for name, leaf in (("gamma", self.gamma), ("p0", self.p0), ("T", self.T)):
+            if concrete_value(leaf) is not None:
+                positive(leaf, name)
+                new.append(leaf)
+            else:
+                what = "`T` (the reset period)" if name == "T" else f"`{name}`"
+                new.append(eqx.error_if(leaf, leaf <= 0, f"{what} must be > 0."))
+        return eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), self, tuple(new))
+
+    def prepare(self) -> LeastSquaresReset:
         return self.check()
 
     def _reset_state(self, xhat):
@@ -215,4 +275,3 @@ class LeastSquaresReset(AbstractObserver):
 
     def estimate(self, t, z, y):
         return z.xhat
-

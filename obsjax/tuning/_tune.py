@@ -195,9 +195,13 @@ def tune(
 
         bar = tqdm(it, desc="tune", leave=False)
         it = bar
+    seg_bucket = None  # only ever grows: a shrinking T would otherwise trigger a recompilation
     for step in it:
         obs_now = build(theta).check()
-        val, grads = value_and_grad(theta, segments_for(obs_now))
+        need = segments_for(obs_now)
+        if need is not None:
+            seg_bucket = need if seg_bucket is None else max(seg_bucket, need)
+        val, grads = value_and_grad(theta, seg_bucket)
         val = float(val)
         finite = np.isfinite(val) and all(bool(jnp.all(jnp.isfinite(g))) for g in grads)
         losses.append(val)

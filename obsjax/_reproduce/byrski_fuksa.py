@@ -1,0 +1,179 @@
+"""Byrski & Fuksa (seed 004): the figures of the paper's example and of its Section 4, reproduced.
+
+- ``byrski_fuksa_norm31.png``: the norm (31) of the optimal observer of the double integrator (29) against
+  the window length T (obsjax's matrix-exponential norm (15) by (28) and by (25)-(26), the closed form (31),
+  the values of REFERENCE.md and the limit √1.5).
+- ``byrski_fuksa_kernels30.png``: the optimal kernels G1, G2 at T = 1 against the closed form (30).
+- ``byrski_fuksa_deadbeat.png``: the closed loop (33)-(35) with u = P x̂, eig(A + BP) = {−1, −2}: the state,
+  the estimate, the state-feedback trajectory of (42) from x(T) (Lemma 4), and the decay of ‖x‖ against
+  e^{max Re eig(A+BP) t}.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+
+def _model29():
+    import obsjax
+
+    return obsjax.LTI([[0.0, 1.0], [0.0, 0.0]], [[0.0], [1.0]], [[2.0, 0.0]])
+
+
+def norm31(T):
+    """(31): ‖(G1, G2)‖(T) = √((3 sh 2T + sin 2T) / (4 (sh²T − sin²T)))."""
+    T = np.asarray(T, dtype=float)
+    return np.sqrt((3 * np.sinh(2 * T) + np.sin(2 * T)) / (4 * (np.sinh(T) ** 2 - np.sin(T) ** 2)))
+
+
+def kernels30(t, T):
+    """(30): the optimal kernels of (29) at α = β = I, as arrays (len(t), 2)."""
+    sh, ch, s, c = np.sinh, np.cosh, np.sin, np.cos
+    R = np.array(
+        [
+            [sh(T) * c(T) - ch(T) * s(T), 2 * sh(T) * s(T)],
+            [-2 * sh(T) * s(T), 2 * (sh(T) * c(T) + ch(T) * s(T))],
+        ]
+    ) / (2 * (sh(T) ** 2 - s(T) ** 2))
+    g1 = (R @ np.array([2 * ch(t) * c(t), sh(t) * c(t) + ch(t) * s(t)])).T
+    g2 = (R @ np.array([-2 * sh(t) * s(t), sh(t) * c(t) - ch(t) * s(t)])).T
+    return g1, g2
+
+
+def norm_curve(Ts, formula="(28)"):
+    """obsjax's norm (15) of (29) at each T (one compiled function, T a traced leaf)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import obsjax
+
+    kw = {} if formula == "(28)" else {"alpha": [1.0, 1.0], "beta": [1.0, 1.0]}
+    obs = obsjax.FiniteWindow(_model29(), 1.0, **kw)
+    f = jax.jit(jax.vmap(lambda T: eqx.tree_at(lambda o: o.T, obs, T).norm()))
+    return np.asarray(f(jnp.asarray(Ts, dtype=float)))
+
+
+def deadbeat_loop(T=1.0, n_chunks=10, t1=8.0, P=((-2.0, -3.0),), x0=(1.0, -0.5), xhat0=(0.3, 0.2)):
+    """Simulate the closed loop (33)-(35) of (29) with u = P x̂; returns (ts, x, xhat, x42) with x42 the
+    state-feedback trajectory of (42) started from x(T) (NaN before T)."""
+    import jax.numpy as jnp
+    import scipy.linalg as sl
+
+    import obsjax
+
+    model = _model29()
+    P = np.asarray(P, dtype=float)
+    obs = obsjax.FiniteWindow(model, T, n_chunks=n_chunks)
+    ts = np.linspace(0.0, t1, round(t1 / T * n_chunks) * 2 + 1)
+    tr = obsjax.simulate(
+        model,
+        obs,
+        jnp.asarray(x0),
+        jnp.asarray(xhat0),
+        ts,
+        controller=lambda t, xh: jnp.asarray(P) @ xh,
+        rtol=1e-10,
+        atol=1e-12,
+    )
+    x, xh = np.asarray(tr.x), np.asarray(tr.xhat)
+    Acl = np.asarray(model.A) + np.asarray(model.B) @ P
+    iT = int(np.argmin(np.abs(ts - T)))
+    x42 = np.full_like(x, np.nan)
+    x42[iT:] = np.stack([sl.expm(Acl * (t - ts[iT])) @ x[iT] for t in ts[iT:]])
+    return ts, x, xh, x42, Acl
+
+
+def reproduce(outdir: str) -> list[str]:
+    """Write the three figures to ``outdir`` and return their paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import obsjax  # noqa: F401  (float64)
+
+    os.makedirs(outdir, exist_ok=True)
+    paths = []
+
+    # 1. the norm (31)
+    Ts = np.linspace(0.3, 6.0, 58)
+    n28, n25 = norm_curve(Ts, "(28)"), norm_curve(Ts, "(25)")
+    ref = {0.5: 5.11731, 1.0: 2.09271, 2.0: 1.28257, 4.0: 1.22576}
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.semilogy(Ts, norm31(Ts), "k-", lw=3, alpha=0.3, label="closed form (31)")
+    ax.semilogy(Ts, n28, "C0-", label="obsjax, (28) (matrix exponentials)")
+    ax.semilogy(Ts[::4], n25[::4], "C1o", ms=4, label="obsjax, (25)-(26)")
+    ax.semilogy(list(ref), list(ref.values()), "C3s", mfc="none", ms=8, label="REFERENCE.md")
+    ax.axhline(np.sqrt(1.5), color="gray", ls="--", label=r"limit $\sqrt{1.5}$")
+    ax.set_xlabel("window length T")
+    ax.set_ylabel(r"$\|(G_1, G_2)\|(T)$")
+    ax.set_title("Byrski & Fuksa (29): norm of the optimal observer (31)")
+    ax.legend()
+    fig.tight_layout()
+    p = os.path.join(outdir, "byrski_fuksa_norm31.png")
+    fig.savefig(p, dpi=120)
+    plt.close(fig)
+    paths.append(p)
+
+    # 2. the kernels (30)
+    import obsjax as oj
+
+    T = 1.0
+    t = np.linspace(0.0, T, 101)
+    G1, G2 = oj.FiniteWindow(_model29(), T).kernels(t)
+    g1, g2 = kernels30(t, T)
+    fig, axs = plt.subplots(1, 2, figsize=(9, 3.6), sharex=True)
+    for i in range(2):
+        axs[0].plot(t, g1[:, i], "k-", lw=3, alpha=0.3)
+        axs[0].plot(t, np.asarray(G1)[:, i, 0], f"C{i}--", label=f"row {i + 1}")
+        axs[1].plot(t, g2[:, i], "k-", lw=3, alpha=0.3)
+        axs[1].plot(t, np.asarray(G2)[:, i, 0], f"C{i}--", label=f"row {i + 1}")
+    axs[0].set_title(r"$G_1(t)$ (grey: closed form (30))")
+    axs[1].set_title(r"$G_2(t)$ (grey: closed form (30))")
+    for a in axs:
+        a.set_xlabel("t in the window [0, T], T = 1")
+        a.legend()
+    fig.tight_layout()
+    p = os.path.join(outdir, "byrski_fuksa_kernels30.png")
+    fig.savefig(p, dpi=120)
+    plt.close(fig)
+    paths.append(p)
+
+    # 3. the deadbeat closed loop (33)-(42)
+    ts, x, xh, x42, Acl = deadbeat_loop()
+    rate = np.max(np.linalg.eigvals(Acl).real)
+    fig, axs = plt.subplots(1, 2, figsize=(10, 3.8))
+    for i in range(2):
+        axs[0].plot(ts, x[:, i], f"C{i}-", label=f"$x_{i + 1}$")
+        axs[0].plot(ts, xh[:, i], f"C{i}:", label=rf"$\hat x_{i + 1}$")
+        axs[0].plot(ts, x42[:, i], "k--", lw=1, label="(42) from x(T)" if i == 0 else None)
+    axs[0].axvline(1.0, color="gray", lw=0.8)
+    axs[0].set_xlabel("t")
+    axs[0].set_title(r"closed loop (33)-(35), $u = P\hat x$, T = 1")
+    axs[0].legend(ncol=2, fontsize=8)
+    nx = np.linalg.norm(x, axis=1)
+    axs[1].semilogy(ts, nx, "C0-", label=r"$\|x(t)\|$")
+    axs[1].semilogy(
+        ts, np.maximum(np.linalg.norm(xh - x, axis=1), 1e-16), "C3-", label=r"$\|\hat x - x\|$"
+    )
+    iT = int(np.argmin(np.abs(ts - 1.0)))
+    axs[1].semilogy(
+        ts[iT:],
+        nx[-1] * np.exp(rate * (ts[iT:] - ts[-1])),
+        "k--",
+        lw=1,
+        label=rf"slope {rate:.0f} = max Re eig(A+BP)",
+    )
+    axs[1].axvline(1.0, color="gray", lw=0.8)
+    axs[1].set_xlabel("t")
+    axs[1].set_title("deadbeat after T (Lemma 4)")
+    axs[1].legend(fontsize=8)
+    fig.tight_layout()
+    p = os.path.join(outdir, "byrski_fuksa_deadbeat.png")
+    fig.savefig(p, dpi=120)
+    plt.close(fig)
+    paths.append(p)
+    return paths

@@ -1,0 +1,372 @@
+"""The LTV observer canonical form by time-varying Lie derivatives (Huang & Zhu (8)-(11)).
+
+For the pair ẋ = A(t) x, y = C(t) x (8), with the differential operators
+
+    𝓛 c = ċ + c A          (row vectors, observability side),
+    𝓛̃ q = -q̇ + A q          (column vectors, its dual),
+
+the observability matrix is Q(t) = [Cᵀ, (𝓛C)ᵀ, …, (𝓛ⁿ⁻¹C)ᵀ]ᵀ; the pair is *strongly observable* when
+|det Qᵀ(t)Q(t)| ≥ c > 0 for all t.  With observability indices p_1 … p_m (Σ p_i = n, d_i = p_1 + … + p_i),
+
+    Q_0(t) = [Γ_{p_1}(c_1); …; Γ_{p_m}(c_m)],   Γ_p(c) = [c; 𝓛c; …; 𝓛^{p-1}c],
+    q_i(t) = Q_0⁻¹(t) e_{d_i},
+    T⁻¹(t) = [Γ̃_{p_1}(q_1) | … | Γ̃_{p_m}(q_m)],   Γ̃_p(q) = [q, 𝓛̃q, …, 𝓛̃^{p-1}q],             (10)
+
+and z = T(t) x puts (8) in the observer canonical form (9) with
+
+    A_z = T A T⁻¹ + Ṫ T⁻¹,     C_z = C T⁻¹ = R(t) C_can.                                       (11)
+
+A_z has ones on the sub-diagonal of each p_i × p_i block and its only other non-zero entries in the
+columns d_1, …, d_m: column d_i equals T 𝓛̃^{p_i} q_i (this follows from A T⁻¹ − (T⁻¹)˙ = [𝓛̃q …]).
+C_can selects the states z_{d_i}; R(t) = C T⁻¹ restricted to those columns is invertible with a unit
+diagonal (upper triangular in the lexicographic order of the indices).
+
+Every time derivative (Ċ, Q̇_0, q̇, …) is taken by automatic differentiation: nested forward-mode
+``jax.jvp`` in t through the user's callables A(t), C(t).  Nothing is differentiated by hand.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import concrete_value
+from .._config import require_x64
+
+__all__ = [
+    "LTVCanonicalForm",
+    "ltv_observability_indices",
+    "ltv_observability_matrix",
+    "ltv_observer_canonical_form",
+    "strong_observability",
+]
+
+
+# --------------------------------------------------------------------------------------------------
+# automatic time derivatives
+# --------------------------------------------------------------------------------------------------
+
+
+def _as_time(t) -> jax.Array:
+    return jnp.asarray(t, dtype=jnp.result_type(float))
+
+
+def time_derivatives(fn: Callable, t, order: int) -> jax.Array:
+    """[fn(t), fn'(t), …, fn^(order)(t)] stacked on a new leading axis, by nested ``jax.jvp`` in t."""
+    t = _as_time(t)
+
+    def level(k):
+        if k == 0:
+            return lambda s: jnp.asarray(fn(s))[None]
+        prev = level(k - 1)
+
+        def g(s):
+            vals, ders = jax.jvp(prev, (s,), (jnp.ones_like(s),))
+            return jnp.concatenate([vals, ders[-1:]], axis=0)
+
+        return g
+
+    return level(order)(t)
+
+
+def _lie_stack(A: Callable, C: Callable, depth: int) -> Callable:
+    """s ↦ [C, 𝓛C, …, 𝓛^depth C] of shape (depth + 1, m, n); 𝓛c = ċ + cA by nested jvp."""
+
+    def level(k):
+        if k == 0:
+            return lambda s: jnp.asarray(C(s))[None]
+        prev = level(k - 1)
+
+        def g(s):
+            vals, ders = jax.jvp(prev, (s,), (jnp.ones_like(s),))
+            new = ders[-1] + vals[-1] @ jnp.asarray(A(s))
+            return jnp.concatenate([vals, new[None]], axis=0)
+
+        return g
+
+    return level(depth)
+
+
+def _dual_lie_stack(A: Callable, Qcols: Callable, depth: int) -> Callable:
+    """s ↦ [q, 𝓛̃q, …, 𝓛̃^depth q] (column-wise for an (n, m) q); 𝓛̃q = -q̇ + Aq by nested jvp."""
+
+    def level(k):
+        if k == 0:
+            return lambda s: jnp.asarray(Qcols(s))[None]
+        prev = level(k - 1)
+
+        def g(s):
+            vals, ders = jax.jvp(prev, (s,), (jnp.ones_like(s),))
+            new = -ders[-1] + jnp.asarray(A(s)) @ vals[-1]
+            return jnp.concatenate([vals, new[None]], axis=0)
+
+        return g
+
+    return level(depth)
+
+
+# --------------------------------------------------------------------------------------------------
+# observability
+# --------------------------------------------------------------------------------------------------
+
+
+def _dims(A: Callable, C: Callable, t) -> tuple[int, int]:
+    if not callable(A) or not callable(C):
+        raise ValueError(
+            "`A` and `C` must be callables of t returning the (n, n) and (m, n) matrices of (8); got "
+            f"{type(A).__name__} and {type(C).__name__}."
+        )
+    sa = jax.eval_shape(A, _as_time(t)).shape
+    sc = jax.eval_shape(C, _as_time(t)).shape
+    if len(sa) != 2 or sa[0] != sa[1]:
+        raise ValueError(f"`A(t)` must return a square (n, n) matrix, got shape {sa}.")
+    if len(sc) != 2 or sc[1] != sa[0]:
+        raise ValueError(f"`C(t)` must return an (m, {sa[0]}) matrix, got shape {sc}.")
+    return sa[0], sc[0]
+
+
+def _concrete_times(ts, why: str) -> np.ndarray:
+    if isinstance(ts, jax.core.Tracer):
+        v = concrete_value(ts)
+        if v is None:
+            raise ValueError(f"`ts` must be concrete ({why}); got a traced value.")
+        ts = v
+    return np.atleast_1d(np.asarray(ts, dtype=float))
+
+
+def ltv_observability_matrix(A: Callable, C: Callable, t) -> jax.Array:
+    """Observability matrix Q(t) = [C; 𝓛C; …; 𝓛ⁿ⁻¹C] of (8), shape (n·m, n), rows grouped by power of 𝓛.
+
+    **Arguments:** `A`, `C`: callables of t; `t`: the time.
+
+    **Returns:** Q(t), with 𝓛C = Ċ + CA (Huang & Zhu, below (8)) by automatic differentiation.
+    """
+    n, m = _dims(A, C, t)
+    return _lie_stack(A, C, n - 1)(_as_time(t)).reshape(n * m, n)
+
+
+def _indices_from_Q(Qs: np.ndarray, tol: float) -> tuple[int, ...] | None:
+    """Luenberger search c_1, …, c_m, 𝓛c_1, …, 𝓛c_m, … keeping independent rows (lexicographic)."""
+    depth1, m, n = Qs.shape
+    scale = max(float(np.max(np.abs(Qs))), 1.0)
+    active = [True] * m
+    p = [0] * m
+    rows: list[np.ndarray] = []
+    for j in range(depth1):
+        for i in range(m):
+            if not active[i]:
+                continue
+            cand = np.vstack(rows + [Qs[j, i]])
+            sv = np.linalg.svd(cand, compute_uv=False)
+            if sv[-1] > tol * scale:
+                rows.append(Qs[j, i])
+                p[i] += 1
+            else:
+                active[i] = False
+        if len(rows) == n:
+            break
+    return tuple(p) if len(rows) == n else None
+
+
+def ltv_observability_indices(
+    A: Callable, C: Callable, ts, *, tol: float = 1e-9
+) -> tuple[int, ...]:
+    """Observability indices p_1, …, p_m of the LTV pair (8) (fixed lexicographic basis).
+
+    The rows c_1, …, c_m, 𝓛c_1, …, 𝓛c_m, 𝓛²c_1, … are searched in that order and a row is kept when it is
+    independent of those kept before; once 𝓛ʲc_i is dependent, output i contributes no further rows.
+    p_i is the number of rows kept for output i, Σ p_i = n.  With several times `ts`, the indices must be
+    the same at every time (the "fixed lexicographic basis" assumption of Huang & Zhu).
+
+    **Arguments:**
+
+    - `A`, `C`: callables of t returning (n, n) and (m, n) matrices.
+    - `ts`: a time or a 1-D array of times (concrete values).
+    - `tol`: relative singular-value threshold for independence.
+
+    **Returns:** the tuple (p_1, …, p_m).
+
+    Raises ``ValueError`` naming the time where the pair is not observable or where the indices change.
+
+    **Example:**
+
+        ltv_observability_indices(lambda t: A, lambda t: C, 0.0)   # (2, 2) for a generic 4x4, 2-output pair
+    """
+    require_x64("ltv_observability_indices")
+    tsv = _concrete_times(ts, "observability indices are static")
+    n, _ = _dims(A, C, tsv[0])
+    stack = jax.jit(_lie_stack(A, C, n - 1))
+    found = None
+    for tk in tsv:
+        p = _indices_from_Q(np.asarray(stack(_as_time(tk))), tol)
+        if p is None:
+            raise ValueError(
+                f"The pair (A, C) is not observable at t = {float(tk):.6g}: the observability matrix "
+                f"[C; 𝓛C; …; 𝓛^{n - 1}C] has rank < {n}."
+            )
+        if found is None:
+            found = p
+        elif p != found:
+            raise ValueError(
+                f"The observability indices of (A, C) change at t = {float(tk):.6g}: expected the fixed "
+                f"lexicographic basis {found}, found {p}."
+            )
+    return found
+
+
+def strong_observability(A: Callable, C: Callable, ts, *, threshold: float = 1e-8) -> np.ndarray:
+    """Check strong observability |det Qᵀ(t)Q(t)| ≥ threshold on the times `ts` (Huang & Zhu, below (8)).
+
+    **Arguments:**
+
+    - `A`, `C`: callables of t.
+    - `ts`: 1-D array of (concrete) times.
+    - `threshold`: the constant c of the definition.
+
+    **Returns:** the values |det QᵀQ| at `ts` (numpy array).
+
+    Raises ``ValueError`` naming the first time at which |det QᵀQ| < threshold.
+
+    **Example:**
+
+        strong_observability(A, C, jnp.linspace(0, 10, 101))
+    """
+    require_x64("strong_observability")
+    if not threshold > 0:
+        raise ValueError(f"`threshold` must be > 0, got {threshold}.")
+    tsv = _concrete_times(ts, "the strong-observability check runs before tracing")
+    n, m = _dims(A, C, tsv[0])
+    Qfn = _lie_stack(A, C, n - 1)
+
+    def gram_det(s):
+        Q = Qfn(s).reshape(n * m, n)
+        return jnp.abs(jnp.linalg.det(Q.T @ Q))
+
+    dets = np.asarray(jax.jit(jax.vmap(gram_det))(jnp.asarray(tsv)))
+    bad = np.flatnonzero(~(dets >= threshold))
+    if bad.size:
+        k = bad[0]
+        raise ValueError(
+            f"The pair (A, C) is not strongly observable: |det Qᵀ(t)Q(t)| = {dets[k]:.3e} < threshold "
+            f"{threshold:.3e} at t = {tsv[k]:.6g}."
+        )
+    return dets
+
+
+# --------------------------------------------------------------------------------------------------
+# the canonical form
+# --------------------------------------------------------------------------------------------------
+
+
+class LTVCanonicalForm(NamedTuple):
+    """The observer canonical form (9)-(11) of an LTV pair at one time.
+
+    Fields: `indices` (p_1, …, p_m); `Q0` (n, n); `Tinv` T⁻¹(t) (n, n); `T` (n, n); `Az` (n, n);
+    `Cz` (m, n); `R` (m, m) with C_z = R C_can; `alpha` (n, m): column i is column d_i of A_z, the
+    α_{·,i}(t) of (9).
+    """
+
+    indices: tuple[int, ...]
+    Q0: jax.Array
+    Tinv: jax.Array
+    T: jax.Array
+    Az: jax.Array
+    Cz: jax.Array
+    R: jax.Array
+    alpha: jax.Array
+
+
+def block_ends(indices) -> tuple[int, ...]:
+    """d_i = p_1 + … + p_i (1-based ends of the blocks)."""
+    return tuple(int(v) for v in np.cumsum(indices))
+
+
+def canonical_structure(indices) -> np.ndarray:
+    """The constant part of A_can: ones on the sub-diagonal of each p_i × p_i block."""
+    n = int(sum(indices))
+    S = np.zeros((n, n))
+    start = 0
+    for p in indices:
+        for j in range(1, p):
+            S[start + j, start + j - 1] = 1.0
+        start += p
+    return S
+
+
+def _check_indices(indices, n: int, m: int) -> tuple[int, ...]:
+    try:
+        idx = tuple(int(v) for v in indices)
+    except TypeError:
+        raise ValueError(
+            f"`indices` must be a sequence of {m} positive integers, got {indices!r}."
+        ) from None
+    if len(idx) != m or any(v < 1 for v in idx) or sum(idx) != n:
+        raise ValueError(
+            f"`indices` must be {m} positive integers summing to n = {n}, got {idx} (sum {sum(idx)})."
+        )
+    return idx
+
+
+def ltv_observer_canonical_form(
+    A: Callable, C: Callable, t, *, indices=None, threshold: float = 1e-10
+) -> LTVCanonicalForm:
+    """Transform the LTV pair (8) to the MIMO observer canonical form (9)-(11) at time t (Huang & Zhu).
+
+        T⁻¹(t) = [Γ̃_{p_1}(q_1) | … | Γ̃_{p_m}(q_m)],  q_i = Q_0⁻¹ e_{d_i},                      (10)
+        A_z = T A T⁻¹ + Ṫ T⁻¹,  C_z = C T⁻¹ = R C_can.                                         (11)
+
+    **Arguments:**
+
+    - `A`, `C`: callables of t returning A(t) (n, n) and C(t) (m, n); they are differentiated in t by
+      ``jax.jvp`` up to order 2·max(p_i) − 1 (so they must be smooth and JAX-traceable).
+    - `t`: the time (may be traced under ``jit`` when `indices` is given).
+    - `indices`: the observability indices (p_1, …, p_m); computed by
+      :func:`ltv_observability_indices` at `t` when ``None`` (then `t` must be concrete).
+    - `threshold`: when `t` is concrete, |det Qᵀ(t)Q(t)| below it raises ``ValueError`` naming t.
+
+    **Returns:** an :class:`LTVCanonicalForm` (indices, Q0, Tinv, T, Az, Cz, R, alpha).
+
+    **Example:**
+
+        cf = ltv_observer_canonical_form(lambda t: A(t), lambda t: C(t), 0.5)
+        cf.Az   # sub-diagonal ones in each block, α columns at d_i
+    """
+    require_x64("ltv_observer_canonical_form")
+    t = _as_time(t)
+    n, m = _dims(A, C, t)
+    tc = concrete_value(t)
+    if indices is None:
+        if tc is None:
+            raise ValueError(
+                "`indices` must be given when `t` is traced (observability indices are static)."
+            )
+        indices = ltv_observability_indices(A, C, tc)
+    idx = _check_indices(indices, n, m)
+    if tc is not None:
+        strong_observability(A, C, np.atleast_1d(tc), threshold=threshold)
+    pmax = max(idx)
+    d = block_ends(idx)
+    lie = _lie_stack(A, C, pmax - 1)
+
+    def Q0_of(s):
+        Ls = lie(s)
+        return jnp.stack([Ls[j, i] for i in range(m) for j in range(idx[i])])
+
+    E = jnp.eye(n)[:, [di - 1 for di in d]]
+
+    def q_of(s):
+        return jnp.linalg.solve(Q0_of(s), E)
+
+    G = _dual_lie_stack(A, q_of, pmax)(t)  # (pmax + 1, n, m)
+    Tinv = jnp.concatenate([G[: idx[i], :, i].T for i in range(m)], axis=1)
+    T = jnp.linalg.inv(Tinv)
+    last = jnp.stack([G[idx[i], :, i] for i in range(m)], axis=1)  # 𝓛̃^{p_i} q_i, (n, m)
+    alpha = T @ last
+    Az = jnp.asarray(canonical_structure(idx)).at[:, [di - 1 for di in d]].set(alpha)
+    Cz = jnp.asarray(C(t)) @ Tinv
+    R = Cz[:, [di - 1 for di in d]]
+    return LTVCanonicalForm(idx, Q0_of(t), Tinv, T, Az, Cz, R, alpha)

@@ -1,0 +1,200 @@
+"""LTV analysis (Chen & Yen (2)-(7), (16)-(19)) against closed forms, SciPy and defining properties."""
+
+import itertools
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.linalg
+
+import obsjax
+from obsjax import analysis as an
+from obsjax.observers._least_squares import _SW_A1, _SW_A2, _SW_C1, _SW_C2
+
+CY = obsjax.chen_yen_example()
+SW = obsjax.switching_ltv_example()
+
+
+def _np_A(t):  # Chen & Yen's A(t), written again in NumPy (independent of the library's version)
+    c, s = np.cos(t), np.sin(t)
+    return np.array([[-1 + 1.5 * c * c, 1 - 1.5 * s * c], [-1 + 1.5 * s * c, -1 + 1.5 * s * s]])
+
+
+def _np_C(t):
+    r = np.sqrt(t)
+    return np.array([[np.cos(r) + np.sin(r), 3 * np.cos(r) ** 2]])
+
+
+def _sw_transition(t, tau, period=0.7):
+    """Closed form for the switching plant: a product of matrix exponentials (SciPy expm)."""
+    A = [np.array(_SW_A1), np.array(_SW_A2)]
+    edges = [tau] + [period * k for k in range(1, 200) if tau < period * k < t] + [t]
+    Phi = np.eye(3)
+    for a, b in itertools.pairwise(edges):
+        mode = int(np.floor((0.5 * (a + b)) / period)) % 2
+        Phi = scipy.linalg.expm(A[mode] * (b - a)) @ Phi
+    return Phi
+
+
+def test_transition_matrix_switching_closed_form_and_inverse():
+    Phi = np.asarray(an.transition_matrix(SW, 3.3, 0.4))
+    np.testing.assert_allclose(Phi, _sw_transition(3.3, 0.4), rtol=1e-8, atol=1e-10)
+    back = np.asarray(an.transition_matrix(SW, 0.4, 3.3))  # backwards in time: Φ(τ, t) = Φ(t, τ)⁻¹
+    np.testing.assert_allclose(back @ Phi, np.eye(3), atol=1e-8)
+    np.testing.assert_allclose(np.asarray(an.transition_matrix(SW, 1.0, 1.0)), np.eye(3))
+
+
+def test_transition_matrix_example_scipy_and_open_loop_instability():
+    sol = scipy.integrate.solve_ivp(
+        lambda t, v: (_np_A(t) @ v.reshape(2, 2)).ravel(),
+        (0, 10),
+        np.eye(2).ravel(),
+        rtol=1e-11,
+        atol=1e-13,
+        method="DOP853",
+    )
+    Phi = np.asarray(an.transition_matrix(CY, 10.0, 0.0))
+    np.testing.assert_allclose(Phi, sol.y[:, -1].reshape(2, 2), rtol=1e-7, atol=1e-9)
+    # REFERENCE.md: the open loop is unstable, ‖x(10)‖ = 11.63 from x(0) = [5, -5].
+    assert abs(np.linalg.norm(Phi @ [5.0, -5.0]) - 11.63) < 5e-3
+
+
+def test_gramians_lti_closed_form():
+    A = np.array([[0.0, 1.0], [-2.0, -0.3]])
+    C = np.array([[1.0, 0.0]])
+    plant = obsjax.LTI(A, C=C)
+    T = 1.3
+    ref, _ = scipy.integrate.quad_vec(
+        lambda s: scipy.linalg.expm(A.T * s) @ C.T @ C @ scipy.linalg.expm(A * s),
+        0.0,
+        T,
+        epsabs=1e-13,
+    )
+    W = np.asarray(an.observability_gramian(plant, 2, T))  # window [T, 2T]; LTI: same as [0, T]
+    np.testing.assert_allclose(W, ref, rtol=1e-8, atol=1e-12)
+    refe, _ = scipy.integrate.quad_vec(
+        lambda s: scipy.linalg.expm(-A.T * s) @ C.T @ C @ scipy.linalg.expm(-A * s),
+        0.0,
+        T,
+        epsabs=1e-13,
+    )
+    We = np.asarray(an.observability_gramian(plant, 1, T, reference="end"))
+    np.testing.assert_allclose(We, refe, rtol=1e-8, atol=1e-12)
+
+
+def test_regressor_gramian_appendix_identity():
+    # W_o^z(k) = Φᵀ(kT, kT-T) W_o^end(k) Φ(kT, kT-T) (Appendix), and = W_o(k) of (4) as printed.
+    T, k = 1.1, 3
+    Wz = np.asarray(an.regressor_gramian(SW, k, T))
+    We = np.asarray(an.observability_gramian(SW, k, T, reference="end"))
+    Ws = np.asarray(an.observability_gramian(SW, k, T))
+    Phi = _sw_transition(k * T, (k - 1) * T)
+    np.testing.assert_allclose(Wz, Phi.T @ We @ Phi, rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(Wz, Ws, rtol=1e-10, atol=1e-12)
+
+
+def test_constants_lemma_and_definitions():
+    T = 0.93
+    c = an.uniform_observability_constants(SW, T, 9.3)
+    assert c.mu.shape == (10,)
+    for k in range(10):
+        a = k * T
+        Phi = _sw_transition(a + T, a)
+        sv = np.linalg.svd(Phi, compute_uv=False)
+        np.testing.assert_allclose([c.m1[k], c.m2[k]], [sv[-1], sv[0]], rtol=1e-7)
+        assert (
+            c.mu[k] >= max(1.0, sv[0]) - 1e-9
+        )  # Φ(t_k, t_k) = I and the period's end are on the grid
+        if k in (0, 5, 9):  # μ is a sup sampled on n_grid = 129 points: compare with a finer sampling
+            mu_fine = max(np.linalg.norm(_sw_transition(s, a), 2) for s in np.linspace(a, a + T, 301))
+            assert abs(c.mu[k] - mu_fine) < 2e-3 * mu_fine
+    # The Lemma (16): α1 m1² ≤ η1 ≤ η2 ≤ α2 m2², period by period.
+    assert np.all(c.alpha1 * c.m1**2 <= c.eta1 * (1 + 1e-8))
+    assert np.all(c.eta2 <= c.alpha2 * c.m2**2 * (1 + 1e-8))
+    assert np.all(c.alpha1 > 1e-3)  # uniformly observable with T = 0.93 (> the switching period)
+
+
+def test_switching_plant_needs_long_windows():
+    # Each mode alone is unobservable (rank 2): a window inside one mode sees nothing of one direction.
+    assert (
+        int(np.linalg.matrix_rank(np.asarray(an.obsv(jnp.asarray(_SW_A1), jnp.asarray(_SW_C1)))))
+        == 2
+    )
+    assert (
+        int(np.linalg.matrix_rank(np.asarray(an.obsv(jnp.asarray(_SW_A2), jnp.asarray(_SW_C2)))))
+        == 2
+    )
+    short = an.is_persistently_exciting(SW, 0.35, 7.0)
+    assert not short and short.eta1 < 1e-12
+    assert an.is_persistently_exciting(SW, 0.93, 9.3)
+
+
+def test_is_persistently_exciting_closed_form():
+    pe = an.is_persistently_exciting(lambda t: jnp.array([jnp.sin(t), jnp.cos(t)]), 2 * np.pi, 13.0)
+    assert pe and pe.per_window.shape == (2, 2)
+    np.testing.assert_allclose([pe.eta1, pe.eta2], [np.pi, np.pi], rtol=1e-8)
+    flat = an.is_persistently_exciting(lambda t: jnp.array([1.0, 0.0]), 1.0, 3.0)
+    assert not flat and abs(flat.eta1) < 1e-12 and abs(flat.eta2 - 1.0) < 1e-9
+
+
+def test_chen_yen_bound_formula_and_small_T():
+    c = an.uniform_observability_constants(CY, 2.0, 10.0)
+    rho = np.asarray(an.chen_yen_bound(CY, 20.0, 0.1, 2.0, 10.0))
+    np.testing.assert_allclose(rho, c.mu / (1 + 2.0 * c.alpha1 * c.m1**2), rtol=1e-12)
+    assert rho.shape == (5,)
+    # Remark 2: as T → 0, α1 → 0 (no observability on a short window) and the factor tends to μ ≥ 1.
+    Ts = (0.8, 0.4, 0.2, 0.1)
+    a1 = [float(an.uniform_observability_constants(CY, T, T, t0=1.0).alpha1[0]) for T in Ts]
+    r = [float(an.chen_yen_bound(CY, 20.0, 0.1, T, T, t0=1.0)[0]) for T in Ts]
+    assert all(x > y > 0 for x, y in itertools.pairwise(a1)) and a1[-1] < 1e-4 * a1[0]
+    assert all(x > y >= 1.0 for x, y in itertools.pairwise(r)) and r[-1] < 1.02
+
+
+def test_decay_rate_exact_exponential():
+    ts = jnp.linspace(0.0, 5.0, 51)
+    err = 3.0 * jnp.exp(-0.7 * ts)[:, None] * jnp.array([0.6, -0.8])
+    assert abs(float(an.decay_rate((ts, err))) - 0.7) < 1e-12
+    # samples below `floor` (round-off) and outside the window are left out
+    err2 = err.at[40:].set(0.0).at[:5].set(100.0)
+    assert abs(float(an.decay_rate((ts, err2), t_min=0.5)) - 0.7) < 1e-12
+
+
+def test_error_transition_matrix_bad_plant():
+    with pytest.raises(ValueError, match="plant"):
+        an.transition_matrix(object(), 1.0, 0.0)
+
+
+def test_error_gramian_bad_k():
+    with pytest.raises(ValueError, match="`k`"):
+        an.observability_gramian(CY, 0, 1.0)
+
+
+def test_error_gramian_bad_reference():
+    with pytest.raises(ValueError, match="reference"):
+        an.observability_gramian(CY, 1, 1.0, reference="middle")
+
+
+def test_error_nonpositive_T():
+    with pytest.raises(ValueError, match="`T`"):
+        an.uniform_observability_constants(CY, -0.5, 10.0)
+
+
+def test_error_horizon_shorter_than_T():
+    with pytest.raises(ValueError, match="horizon"):
+        an.chen_yen_bound(CY, 20.0, 0.1, 2.0, 1.0)
+
+
+def test_error_bound_nonpositive_gain():
+    with pytest.raises(ValueError, match="gamma"):
+        an.chen_yen_bound(CY, 0.0, 0.1, 2.0, 10.0)
+
+
+def test_error_pe_bad_regressor():
+    with pytest.raises(ValueError, match="w\\(t\\)"):
+        an.is_persistently_exciting(lambda t: jnp.zeros((2, 2, 2)), 1.0, 2.0)
+
+
+def test_error_decay_rate_shape():
+    with pytest.raises(ValueError, match="error"):
+        an.decay_rate((jnp.linspace(0, 1, 5), jnp.ones((4, 2))))

@@ -1,0 +1,171 @@
+"""PD-spectrum synthesis (Huang & Zhu (12)-(14), (21)-(23) and the Lemma) against independent references."""
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import obsjax  # noqa: F401  (x64)
+from obsjax.design import RampBandwidth, pd_coefficients, pd_modal_matrix, rpdo_coefficients
+
+
+def omega_tv(t):
+    return 2.0 + jnp.sin(t)
+
+
+def omega_int(t):  # ∫_0^t ω, closed form
+    return 2.0 * t + 1.0 - jnp.cos(t)
+
+
+RHO = {2: [-1.0, -2.5], 3: [-1.0, -2.0, -3.5], 4: [-0.5, -1.0, -2.0, -3.0]}
+
+
+def _pd_power(rho_fn, i):
+    """t ↦ 𝒟_ρ^i{1} straight from the definition 𝒟_ρ{f} = ḟ + ρ f (independent of V̂ of (21))."""
+    g = lambda t: jnp.ones_like(t)
+    for _ in range(i):
+        g = (lambda prev: lambda t: jax.grad(prev)(t) + rho_fn(t) * prev(t))(g)
+    return g
+
+
+def _synthesis_by_cofactors(rho_bar, omega, t):
+    """α_k = ṽ_{k,n+1} / det V_n with V_{n+1}(ρ_1, …, ρ_n, ρ) built from the definition (Lemma proof)."""
+    n = len(rho_bar)
+    V = np.zeros((n + 1, n))
+    for j, rb in enumerate(rho_bar):
+        rho_fn = lambda s, rb=rb: rb * omega(s)
+        for i in range(n + 1):
+            V[i, j] = float(_pd_power(rho_fn, i)(jnp.asarray(t)))
+    Vn = V[:n]
+    alpha = np.zeros(n)
+    for k in range(n):  # cofactor of entry (k, n) of the (n+1)x(n+1) matrix (last column arbitrary)
+        minor = np.delete(V, k, axis=0)
+        alpha[k] = (-1) ** (k + n) * np.linalg.det(minor) / np.linalg.det(Vn)
+    return alpha, Vn
+
+
+@pytest.mark.parametrize("t", [0.0, 0.7, 2.3])
+def test_second_order_formulas_of_the_lemma(t):
+    r1, r2 = -1.0, -2.5
+    a = pd_coefficients(jnp.array([r1, r2]), omega_tv, t)
+    w, wd = 2.0 + np.sin(t), np.cos(t)
+    np.testing.assert_allclose(a[0], r1 * r2 * w**2, rtol=1e-13)
+    np.testing.assert_allclose(a[1], -(r1 + r2) * w - wd / w, rtol=1e-13)
+
+
+@pytest.mark.parametrize("n", [2, 3, 4])
+def test_synthesis_matches_cofactor_formula_and_modal_determinant(n):
+    t = 0.9
+    alpha_ref, Vn = _synthesis_by_cofactors(RHO[n], omega_tv, t)
+    np.testing.assert_allclose(
+        pd_coefficients(jnp.array(RHO[n]), omega_tv, t), alpha_ref, rtol=1e-10
+    )
+    np.testing.assert_allclose(
+        pd_modal_matrix(jnp.array(RHO[n]), omega_tv, t), Vn, rtol=1e-12, atol=1e-12
+    )
+    # det V_n(ω) = ω^{n(n-1)/2} Π_{i<j} (ρ̄_j − ρ̄_i)  (proof of the Lemma)
+    w = 2.0 + np.sin(t)
+    prod = np.prod([RHO[n][j] - RHO[n][i] for i, j in itertools.combinations(range(n), 2)])
+    np.testing.assert_allclose(np.linalg.det(Vn), w ** (n * (n - 1) / 2) * prod, rtol=1e-12)
+
+
+@pytest.mark.parametrize("n", [2, 3, 4])
+def test_constant_bandwidth_gives_the_lti_characteristic_polynomial(n):
+    a = np.asarray(pd_coefficients(jnp.array(RHO[n]), 1.7, 0.0))
+    roots = np.roots(np.concatenate([[1.0], a[::-1]]))
+    np.testing.assert_allclose(np.sort(roots.real), np.sort(1.7 * np.array(RHO[n])), rtol=1e-9)
+    np.testing.assert_allclose(roots.imag, 0.0, atol=1e-9)
+    # and β = α when ω is constant (no derivative terms)
+    np.testing.assert_allclose(rpdo_coefficients(jnp.array(RHO[n]), 1.7, 0.0), a, rtol=1e-12)
+
+
+@pytest.mark.parametrize("n", [2, 3, 4])
+@pytest.mark.parametrize("eps", [0.5, 0.1])
+def test_lemma_scaling(n, eps):
+    rho = jnp.array(RHO[n])
+    k = np.arange(1, n + 1)
+    # constant ω: α_k(ω/ε) = ε^{-(n-k+1)} α_k(ω)
+    np.testing.assert_allclose(
+        pd_coefficients(rho, 1.3 / eps, 0.0),
+        eps ** (-(n - k + 1)) * pd_coefficients(rho, 1.3, 0.0),
+        rtol=1e-11,
+    )
+    # time-varying ω with τ = t/ε: α_k(ω_H(t), dt) = ε^{-(n-k+1)} α_k(ω(ετ), dτ)
+    t = 0.8
+    lhs = pd_coefficients(rho, lambda s: omega_tv(s) / eps, t)
+    rhs = pd_coefficients(rho, lambda tau: omega_tv(eps * tau), t / eps)
+    np.testing.assert_allclose(lhs, eps ** (-(n - k + 1)) * rhs, rtol=1e-10)
+
+
+def _ddt(fn, order):
+    for _ in range(order):
+        fn = jax.jacfwd(fn)
+    return fn
+
+
+@pytest.mark.parametrize("n", [2, 3, 4])
+def test_modes_exp_integral_rho_solve_both_operators(n):
+    """Defining property: y_j = exp(ρ̄_j ∫ω) solves the LPDO δⁿ + Σ α_k δ^{k-1} and the RPDO δⁿ + Σ δ^{k-1}∘β_k."""
+    rho = jnp.array(RHO[n])
+    alpha = lambda s: pd_coefficients(rho, omega_tv, s)
+    beta = lambda s: rpdo_coefficients(rho, omega_tv, s)
+
+    @jax.jit
+    def residuals(t, rb):
+        y = lambda s: jnp.exp(rb * omega_int(s))
+        top = _ddt(y, n)(t)
+        lp = top + sum(alpha(t)[k - 1] * _ddt(y, k - 1)(t) for k in range(1, n + 1))
+        # the RPDO check at n = 4 nests 10 derivatives (minutes to compile); n = 2, 3 cover it
+        if n == 4:
+            return jnp.abs(lp) / jnp.abs(top)
+        rp = top + sum(
+            _ddt(lambda s, k=k: beta(s)[k - 1] * y(s), k - 1)(t) for k in range(1, n + 1)
+        )
+        return jnp.abs(jnp.stack([lp, rp])) / jnp.abs(top)
+
+    for t in (0.3, 1.9):
+        for rb in RHO[n]:
+            assert np.all(residuals(jnp.asarray(t), jnp.asarray(rb)) < 1e-10)
+
+
+def test_gradient_of_coefficients_matches_finite_differences():
+    @jax.jit
+    def f(p):
+        w = RampBandwidth(p[0], p[1], p[2])
+        return jnp.sum(rpdo_coefficients(jnp.array([-1.0, -2.0, -3.0]), w, 0.6) ** 2)
+
+    p = jnp.array([0.8, 3.0, 1.5])
+    g = jax.jit(jax.grad(f))(p)
+    h = 1e-6
+    fd = np.array([(f(p.at[i].add(h)) - f(p.at[i].add(-h))) / (2 * h) for i in range(3)])
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+# -- bad input -----------------------------------------------------------------------------------------
+
+
+def test_repeated_rho_bar_is_refused():
+    with pytest.raises(ValueError, match="distinct"):
+        pd_coefficients(jnp.array([-1.0, -1.0]), 1.0, 0.0)
+
+
+def test_nonpositive_omega_is_refused():
+    with pytest.raises(ValueError, match="omega.*> 0"):
+        pd_coefficients(jnp.array([-1.0, -2.0]), -1.0, 0.0)
+
+
+def test_matrix_omega_is_refused():
+    with pytest.raises(ValueError, match="omega.*scalar"):
+        pd_coefficients(jnp.array([-1.0, -2.0]), jnp.ones(2), 0.0)
+
+
+def test_matrix_rho_bar_is_refused():
+    with pytest.raises(ValueError, match="rho_bar.*1-D"):
+        pd_coefficients(jnp.ones((2, 2)), 1.0, 0.0)
+
+
+def test_ramp_bandwidth_must_be_positive():
+    with pytest.raises(ValueError, match="tau.*> 0"):
+        RampBandwidth(1.0, 2.0, 0.0)
