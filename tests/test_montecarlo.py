@@ -462,3 +462,20 @@ def test_cli_reproduce_unknown_document_exits():
 def test_white_noise_refused():
     with pytest.raises(ValueError, match="BandLimitedNoise in monte_carlo"):
         run(noise=obsjax.noise.WhiteNoise(0.1))
+
+
+def test_demo_smoke(tmp_path, capsys):
+    # The `obsjax demo` pipeline at toy sizes: the paper's figures against SciPy, tuning, two studies, PNGs.
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from obsjax import cli
+
+    out = cli.demo(str(tmp_path / "demo"), n=40, steps=2, batch=2)
+    text = capsys.readouterr().out
+    assert "t=10: 0.03347 [0.03347]" in text and "t=10: 0.003707 [0.003707]" in text
+    assert all(os.path.getsize(p) > 10_000 for p in out["figures"]) and len(out["figures"]) == 3
+    assert len(out["results"]) == 2 and all(
+        r.complete and r.n == 40 for r in out["results"].values()
+    )
+    assert len(out["history"]["loss"]) == 2
