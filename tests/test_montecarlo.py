@@ -459,9 +459,14 @@ def test_cli_reproduce_unknown_document_exits():
         cli.main(["reproduce", "no-such-paper"])
 
 
-def test_white_noise_refused():
-    with pytest.raises(ValueError, match="BandLimitedNoise in monte_carlo"):
-        run(noise=obsjax.noise.WhiteNoise(0.1))
+def test_white_noise_is_simulates_realisation():
+    # White measurement noise (an SDE, Euler–Maruyama): trajectory i sees simulate's path for its key.
+    noise = obsjax.noise.WhiteNoise(0.1)
+    res = run(n=2, chunk_size=2, noise=noise)
+    for i in range(2):
+        kx, kh, kn, _ = jr.split(jr.fold_in(jr.PRNGKey(7), i), 4)
+        traj = obsjax.simulate(PLANT, OBS, x0_normal(kx), xhat0_zero(kh), TS, noise=noise, key=kn)
+        np.testing.assert_allclose(res.error_norm[i], traj.error_norm, rtol=1e-9, atol=1e-12)
 
 
 def test_demo_smoke(tmp_path, capsys):

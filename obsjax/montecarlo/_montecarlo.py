@@ -21,9 +21,8 @@ from .._checks import as_float_array
 from .._config import require_x64
 from .._simulate import _check_ts, num_segments, simulate
 from ..observers._base import AbstractObserver
-from ..systems._noise import AbstractNoise, BandLimitedNoise, realise_band_limited
+from ..systems._noise import AbstractNoise
 from ..systems._plants import AbstractSystem
-from ._noisy import NoisyOutput
 
 _CHECKPOINT_VERSION = 1
 DEFAULT_QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
@@ -346,10 +345,6 @@ def _one(dyn, cfg: _Config, key, i):
     xhat0 = cfg.xhat0_sampler(kh, x0) if cfg.xhat0_takes_x0 else cfg.xhat0_sampler(kh)
     xhat0 = jnp.asarray(xhat0, dtype=float)
     ts = np.asarray(cfg.ts)
-    if isinstance(noise, BandLimitedNoise):
-        # Realise the path here, from the static grid (simulate cannot read ts[0], ts[-1] inside jit).
-        plant = NoisyOutput(plant, realise_band_limited(noise, kn, cfg.ts[0], cfg.ts[-1], plant.m))
-        noise = None
     traj = simulate(
         plant,
         observer,
@@ -503,9 +498,9 @@ def monte_carlo(
     - `x0_sampler`: ``key -> (n_x,)`` initial plant state (or a fixed array).
     - `xhat0_sampler`: ``key -> (n_x,)`` or ``(key, x0) -> (n_x,)`` initial estimate (or a fixed array).
     - `ts`: (T,) save times (the statistics live on this grid).
-    - `noise`: band-limited measurement noise (:class:`obsjax.noise.BandLimitedNoise`), an independent
-      realisation per trajectory (drawn exactly as ``simulate(..., noise=noise, key=k_noise)`` draws it).
-      Fixed steps aligned with the noise grid (``simulate_kwargs=dict(adaptive=False, dt0=noise.dt / 4)``)
+    - `noise`: measurement noise (:class:`obsjax.noise.BandLimitedNoise` or ``WhiteNoise``), an independent
+      realisation per trajectory (``simulate(..., noise=noise, key=k_noise)``).  For band-limited noise,
+      fixed steps aligned with the noise grid (``simulate_kwargs=dict(adaptive=False, dt0=noise.dt / 4)``)
       are much faster than adaptive ones on its kinks.
     - `param_sampler`: ``(key, plant) -> plant``: draws the true plant of each trajectory (model
       uncertainty); the returned plant must have the same structure (e.g. ``eqx.tree_at`` on its leaves).
@@ -545,12 +540,6 @@ def monte_carlo(
     if noise is not None and not isinstance(noise, AbstractNoise):
         raise ValueError(
             f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}."
-        )
-    if noise is not None and not isinstance(noise, BandLimitedNoise):
-        raise ValueError(
-            f"`noise` must be a BandLimitedNoise in monte_carlo, got {type(noise).__name__}: the study runs "
-            "inside jit, where obsjax.simulate cannot place a white-noise Brownian path on the (traced) save "
-            "grid; a band-limited path is realised from the static grid instead."
         )
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"`n` (the number of trajectories) must be a positive integer, got {n!r}.")

@@ -2,10 +2,10 @@
 
 ``NoisyOutput(plant, path)`` is the plant with y = h(t, x, u) + v(t) for a realised noise path v, exactly what
 :func:`obsjax.simulate` does with ``noise=BandLimitedNoise`` (``realise_band_limited`` draws the same path from
-the same key), but with the path realised *before* tracing.  Inside ``jit`` the save grid ``ts`` is traced,
-so ``simulate`` cannot draw the path itself there; studies and tuning over a batch of noise realisations
-build these plants on the host instead (the path's samples are array leaves, so a batch of them vmaps).
-"""
+the same key), but with the path realised beforehand as array leaves.  A batch of such plants is one pytree
+with a batch axis, so scenario sets that combine model uncertainty with given noise realisations can be tuned
+with ``tune(..., plant_batched=True)`` (:func:`noisy_batch`), and the same realisations can be reused across
+studies and tuning runs."""
 
 from __future__ import annotations
 
