@@ -80,6 +80,8 @@ def versions() -> dict:
         import jax
 
         out["jax backend"] = f"{jax.default_backend()} ({len(jax.devices())} device(s))"
+        import obsjax  # noqa: F401  (enables float64, as in every measuring process)
+
         out["x64"] = str(jax.config.jax_enable_x64)
     except Exception:
         pass
