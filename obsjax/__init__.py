@@ -29,7 +29,7 @@ from .tuning._tune import TuneResult as TuneResult
 from .tuning._tune import risk_measure as risk_measure
 from .tuning._tune import tune as tune
 
-__version__ = "0.1.0"
+# Observers by family
 from .observers._tlo import TrajectoryLinearization as TrajectoryLinearization
 from .observers._ekf import ExtendedKalman as ExtendedKalman
 from .observers._generalized_inverse import GeneralizedInverse as GeneralizedInverse
@@ -53,3 +53,5 @@ from .observers._kalman_bucy import KalmanBucyState as KalmanBucyState
 from .observers._least_squares import switching_ltv_example as switching_ltv_example
 from .montecarlo import MonteCarloResult as MonteCarloResult
 from .montecarlo import monte_carlo as monte_carlo
+
+__version__ = "0.1.0"
