@@ -162,7 +162,8 @@ def tune(
         ns = num_segments(T, 0.0, span)
         return int(2 ** math.ceil(math.log2(max(ns, 1))))
 
-    plant_axis = 0 if plant_batched else None
+    # array leaves of a batched plant are mapped; callables (LTV's A(t), C(t)) are shared
+    plant_axis = eqx.if_array(0) if plant_batched else None
 
     @eqx.filter_jit
     def value_and_grad(theta, max_segments):
@@ -177,7 +178,7 @@ def tune(
                 val = loss(traj)
                 return jnp.where(traj.status == 0, val, jnp.nan)
 
-            losses = jax.vmap(one, in_axes=(plant_axis, 0, 0, 0))(plant, x0s, xhat0s, keys)
+            losses = eqx.filter_vmap(one, in_axes=(plant_axis, 0, 0, 0))(plant, x0s, xhat0s, keys)
             return risk_measure(losses, risk)
 
         return jax.value_and_grad(J)(theta)
