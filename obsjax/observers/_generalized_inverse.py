@@ -35,6 +35,16 @@ def _solvability_on_grid(obs, ts):
     return jax.vmap(obs.solvability)(ts)
 
 
+def _solvability(T, Td, F, A, C, C1):
+    """(‖M (I − C1 C)‖, scale ‖Ṫ‖ + ‖TA‖ + ‖FT‖, det T) with M = Ṫ + TA − FT: the Lovass-Nagy condition.
+
+    The full observer uses (A, C); the reduced one (A22, A12)."""
+    M = Td + T @ A - F @ T
+    P = jnp.eye(C.shape[1], dtype=M.dtype) - C1 @ C
+    scale = jnp.linalg.norm(Td) + jnp.linalg.norm(T @ A) + jnp.linalg.norm(F @ T)
+    return jnp.linalg.norm(M @ P), scale, jnp.linalg.det(T)
+
+
 def _check_over(obs, ts, what):
     """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time."""
     ts = jnp.asarray(ts, dtype=float)
@@ -139,13 +149,8 @@ class GeneralizedInverse(AbstractObserver):
 
     def solvability(self, t):
         """(‖M (I − C^{1}C)‖, scale ‖Ṫ‖ + ‖TA‖ + ‖FT‖, det T) at time t."""
-        T = self.T_of(t)
-        Td = self.Tdot_of(t)
-        A, C = self.model.A_of(t), self.model.C_of(t)
-        M = Td + T @ A - self.F @ T
-        P = jnp.eye(C.shape[1], dtype=M.dtype) - self.C1_of(t) @ C
-        scale = jnp.linalg.norm(Td) + jnp.linalg.norm(T @ A) + jnp.linalg.norm(self.F @ T)
-        return jnp.linalg.norm(M @ P), scale, jnp.linalg.det(T)
+        return _solvability(self.T_of(t), self.Tdot_of(t), self.F, self.model.A_of(t), self.model.C_of(t),
+                            self.C1_of(t))
 
     def check_horizon(self, t0, t1, num=201):
         """Raise ValueError if the condition or det T ≠ 0 fails somewhere on [t0, t1]."""
@@ -296,13 +301,8 @@ class GeneralizedInverseReduced(AbstractObserver):
 
     def solvability(self, t):
         """(‖M (I − A12^{1} A12)‖, scale, det T) at time t."""
-        T = self.T_of(t)
-        Td = self.Tdot_of(t)
         _, A12, _, A22, _, _ = self.blocks(t)
-        M = Td + T @ A22 - self.F @ T
-        P = jnp.eye(A12.shape[1], dtype=M.dtype) - self.C1_of(t) @ A12
-        scale = jnp.linalg.norm(Td) + jnp.linalg.norm(T @ A22) + jnp.linalg.norm(self.F @ T)
-        return jnp.linalg.norm(M @ P), scale, jnp.linalg.det(T)
+        return _solvability(self.T_of(t), self.Tdot_of(t), self.F, A22, A12, self.C1_of(t))
 
     def check_horizon(self, t0, t1, num=201):
         """Raise ValueError if the condition or det T ≠ 0 fails somewhere on [t0, t1]."""
