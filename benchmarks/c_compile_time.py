@@ -5,7 +5,8 @@ Each family is measured in a fresh Python process (so no family profits from ano
 first call of ``eqx.filter_jit(simulate)`` (trace + compile + run) minus a steady-state call is the compile
 time; then the call is repeated with new gain values under ``assert_max_traces(max_traces=1)``.
 
-Families not present on this branch are listed as not measured; add a factory to FAMILIES when a family lands.
+Families not present on this branch are listed as not measured; families `simulate` cannot run are listed in
+NOT_APPLICABLE with the reason.
 
 Usage: ``python benchmarks/c_compile_time.py``.
 """
@@ -74,7 +75,7 @@ def f_generalized_inverse_reduced():
     from obsjax._reproduce.lovass_nagy import reduced_example
 
     p, o = reduced_example()
-    return p, o, None, None, 5.0
+    return p, o, lambda o: (o.F, o.T.F), None, 5.0
 
 
 def f_finite_window():
@@ -103,6 +104,9 @@ def f_kreisselmeier():
 
 
 def f_tlo():
+    """ε = 0.5 with simulate's default solver: under jit ε is traced, so the solver rule cannot see the
+    rate max|ρ̄|ω/ε and picks the implicit Kvaerno5 (the worst case: stiff-safe, Newton Jacobian of the
+    gain)."""
     import jax.numpy as jnp
 
     import obsjax
@@ -111,6 +115,83 @@ def f_tlo():
     plant, model = van_der_pol()
     obs = obsjax.TrajectoryLinearization(model, rho_bar=jnp.array([-1.0, -2.0]), omega=2.0, eps=0.5)
     return plant, obs, lambda o: o.eps, None, 10.0
+
+
+def f_tlo_rule():
+    """ε = 0.5 with the solver its rule picks outside jit (``recommended_solver(ts)``: Tsit5, rate 8 s⁻¹),
+    as the docstring and ``huang_zhu.high_gain_study`` call it."""
+    import numpy as np
+
+    plant, obs, where, max_seg, t1 = f_tlo()
+    solver = obs.recommended_solver(np.linspace(0.0, t1, 101))
+    return plant, obs, where, max_seg, t1, None, {"solver": solver}
+
+
+def f_generalized_inverse():
+    """Full-state Lovass-Nagy observer on the slides' 4th-order plant, y = (x1, x3), F = diag(−3, −4, −5, −6),
+    T from ``lovass_nagy_T`` (as tests/test_generalized_inverse.py); F is tuned in both the observer and the
+    T design (T's leaves include F)."""
+    import jax.numpy as jnp
+
+    import obsjax
+    from obsjax._reproduce.lovass_nagy import B_CONT, A_continuous
+
+    C = jnp.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    F = jnp.diag(jnp.array([-3.0, -4.0, -5.0, -6.0]))
+
+    def S(t):
+        return jnp.array([[1.0, 0.0], [1.0, 0.2 * jnp.sin(t)], [0.0, 1.0], [0.3 * jnp.cos(t), 1.0]])
+
+    plant = obsjax.LTV(A_continuous, lambda t: C, lambda t: B_CONT)
+    T = obsjax.design.lovass_nagy_T(A_continuous, C, F, S)
+    obs = obsjax.GeneralizedInverse(plant, F, T, horizon=(0.0, 3.0))
+    u = lambda t: jnp.array([jnp.sin(2.0 * t)])
+    return plant, obs, lambda o: (o.F, o.T.F), None, 3.0, u
+
+
+def f_kudva_narendra():
+    """Kudva & Narendra's 2-state, 2-input example (obsjax._reproduce.adaptive.KUDVA_NARENDRA), K = −2I."""
+    import jax.numpy as jnp
+
+    import obsjax
+    from obsjax._reproduce.adaptive import KUDVA_NARENDRA as ex
+
+    plant = obsjax.LTI(jnp.asarray(ex["Ap"]), jnp.asarray(ex["Bp"]), jnp.eye(2))
+    obs = obsjax.KudvaNarendra(
+        2,
+        2,
+        K=jnp.array([[-2.0, 0.0], [0.0, -2.0]]),
+        Gamma1=jnp.array([0.02, 0.02]),
+        Gamma2=jnp.array([0.02, 0.02]),
+        Q=jnp.eye(2),
+    )
+    u = obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"])
+    return plant, obs, lambda o: (o.Gamma1, o.Gamma2), None, 10.0, u
+
+
+def f_luders_narendra():
+    """Lüders & Narendra's 2nd-order example in the form (5.2) (LUDERS_NARENDRA_2), rates c, d tuned."""
+    import jax.numpy as jnp
+
+    import obsjax
+    from obsjax._reproduce.adaptive import LUDERS_NARENDRA_2 as ex
+
+    plant = obsjax.luders_narendra_form(ex["a"], ex["b"], ex["lambdas"])
+    obs = obsjax.LudersNarendra(2, ex["lambdas"], jnp.array([2.0, 3.0]), jnp.array([1.5, 0.5]))
+    u = obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"])
+    return plant, obs, lambda o: (o.c, o.d), None, 10.0, u
+
+
+def f_ekf():
+    """EKF baseline of the TLO study: Van der Pol model, Q = diag(0.01, 0.25), R = 0.01 (huang_zhu)."""
+    import numpy as np
+
+    import obsjax
+    from obsjax._reproduce.huang_zhu import van_der_pol
+
+    plant, model = van_der_pol()
+    obs = obsjax.ExtendedKalman(model, Q=np.diag([0.01, 0.25]), R=0.01, P0=np.eye(2))
+    return plant, obs, lambda o: (o.Q, o.R), None, 10.0
 
 
 FAMILIES = {
@@ -123,15 +204,18 @@ FAMILIES = {
     "FiniteWindow": f_finite_window,
     "Kreisselmeier": f_kreisselmeier,
     "TrajectoryLinearization": f_tlo,
+    "TrajectoryLinearization (rule's solver)": f_tlo_rule,
+    "GeneralizedInverse": f_generalized_inverse,
+    "KudvaNarendra": f_kudva_narendra,
+    "LudersNarendra": f_luders_narendra,
+    "ExtendedKalman": f_ekf,
 }
-#: documented families without a factory above (listed as not measured when present)
-OTHERS = (
-    "GeneralizedInverse",
-    "KudvaNarendra",
-    "LudersNarendra",
-    "ExtendedKalman",
-    "MinMaxLuenberger",
-)
+#: documented families that `simulate` cannot run, with the reason (listed, not measured)
+NOT_APPLICABLE = {
+    "MinMaxLuenberger": "discrete-time NumPy/SciPy (HiGHS linear programs) observer run by "
+    "`MinMaxLuenberger.run(ys, us)`; not an `AbstractObserver`, not jit-able, so there is no "
+    "jitted `simulate` to compile",
+}
 
 
 def measure(name):
@@ -146,13 +230,14 @@ def measure(name):
     n = plant.n
     ts = np.linspace(0.0, rest[0] if rest else 10.0, 101)
     u = rest[1] if len(rest) > 1 else None
+    kwargs = rest[2] if len(rest) > 2 else {}
     x0 = jnp.ones(n)
     xh0 = jnp.zeros(n)
 
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)
     def run(o, x0, xh0):
-        return obsjax.simulate(plant, o, x0, xh0, ts, u=u, max_segments=max_seg).error
+        return obsjax.simulate(plant, o, x0, xh0, ts, u=u, max_segments=max_seg, **kwargs).error
 
     t0 = time.perf_counter()
     jax.block_until_ready(run(obs, x0, xh0))
@@ -184,7 +269,7 @@ def main():
 
     rows = []
     for name in FAMILIES:
-        if not hasattr(obsjax, name):
+        if not hasattr(obsjax, name.split(" ")[0]):
             rows.append((name, None))
             continue
         out = subprocess.run(
@@ -220,19 +305,27 @@ def main():
                 f"| {name} | {r['compile']:.2f} s | {r['first']:.2f} s | {r['steady'] * 1e3:.1f} ms | "
                 f"{nr} · {C.verdict(r['compile'], 5.0, 'lower')} |"
             )
-    others = [o for o in OTHERS if hasattr(obsjax, o)]
+    na = [
+        f"- `{k}`: not applicable — {v}." for k, v in NOT_APPLICABLE.items() if hasattr(obsjax, k)
+    ]
     body = f"""
-`eqx.filter_jit(simulate)` of one trajectory on [0, 10] ([0, 5] for the slides' generalized-inverse example; 101 save points, adaptive Tsit5, rtol 1e-6), each
-family in a fresh process.  Compile = first call (trace + compile + run) − a steady-state call.  Then the
-gains selected for tuning are multiplied by 1.1 and x0 by 2, and the call is repeated under
-`eqx.debug.assert_max_traces(max_traces=1)` (it raises on a second trace).
+`eqx.filter_jit(simulate)` of one trajectory on [0, 10] ([0, 5] for the slides' reduced
+generalized-inverse example, [0, 3] for the full-state one; 101 save points, adaptive step, rtol 1e-6), each
+family in a fresh process.  Solver: `simulate`'s default (Tsit5; for `TrajectoryLinearization` its
+`recommended_solver`, which under jit sees a traced ε and therefore picks the implicit Kvaerno5 — the
+row "(rule's solver)" passes `obs.recommended_solver(ts)` computed outside jit instead, Tsit5 at ε = 0.5).
+Compile = first call (trace + compile + run) − a steady-state call.  Then the gains selected for tuning
+are multiplied by 1.1 and x0 by 2, and the call is repeated under
+`eqx.debug.assert_max_traces(max_traces=1)` (it raises on a second trace).  The factories (with the
+source of each example) are in `benchmarks/c_compile_time.py`.
 
 | family | compile | first call | steady call | gains changed; target compile ≤ 5 s |
 |---|---|---|---|---|
 {chr(10).join(lines)}
 
 Worst compile time: {worst:.2f} s — {C.verdict(worst, 5.0, "lower")}.
-{"Families present in obsjax but without a factory here (not measured): " + ", ".join(others) if others else ""}
+
+{chr(10).join(na)}
 """
     C.write_result(
         "c_compile_time", "Benchmark (c): first-call compile time and retracing", body, load

@@ -21,8 +21,12 @@ columns d_1, …, d_m: column d_i equals T 𝓛̃^{p_i} q_i (this follows from A
 C_can selects the states z_{d_i}; R(t) = C T⁻¹ restricted to those columns is invertible with a unit
 diagonal (upper triangular in the lexicographic order of the indices).
 
-Every time derivative (Ċ, Q̇_0, q̇, …) is taken by automatic differentiation: nested forward-mode
-``jax.jvp`` in t through the user's callables A(t), C(t).  Nothing is differentiated by hand.
+Every time derivative (Ċ, Q̇_0, q̇, …) is exact and automatic: the Taylor coefficients of the user's
+callables A(t), C(t) are taken by nested forward-mode ``jax.jvp`` in t (C to order 2·max p_i − 1, A one
+order less), and everything built from them (the Lie stacks, Q_0⁻¹ by one LU factorisation, the dual
+Lie stack) is computed in truncated Taylor-series arithmetic.  This is the same calculation as nested
+jvp through Q_0(s)⁻¹, with a traced graph that grows polynomially, not exponentially, with the order
+(what keeps the jitted TLO's compile time down).  Nothing is differentiated by hand.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 import numpy as np
 
 from .._checks import concrete_value
@@ -73,6 +78,44 @@ def time_derivatives(fn: Callable, t, order: int) -> jax.Array:
     return level(order)(t)
 
 
+def _taylor(fn: Callable, t, order: int) -> jax.Array:
+    """Taylor coefficients [fn(t), fn'(t), fn''(t)/2!, …, fn^(order)(t)/order!] (nested jvp in t)."""
+    ders = time_derivatives(fn, t, order)
+    fact = np.array([float(np.prod(np.arange(1, k + 1))) for k in range(order + 1)])
+    return ders / jnp.asarray(fact, dtype=ders.dtype).reshape((-1,) + (1,) * (ders.ndim - 1))
+
+
+def _cauchy(L: int) -> np.ndarray:
+    """M[k, i, j] = 1 where i + j = k (truncated Cauchy product of two length-L series)."""
+    i, j = np.meshgrid(np.arange(L), np.arange(L), indexing="ij")
+    return (np.arange(L)[:, None, None] == (i + j)[None]).astype(float)
+
+
+def _smul(X: jax.Array, Y: jax.Array) -> jax.Array:
+    """Product of matrix-valued truncated series X (L, a, b), Y (L, b, c): Z_k = Σ_{i+j=k} X_i Y_j."""
+    M = jnp.asarray(_cauchy(X.shape[0]), dtype=X.dtype)
+    return jnp.einsum("kij,iab,jbc->kac", M, X, Y)
+
+
+def _sderiv(X: jax.Array) -> jax.Array:
+    """Series of the time derivative (one order shorter): coefficient k is (k + 1) X_{k+1}."""
+    L = X.shape[0]
+    return X[1:] * jnp.arange(1, L, dtype=X.dtype).reshape((-1,) + (1,) * (X.ndim - 1))
+
+
+def _ssolve(M: jax.Array, B: jax.Array) -> jax.Array:
+    """Series X with M X = B (M (L, n, n), B (L, n, c)): X_k = M_0⁻¹ (B_k − Σ_{j=1}^{k} M_j X_{k−j}),
+    one LU factorisation of M_0."""
+    lu = jax.scipy.linalg.lu_factor(M[0])
+    xs = []
+    for k in range(M.shape[0]):
+        rhs = B[k]
+        for j in range(1, k + 1):
+            rhs = rhs - M[j] @ xs[k - j]
+        xs.append(jax.scipy.linalg.lu_solve(lu, rhs))
+    return jnp.stack(xs)
+
+
 def _lie_stack(A: Callable, C: Callable, depth: int) -> Callable:
     """s ↦ [C, 𝓛C, …, 𝓛^depth C] of shape (depth + 1, m, n); 𝓛c = ċ + cA by nested jvp."""
 
@@ -84,24 +127,6 @@ def _lie_stack(A: Callable, C: Callable, depth: int) -> Callable:
         def g(s):
             vals, ders = jax.jvp(prev, (s,), (jnp.ones_like(s),))
             new = ders[-1] + vals[-1] @ jnp.asarray(A(s))
-            return jnp.concatenate([vals, new[None]], axis=0)
-
-        return g
-
-    return level(depth)
-
-
-def _dual_lie_stack(A: Callable, Qcols: Callable, depth: int) -> Callable:
-    """s ↦ [q, 𝓛̃q, …, 𝓛̃^depth q] (column-wise for an (n, m) q); 𝓛̃q = -q̇ + Aq by nested jvp."""
-
-    def level(k):
-        if k == 0:
-            return lambda s: jnp.asarray(Qcols(s))[None]
-        prev = level(k - 1)
-
-        def g(s):
-            vals, ders = jax.jvp(prev, (s,), (jnp.ones_like(s),))
-            new = -ders[-1] + jnp.asarray(A(s)) @ vals[-1]
             return jnp.concatenate([vals, new[None]], axis=0)
 
         return g
@@ -350,23 +375,32 @@ def ltv_observer_canonical_form(
         strong_observability(A, C, np.atleast_1d(tc), threshold=threshold)
     pmax = max(idx)
     d = block_ends(idx)
-    lie = _lie_stack(A, C, pmax - 1)
-
-    def Q0_of(s):
-        Ls = lie(s)
-        return jnp.stack([Ls[j, i] for i in range(m) for j in range(idx[i])])
-
+    # Every quantity is carried as a truncated Taylor series in s about t (coefficient k = k-th derivative
+    # / k!): C to order K = 2·pmax − 1, A to order K − 1 (nested jvp of the user's callables only), then
+    # the Lie stacks, Q_0⁻¹ and the dual Lie stack are series arithmetic (Cauchy products, shifts, one LU).
+    # This is the same maths as nested jvp through Q_0(s)⁻¹, but the traced graph is polynomial, not
+    # exponential, in the derivative order.
+    K = 2 * pmax - 1
+    Cs = _taylor(C, t, K)  # (K + 1, m, n)
+    As = _taylor(A, t, K - 1)  # (K, n, n)
+    lie = [Cs]  # 𝓛ʲC, series of length K + 1 − j
+    for _ in range(pmax - 1):
+        prev = lie[-1]
+        lie.append(_sderiv(prev) + _smul(prev[:-1], As[: prev.shape[0] - 1]))
+    N = pmax  # q is needed to order pmax (depth of the dual Lie stack)
+    Q0s = jnp.stack([lie[j][: N + 1, i] for i in range(m) for j in range(idx[i])], axis=1)
     E = jnp.eye(n)[:, [di - 1 for di in d]]
-
-    def q_of(s):
-        return jnp.linalg.solve(Q0_of(s), E)
-
-    G = _dual_lie_stack(A, q_of, pmax)(t)  # (pmax + 1, n, m)
+    qs = _ssolve(Q0s, jnp.broadcast_to(E, (N + 1, n, m)) * (jnp.arange(N + 1) == 0)[:, None, None])
+    G = [qs]  # 𝓛̃ᵏq, series of length N + 1 − k
+    for _ in range(pmax):
+        prev = G[-1]
+        G.append(-_sderiv(prev) + _smul(As[: prev.shape[0] - 1], prev[:-1]))
+    G = jnp.stack([g[0] for g in G])  # (pmax + 1, n, m): values at t
     Tinv = jnp.concatenate([G[: idx[i], :, i].T for i in range(m)], axis=1)
     T = jnp.linalg.inv(Tinv)
     last = jnp.stack([G[idx[i], :, i] for i in range(m)], axis=1)  # 𝓛̃^{p_i} q_i, (n, m)
     alpha = T @ last
     Az = jnp.asarray(canonical_structure(idx)).at[:, [di - 1 for di in d]].set(alpha)
-    Cz = jnp.asarray(C(t)) @ Tinv
+    Cz = Cs[0] @ Tinv
     R = Cz[:, [di - 1 for di in d]]
-    return LTVCanonicalForm(idx, Q0_of(t), Tinv, T, Az, Cz, R, alpha)
+    return LTVCanonicalForm(idx, Q0s[0], Tinv, T, Az, Cz, R, alpha)

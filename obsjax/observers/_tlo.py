@@ -45,6 +45,14 @@ def _flow_polynomial(f, t, x0, u, order: int):
     return xbar
 
 
+@eqx.filter_jit
+def _gain(observer, t, z, u):
+    """K_o(t) as its own jitted function: an implicit solver traces, linearises and batches the vector
+    field several times per step, and JAX caches the traced gain (and its jvp / batching) per call site
+    signature, so the PD-eigenvalue design is traced once instead of once per use."""
+    return observer.gain(t, z, u)
+
+
 class TrajectoryLinearization(AbstractObserver):
     """Trajectory linearization observer (TLO), MIMO and time-varying high gain (Huang & Zhu).
 
@@ -279,7 +287,7 @@ class TrajectoryLinearization(AbstractObserver):
         return vector(xhat0, "xhat0", self.model.n)
 
     def vector_field(self, t, z, y, u):
-        K = self.gain(t, z, u)
+        K = _gain(self, t, z, u)
         return self.model.f(t, z, u) + K @ (self.model.h(t, z, u) - y)
 
     def estimate(self, t, z, y):
