@@ -274,6 +274,7 @@ def main():
             continue
         out = subprocess.run(
             [sys.executable, __file__, "--family", name],
+            check=False,
             capture_output=True,
             text=True,
             cwd=C.ROOT,

@@ -85,16 +85,13 @@ def _taylor(fn: Callable, t, order: int) -> jax.Array:
     return ders / jnp.asarray(fact, dtype=ders.dtype).reshape((-1,) + (1,) * (ders.ndim - 1))
 
 
-def _cauchy(L: int) -> np.ndarray:
-    """M[k, i, j] = 1 where i + j = k (truncated Cauchy product of two length-L series)."""
-    i, j = np.meshgrid(np.arange(L), np.arange(L), indexing="ij")
-    return (np.arange(L)[:, None, None] == (i + j)[None]).astype(float)
-
-
 def _smul(X: jax.Array, Y: jax.Array) -> jax.Array:
     """Product of matrix-valued truncated series X (L, a, b), Y (L, b, c): Z_k = Σ_{i+j=k} X_i Y_j."""
-    M = jnp.asarray(_cauchy(X.shape[0]), dtype=X.dtype)
-    return jnp.einsum("kij,iab,jbc->kac", M, X, Y)
+    L = X.shape[0]
+    k, i = np.meshgrid(np.arange(L), np.arange(L), indexing="ij")
+    # Yshift[k, i] = Y_{k−i} (zero for i > k), shape (L, L, b, c)
+    Yshift = jnp.where((i <= k)[:, :, None, None], Y[np.maximum(k - i, 0)], 0.0)
+    return jnp.einsum("iab,kibc->kac", X, Yshift)
 
 
 def _sderiv(X: jax.Array) -> jax.Array:
@@ -105,14 +102,14 @@ def _sderiv(X: jax.Array) -> jax.Array:
 
 def _ssolve(M: jax.Array, B: jax.Array) -> jax.Array:
     """Series X with M X = B (M (L, n, n), B (L, n, c)): X_k = M_0⁻¹ (B_k − Σ_{j=1}^{k} M_j X_{k−j}),
-    one LU factorisation of M_0."""
-    lu = jax.scipy.linalg.lu_factor(M[0])
+    with M_0⁻¹ formed once."""
+    M0inv = jnp.linalg.inv(M[0])
     xs = []
     for k in range(M.shape[0]):
         rhs = B[k]
         for j in range(1, k + 1):
             rhs = rhs - M[j] @ xs[k - j]
-        xs.append(jax.scipy.linalg.lu_solve(lu, rhs))
+        xs.append(M0inv @ rhs)
     return jnp.stack(xs)
 
 

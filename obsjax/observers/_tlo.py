@@ -272,7 +272,8 @@ class TrajectoryLinearization(AbstractObserver):
     def gain(self, t, xhat=None, u=None) -> jax.Array:
         """K_o(t), shape (n, m) (multiplies ŷ − y)."""
         d = self.design(t, xhat, u)
-        det = jnp.abs(jnp.linalg.det(d.form.Q0.T @ d.form.Q0))
+        Q0 = jax.lax.stop_gradient(d.form.Q0)  # only compared with the threshold: no tangent needed
+        det = jnp.abs(jnp.linalg.det(Q0.T @ Q0))
         if self.on_unobservable == "nan":
             return jnp.where(det >= self.threshold, d.Ko, jnp.nan)
         return eqx.error_if(
