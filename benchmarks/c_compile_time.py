@@ -1,7 +1,8 @@
 """Benchmark (c): first-call compile time of a jitted ``simulate`` for each observer family, and no retrace
 when gain values change (``eqx.debug.assert_max_traces``).
 
-Each family is measured in a fresh Python process (so no family profits from another's warm caches): the
+Each family is measured in a fresh Python process (so no family profits from another's warm caches),
+REPEATS times, keeping the fastest run (the machine is shared with other work): the
 first call of ``eqx.filter_jit(simulate)`` (trace + compile + run) minus a steady-state call is the compile
 time; then the call is repeated with new gain values under ``assert_max_traces(max_traces=1)``.
 
@@ -210,6 +211,9 @@ FAMILIES = {
     "LudersNarendra": f_luders_narendra,
     "ExtendedKalman": f_ekf,
 }
+#: fresh-process runs per family (the fastest is reported: the machine is shared)
+REPEATS = 3
+
 #: documented families that `simulate` cannot run, with the reason (listed, not measured)
 NOT_APPLICABLE = {
     "MinMaxLuenberger": "discrete-time NumPy/SciPy (HiGHS linear programs) observer run by "
@@ -239,12 +243,12 @@ def measure(name):
     def run(o, x0, xh0):
         return obsjax.simulate(plant, o, x0, xh0, ts, u=u, max_segments=max_seg, **kwargs).error
 
-    t0 = time.perf_counter()
+    c0, t0 = time.process_time(), time.perf_counter()
     jax.block_until_ready(run(obs, x0, xh0))
-    first = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    first, first_cpu = time.perf_counter() - t0, time.process_time() - c0
+    c0, t0 = time.process_time(), time.perf_counter()
     jax.block_until_ready(run(obs, x0, xh0))
-    steady = time.perf_counter() - t0
+    steady, steady_cpu = time.perf_counter() - t0, time.process_time() - c0
     retrace_ok = None
     if where is not None:
         leaves = where(obs)
@@ -260,7 +264,13 @@ def measure(name):
         except RuntimeError as e:  # assert_max_traces raises on a second trace
             retrace_ok = False
             print("retrace:", e, file=sys.stderr)
-    return {"first": first, "steady": steady, "compile": first - steady, "no_retrace": retrace_ok}
+    return {
+        "first": first,
+        "steady": steady,
+        "compile": first - steady,
+        "compile_cpu": first_cpu - steady_cpu,
+        "no_retrace": retrace_ok,
+    }
 
 
 def main():
@@ -272,38 +282,51 @@ def main():
         if not hasattr(obsjax, name.split(" ")[0]):
             rows.append((name, None))
             continue
-        out = subprocess.run(
-            [sys.executable, __file__, "--family", name],
-            check=False,
-            capture_output=True,
-            text=True,
-            cwd=C.ROOT,
-            timeout=600,
-        )
-        line = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
-        if out.returncode != 0 or not line:
-            print(out.stderr[-2000:])
-            rows.append(
-                (name, {"error": out.stderr.strip().splitlines()[-1] if out.stderr else "failed"})
+        runs = []
+        for _ in range(REPEATS):
+            out = subprocess.run(
+                [sys.executable, __file__, "--family", name],
+                check=False,
+                capture_output=True,
+                text=True,
+                cwd=C.ROOT,
+                timeout=600,
             )
+            line = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+            if out.returncode != 0 or not line:
+                print(out.stderr[-2000:])
+                err = out.stderr.strip().splitlines()[-1] if out.stderr else "failed"
+                runs = [{"error": err}]
+                break
+            runs.append(json.loads(line[-1]))
+        if "error" in runs[0]:
+            rows.append((name, runs[0]))
             continue
-        r = json.loads(line[-1])
+        # the machine is shared: keep the fastest of the fresh-process runs, record the slowest too
+        r = dict(min(runs, key=lambda v: v["compile"]))
+        r["compile_max"] = max(v["compile"] for v in runs)
+        r["no_retrace"] = (
+            None
+            if any(v["no_retrace"] is None for v in runs)
+            else all(v["no_retrace"] for v in runs)
+        )
         rows.append((name, r))
         print(name, r)
     lines = []
     worst = 0.0
     for name, r in rows:
         if r is None:
-            lines.append(f"| {name} | not on this branch | | | |")
+            lines.append(f"| {name} | not on this branch | | | | |")
         elif "error" in r:
-            lines.append(f"| {name} | error: {r['error'][:80]} | | | |")
+            lines.append(f"| {name} | error: {r['error'][:80]} | | | | |")
         else:
             worst = max(worst, r["compile"])
             nr = {True: "no retrace", False: "**retraced**", None: "(no tunable leaf)"}[
                 r["no_retrace"]
             ]
             lines.append(
-                f"| {name} | {r['compile']:.2f} s | {r['first']:.2f} s | {r['steady'] * 1e3:.1f} ms | "
+                f"| {name} | {r['compile']:.2f} s ({r['compile_max']:.2f} s) | "
+                f"{r['compile_cpu']:.2f} s | {r['first']:.2f} s | {r['steady'] * 1e3:.1f} ms | "
                 f"{nr} · {C.verdict(r['compile'], 5.0, 'lower')} |"
             )
     na = [
@@ -315,13 +338,17 @@ generalized-inverse example, [0, 3] for the full-state one; 101 save points, ada
 family in a fresh process.  Solver: `simulate`'s default (Tsit5; for `TrajectoryLinearization` its
 `recommended_solver`, which under jit sees a traced ε and therefore picks the implicit Kvaerno5 — the
 row "(rule's solver)" passes `obs.recommended_solver(ts)` computed outside jit instead, Tsit5 at ε = 0.5).
-Compile = first call (trace + compile + run) − a steady-state call.  Then the gains selected for tuning
+Compile = first call (trace + compile + run) − a steady-state call.  The machine is shared (see the
+load below), so each family is run {REPEATS} times, each in a fresh process, and the fastest run is kept
+(the slowest is shown in brackets); the retrace check must pass in every run.  "its CPU time" is the
+process CPU time of the same difference for the fastest run: it is much less sensitive to other
+processes than the wall time (it still grows somewhat under load).  Then the gains selected for tuning
 are multiplied by 1.1 and x0 by 2, and the call is repeated under
 `eqx.debug.assert_max_traces(max_traces=1)` (it raises on a second trace).  The factories (with the
 source of each example) are in `benchmarks/c_compile_time.py`.
 
-| family | compile | first call | steady call | gains changed; target compile ≤ 5 s |
-|---|---|---|---|---|
+| family | compile: fastest (slowest) of {REPEATS} runs | its CPU time | first call | steady call | gains changed; target compile ≤ 5 s |
+|---|---|---|---|---|---|
 {chr(10).join(lines)}
 
 Worst compile time: {worst:.2f} s — {C.verdict(worst, 5.0, "lower")}.

@@ -85,13 +85,19 @@ def _taylor(fn: Callable, t, order: int) -> jax.Array:
     return ders / jnp.asarray(fact, dtype=ders.dtype).reshape((-1,) + (1,) * (ders.ndim - 1))
 
 
+def _mm(X: jax.Array, Y: jax.Array) -> jax.Array:
+    """X @ Y as broadcast-multiply-sum (fuses into one loop; these matrices are n × n with small n)."""
+    return jnp.sum(X[:, :, None] * Y[None, :, :], axis=1)
+
+
 def _smul(X: jax.Array, Y: jax.Array) -> jax.Array:
     """Product of matrix-valued truncated series X (L, a, b), Y (L, b, c): Z_k = Σ_{i+j=k} X_i Y_j."""
     L = X.shape[0]
     k, i = np.meshgrid(np.arange(L), np.arange(L), indexing="ij")
     # Yshift[k, i] = Y_{k−i} (zero for i > k), shape (L, L, b, c)
     Yshift = jnp.where((i <= k)[:, :, None, None], Y[np.maximum(k - i, 0)], 0.0)
-    return jnp.einsum("iab,kibc->kac", X, Yshift)
+    # broadcast-multiply-sum, not a dot: one fusible loop for these tiny matrices
+    return jnp.sum(X[None, :, :, :, None] * Yshift[:, :, None, :, :], axis=(1, 3))
 
 
 def _sderiv(X: jax.Array) -> jax.Array:
@@ -108,8 +114,8 @@ def _ssolve(M: jax.Array, B: jax.Array) -> jax.Array:
     for k in range(M.shape[0]):
         rhs = B[k]
         for j in range(1, k + 1):
-            rhs = rhs - M[j] @ xs[k - j]
-        xs.append(M0inv @ rhs)
+            rhs = rhs - _mm(M[j], xs[k - j])
+        xs.append(_mm(M0inv, rhs))
     return jnp.stack(xs)
 
 
@@ -396,8 +402,8 @@ def ltv_observer_canonical_form(
     Tinv = jnp.concatenate([G[: idx[i], :, i].T for i in range(m)], axis=1)
     T = jnp.linalg.inv(Tinv)
     last = jnp.stack([G[idx[i], :, i] for i in range(m)], axis=1)  # 𝓛̃^{p_i} q_i, (n, m)
-    alpha = T @ last
+    alpha = _mm(T, last)
     Az = jnp.asarray(canonical_structure(idx)).at[:, [di - 1 for di in d]].set(alpha)
-    Cz = Cs[0] @ Tinv
+    Cz = _mm(Cs[0], Tinv)
     R = Cz[:, [di - 1 for di in d]]
     return LTVCanonicalForm(idx, Q0s[0], Tinv, T, Az, Cz, R, alpha)

@@ -35,6 +35,7 @@ from .._config import require_x64
 from ._ltv_canonical import (
     LTVCanonicalForm,
     _as_time,
+    _mm,
     ltv_observer_canonical_form,
     time_derivatives,
 )
@@ -143,7 +144,7 @@ def _modal(rho_bar, omega, t):
     t = _as_time(t)
     Vh = _vhat(omega_function(omega), n + 1)(t)  # (n+1, n+1)
     Vbar_ext = rho_bar[None, :] ** jnp.arange(n + 1)[:, None]  # (n+1, n): powers 0..n
-    return Vh @ Vbar_ext  # rows 0..n-1: V_n; row n: 𝒟ⁿ_{ρ_j}{1}
+    return _mm(Vh, Vbar_ext)  # rows 0..n-1: V_n; row n: 𝒟ⁿ_{ρ_j}{1}
 
 
 def pd_modal_matrix(rho_bar, omega, t) -> jax.Array:
@@ -226,7 +227,7 @@ def rpdo_coefficients(rho_bar, omega, t) -> jax.Array:
     omega_function(omega)  # validate
     # dalpha[r, j] = α_{j+1}^{(r)}(t)
     dalpha = time_derivatives(lambda s: pd_coefficients(rho_bar, omega, s), t, n - 1)
-    return jnp.einsum("krj,rj->k", jnp.asarray(_rpdo_map(n)), dalpha)
+    return jnp.sum(jnp.asarray(_rpdo_map(n)) * dalpha[None], axis=(1, 2))
 
 
 class PDObserverGain(NamedTuple):
@@ -300,5 +301,5 @@ def pd_observer_gain(
         start += p
     Ktil = jnp.stack(cols, axis=1)
     Kz = jnp.linalg.solve(form.R.T, Ktil.T).T
-    Ko = form.Tinv @ Kz
+    Ko = _mm(form.Tinv, Kz)
     return PDObserverGain(Ko, Kz, jnp.concatenate(betas), form)

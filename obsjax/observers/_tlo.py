@@ -15,6 +15,7 @@ import numpy as np
 from .._checks import as_float_array, concrete_value, vector
 from ..design._ltv_canonical import (
     _check_indices,
+    _mm,
     ltv_observability_indices,
     strong_observability,
     time_derivatives,
@@ -273,7 +274,7 @@ class TrajectoryLinearization(AbstractObserver):
         """K_o(t), shape (n, m) (multiplies ŷ − y)."""
         d = self.design(t, xhat, u)
         Q0 = jax.lax.stop_gradient(d.form.Q0)  # only compared with the threshold: no tangent needed
-        det = jnp.abs(jnp.linalg.det(Q0.T @ Q0))
+        det = jnp.abs(jnp.linalg.det(_mm(Q0.T, Q0)))
         if self.on_unobservable == "nan":
             return jnp.where(det >= self.threshold, d.Ko, jnp.nan)
         return eqx.error_if(
@@ -289,7 +290,8 @@ class TrajectoryLinearization(AbstractObserver):
 
     def vector_field(self, t, z, y, u):
         K = _gain(self, t, z, u)
-        return self.model.f(t, z, u) + K @ (self.model.h(t, z, u) - y)
+        e = self.model.h(t, z, u) - y
+        return self.model.f(t, z, u) + jnp.sum(K * e[None, :], axis=1)  # K (ŷ − y), no dot kernel
 
     def estimate(self, t, z, y):
         return z
