@@ -341,8 +341,8 @@ row "(rule's solver)" passes `obs.recommended_solver(ts)` computed outside jit i
 Compile = first call (trace + compile + run) − a steady-state call.  The machine is shared (see the
 load below), so each family is run {REPEATS} times, each in a fresh process, and the fastest run is kept
 (the slowest is shown in brackets); the retrace check must pass in every run.  "its CPU time" is the
-process CPU time of the same difference for the fastest run: it is much less sensitive to other
-processes than the wall time (it still grows somewhat under load).  Then the gains selected for tuning
+process CPU time (all threads) of the same difference for the fastest run: less sensitive to other
+processes than the wall time, and above it when XLA compiles on both cores.  Then the gains selected for tuning
 are multiplied by 1.1 and x0 by 2, and the call is repeated under
 `eqx.debug.assert_max_traces(max_traces=1)` (it raises on a second trace).  The factories (with the
 source of each example) are in `benchmarks/c_compile_time.py`.

@@ -25,6 +25,14 @@ from ..systems._plants import AbstractSystem
 from ._base import AbstractObserver
 
 
+def _horner(cs, tau):
+    """Σ_j c_j τ^j / j! in Horner form (multiplications and additions only: cheap under nested jvp)."""
+    x = cs[-1] / factorial(len(cs) - 1)
+    for j in range(len(cs) - 2, -1, -1):
+        x = x * tau + cs[j] / factorial(j)
+    return x
+
+
 def _flow_polynomial(f, t, x0, u, order: int):
     """Taylor polynomial (degree `order`) at t of the model flow ẋ = f(s, x, u) through x(t) = x0, input
     frozen at u.  Coefficient k+1 is the k-th derivative of f along the degree-k polynomial (nested jvp)."""
@@ -33,15 +41,13 @@ def _flow_polynomial(f, t, x0, u, order: int):
         cs = tuple(coeffs)
 
         def g(tau, cs=cs):
-            x = sum(c * tau**j / factorial(j) for j, c in enumerate(cs))
-            return f(t + tau, x, u)
+            return f(t + tau, _horner(cs, tau), u)
 
         coeffs.append(time_derivatives(g, jnp.zeros_like(t), k)[-1])
     cs = tuple(coeffs)
 
     def xbar(s):
-        tau = s - t
-        return sum(c * tau**j / factorial(j) for j, c in enumerate(cs))
+        return _horner(cs, s - t)
 
     return xbar
 
@@ -85,6 +91,15 @@ class TrajectoryLinearization(AbstractObserver):
     **Stiffness.**  The fastest assigned PD-eigenvalue is max|ρ̄_k| · ω / ε; for small ε the observer is
     stiff.  :meth:`recommended_solver` returns ``diffrax.Kvaerno5()`` when that rate exceeds ``stiff_rate``
     (default 50 s⁻¹) and ``diffrax.Tsit5()`` otherwise; pass it to :func:`obsjax.simulate`'s ``solver``.
+    Under ``jit`` with ε (or ω) a traced leaf the rate cannot be known, so ``simulate``'s default is then
+    the implicit Kvaerno5, whose Newton Jacobian differentiates the gain: 3–4× the compile time of
+    Tsit5 (benchmarks/results/c_compile_time.md).  When ε stays in the non-stiff range, choose the solver
+    outside ``jit`` (``solver=obs.recommended_solver(ts)``), as :mod:`obsjax._reproduce.huang_zhu` does.
+
+    **Cost.**  K_o is traced once per simulation (a jitted inner function, reused by every solver stage
+    and by the Newton Jacobian), and the canonical form is computed in truncated Taylor-series arithmetic
+    (:func:`obsjax.design.ltv_observer_canonical_form`), so the traced graph grows polynomially with the
+    derivative order 2·max p_i − 1.
 
     **Arguments:**
 
