@@ -64,18 +64,21 @@ def time_derivatives(fn: Callable, t, order: int) -> jax.Array:
     """[fn(t), fn'(t), …, fn^(order)(t)] stacked on a new leading axis, by nested ``jax.jvp`` in t."""
     t = _as_time(t)
 
+    # level(k)(s) = (fn^(k)(s), (fn(s), …, fn^(k-1)(s))): only the top derivative is differentiated
+    # again, the lower ones ride along as auxiliary outputs (no redundant tangents).
     def level(k):
         if k == 0:
-            return lambda s: jnp.asarray(fn(s))[None]
+            return lambda s: (jnp.asarray(fn(s)), ())
         prev = level(k - 1)
 
         def g(s):
-            vals, ders = jax.jvp(prev, (s,), (jnp.ones_like(s),))
-            return jnp.concatenate([vals, ders[-1:]], axis=0)
+            val, der, lower = jax.jvp(prev, (s,), (jnp.ones_like(s),), has_aux=True)
+            return der, (*lower, val)
 
         return g
 
-    return level(order)(t)
+    top, lower = level(order)(t)
+    return jnp.stack([*lower, top])
 
 
 def _taylor(fn: Callable, t, order: int) -> jax.Array:
