@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -484,3 +485,32 @@ def test_demo_smoke(tmp_path, capsys):
         r.complete and r.n == 40 for r in out["results"].values()
     )
     assert len(out["history"]["loss"]) == 2
+
+
+# ---- several processes (jax.distributed on localhost, CPU collectives) ---------------------------------------
+
+
+def test_two_processes_equal_one_process():
+    # benchmarks/multihost_local.py starts 2 processes that call jax.distributed.initialize and run the Chen &
+    # Yen study over a mesh spanning both, then the same study in one ordinary process.
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    n, chunk = 48, 24
+    out = subprocess.run(
+        [sys.executable, os.path.join(ROOT, "benchmarks", "multihost_local.py"), "--n", str(n),
+         "--chunk-size", str(chunk), "--t1", "2", "--no-write", "--timeout", "200"],
+        env=env, capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert out.returncode == 0, (out.stdout[-2000:], out.stderr[-3000:])
+    line = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")][0]
+    r = json.loads(line[len("RESULT ") :])
+    assert r["processes"] == 2 and r["global_devices"] == 2
+    # every process returns the single-process result (the study, and the interrupted-then-resumed one)
+    assert r["max_diff"] <= 1e-12 and r["max_diff_resumed"] <= 1e-12 and r["status_equal"]
+    assert r["failed"] == 0
+    # interrupted after one chunk, then resumed: only the missing chunk is computed, on both processes
+    assert r["part_n_done"] == [chunk, chunk] and r["resumed_n_computed"] == [n - chunk, n - chunk]
+    # only process 0 touched its checkpoint directory; process 1 got the finished chunk from it
+    assert r["ckpt_written_by"] == [0]
+    assert r["ckpt_files_p0"] == ["chunk_000000.npz", "chunk_000001.npz", "meta.json"]
+    # a mesh that leaves a process out is refused by every process (no hang)
+    assert r["partial_mesh_refused"]
