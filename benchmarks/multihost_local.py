@@ -13,7 +13,8 @@ default ``jax_cpu_collectives_implementation``), then runs the same study: the C
    slice of every chunk, the results are gathered to every process);
 4. runs it again with ``checkpoint=<its own directory>``, interrupted after one chunk (``max_chunks=1``),
    then resumed: process 0 alone reads and writes the directory, so the other process's directory must
-   stay absent (no shared disk needed), and the resumed result must equal the uninterrupted one.
+   stay absent (no shared disk needed), and the resumed result must equal the uninterrupted one; the
+   same directory given with other gains must be refused by every process.
 
 The launcher then runs the same study in one ordinary process (one device, no ``jax.distributed``) and
 compares: every process's result with the single-process one (``error_norm`` to 1e-12, ``status`` equal).
@@ -121,6 +122,13 @@ def worker(args):
     info["part_n_done"] = part.n_done
     info["resumed_n_computed"] = resumed.n_computed
     info["ckpt_files"] = sorted(os.listdir(ckpt)) if os.path.isdir(ckpt) else None
+    # the checkpoint of another study (other gains) is refused by every process, though only process 0 reads it
+    other = obsjax.LeastSquaresReset(plant, 2 * C.GAMMA, C.P0, C.T_RESET)
+    try:
+        obsjax.monte_carlo(plant, other, key, args.n, checkpoint=ckpt, **kw)
+        info["other_study_error"] = None
+    except ValueError as e:
+        info["other_study_error"] = str(e)
 
     np.savez(
         os.path.join(args.out, f"p{pid}.npz"),
@@ -160,10 +168,12 @@ def launch(args, out):
     deadline = time.monotonic() + args.timeout
     rcs = [None] * len(procs)
     try:
-        for i, p in enumerate(procs):
-            rcs[i] = p.wait(timeout=max(1.0, deadline - time.monotonic()))
-    except subprocess.TimeoutExpired:
-        pass
+        # until all are done, one fails (the others would wait for it in a collective) or time is up
+        while time.monotonic() < deadline:
+            rcs = [p.poll() for p in procs]
+            if all(rc == 0 for rc in rcs) or any(rc not in (None, 0) for rc in rcs):
+                break
+            time.sleep(0.1)
     finally:
         for p in procs:  # only the processes started here
             if p.poll() is None:
@@ -176,7 +186,7 @@ def launch(args, out):
         tails = []
         for i in range(len(procs)):
             with open(os.path.join(out, f"p{i}.log")) as fh:
-                tails.append(f"--- process {i} (rc {rcs[i]}) ---\n" + fh.read()[-4000:])
+                tails.append(f"--- process {i} (exit status {rcs[i]}; None: killed here) ---\n" + fh.read()[-4000:])
         raise RuntimeError("a worker failed or timed out:\n" + "\n".join(tails))
     infos = []
     for i in range(args.processes):
@@ -274,6 +284,7 @@ def main(argv=None):
         "status_equal": status_equal,
         "failed": ref.n_failed,
         "partial_mesh_refused": all(i["partial_mesh_error"] for i in infos),
+        "other_study_refused": all("different study" in (i["other_study_error"] or "") for i in infos),
         "part_n_done": [i["part_n_done"] for i in infos],
         "resumed_n_computed": [i["resumed_n_computed"] for i in infos],
         "ckpt_written_by": [i for i, present in ckpt_dirs.items() if present],
@@ -324,6 +335,7 @@ devices and `obsjax.monte_carlo` shards each chunk over a mesh spanning both pro
 | resumed − one process | {s['max_diff_resumed']:.3g} |
 | checkpoint directories written (process ids; each process was given its own) | {s['ckpt_written_by']} |
 | a mesh that leaves a process out raises `ValueError` on every process | {s['partial_mesh_refused']} |
+| the checkpoint of another study (2γ) raises `ValueError` on every process | {s['other_study_refused']} |
 
 Verdict: {"**agrees to 1e-12**" if ok else "**does not agree**"} (target: process 0's result equals the
 single-process result to 1e-12).  A difference in the last bits is expected: each device runs the vmapped

@@ -512,5 +512,6 @@ def test_two_processes_equal_one_process():
     # only process 0 touched its checkpoint directory; process 1 got the finished chunk from it
     assert r["ckpt_written_by"] == [0]
     assert r["ckpt_files_p0"] == ["chunk_000000.npz", "chunk_000001.npz", "meta.json"]
-    # a mesh that leaves a process out is refused by every process (no hang)
-    assert r["partial_mesh_refused"]
+    # a mesh that leaves a process out, or process 0's checkpoint of another study, is refused by every
+    # process (no hang)
+    assert r["partial_mesh_refused"] and r["other_study_refused"]
