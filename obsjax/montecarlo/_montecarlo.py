@@ -692,9 +692,9 @@ def monte_carlo(
             type(noise).__name__,
             repr(sim_kw),
         ]
+        fp = _fingerprint(dyn, ts_arr, n, chunk, key_data, names)
         mismatch, failure = False, None
         if lead:
-            fp = _fingerprint(dyn, ts_arr, n, chunk, key_data, names)
             if n_proc == 1:
                 mismatch = _read_checkpoint(ckpt, fp, n, chunk, n_chunks, norms, status, done)
             else:
