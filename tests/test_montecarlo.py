@@ -497,7 +497,8 @@ def test_two_processes_equal_one_process():
     n, chunk = 48, 24
     out = subprocess.run(
         [sys.executable, os.path.join(ROOT, "benchmarks", "multihost_local.py"), "--n", str(n),
-         "--chunk-size", str(chunk), "--t1", "2", "--no-write", "--timeout", "200"],
+         "--chunk-size", str(chunk), "--t1", "2", "--no-write", "--no-small-chunk", "--repeat", "1",
+         "--timeout", "200"],
         env=env, capture_output=True, text=True, timeout=300, cwd=ROOT,
     )  # fmt: skip
     assert out.returncode == 0, (out.stdout[-2000:], out.stderr[-3000:])
