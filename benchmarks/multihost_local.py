@@ -56,13 +56,13 @@ def xhat0_sampler(key):
 def study_kwargs(args):
     import numpy as np
 
-    return dict(
-        x0_sampler=x0_sampler,
-        xhat0_sampler=xhat0_sampler,
-        ts=np.linspace(0.0, args.t1, 11),
-        chunk_size=args.chunk_size,
-        progress=False,
-    )
+    return {
+        "x0_sampler": x0_sampler,
+        "xhat0_sampler": xhat0_sampler,
+        "ts": np.linspace(0.0, args.t1, 11),
+        "chunk_size": args.chunk_size,
+        "progress": False,
+    }
 
 
 def timed(fn, repeat):
@@ -120,7 +120,9 @@ def worker(args):
     info["warmup_s"] = time.perf_counter() - t1
 
     # 3. the timed study (best of --repeat)
-    res, info["study_s"] = timed(lambda: obsjax.monte_carlo(plant, obs, key, args.n, **kw), args.repeat)
+    res, info["study_s"] = timed(
+        lambda: obsjax.monte_carlo(plant, obs, key, args.n, **kw), args.repeat
+    )
 
     # 4. interrupted after one chunk, then resumed, from a checkpoint directory of this process's own
     ckpt = os.path.join(args.out, f"ckpt_p{pid}")
@@ -162,13 +164,25 @@ def launch(args, out):
     port = free_port()
     env = dict(os.environ)
     env["JAX_PLATFORMS"] = "cpu"
-    flags = [f for f in env.get("XLA_FLAGS", "").split() if "force_host_platform_device_count" not in f]
+    flags = [
+        f for f in env.get("XLA_FLAGS", "").split() if "force_host_platform_device_count" not in f
+    ]
     env["XLA_FLAGS"] = " ".join(flags)
     procs, logs = [], []
     t0 = time.perf_counter()
     for i in range(args.processes):
-        log = open(os.path.join(out, f"p{i}.log"), "w")
-        cmd = [sys.executable, HERE, "--worker", "--process-id", str(i), "--port", str(port), "--out", out]
+        log = open(os.path.join(out, f"p{i}.log"), "w")  # noqa: SIM115 (closed below)
+        cmd = [
+            sys.executable,
+            HERE,
+            "--worker",
+            "--process-id",
+            str(i),
+            "--port",
+            str(port),
+            "--out",
+            out,
+        ]
         cmd += forward(args)
         procs.append(subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT))
         logs.append(log)
@@ -193,7 +207,10 @@ def launch(args, out):
         tails = []
         for i in range(len(procs)):
             with open(os.path.join(out, f"p{i}.log")) as fh:
-                tails.append(f"--- process {i} (exit status {rcs[i]}; None: killed here) ---\n" + fh.read()[-4000:])
+                tails.append(
+                    f"--- process {i} (exit status {rcs[i]}; None: killed here) ---\n"
+                    + fh.read()[-4000:]
+                )
         raise RuntimeError("a worker failed or timed out:\n" + "\n".join(tails))
     infos = []
     for i in range(args.processes):
@@ -223,7 +240,9 @@ def single_process(args):
     t0 = time.perf_counter()
     obsjax.monte_carlo(plant, obs, key, args.chunk_size, devices=1, **kw)
     warm = time.perf_counter() - t0
-    res, study_s = timed(lambda: obsjax.monte_carlo(plant, obs, key, args.n, devices=1, **kw), args.repeat)
+    res, study_s = timed(
+        lambda: obsjax.monte_carlo(plant, obs, key, args.n, devices=1, **kw), args.repeat
+    )
     info = {"warmup_s": warm, "study_s": study_s, "devices": len(jax.devices())}
     if args.timing_small_chunk:
         # the same per-kernel batch as each worker's device (a vmapped adaptive solve runs until its
@@ -283,7 +302,9 @@ def main(argv=None):
     try:
         wall, infos = launch(args, out)
         data = [dict(np.load(os.path.join(out, f"p{i}.npz"))) for i in range(args.processes)]
-        ckpt_dirs = {i: os.path.isdir(os.path.join(out, f"ckpt_p{i}")) for i in range(args.processes)}
+        ckpt_dirs = {
+            i: os.path.isdir(os.path.join(out, f"ckpt_p{i}")) for i in range(args.processes)
+        }
     finally:
         if not args.keep:
             shutil.rmtree(out, ignore_errors=True)
@@ -309,7 +330,9 @@ def main(argv=None):
         "status_equal": status_equal,
         "failed": ref.n_failed,
         "partial_mesh_refused": all(i["partial_mesh_error"] for i in infos),
-        "other_study_refused": all("different study" in (i["other_study_error"] or "") for i in infos),
+        "other_study_refused": all(
+            "different study" in (i["other_study_error"] or "") for i in infos
+        ),
         "part_n_done": [i["part_n_done"] for i in infos],
         "resumed_n_computed": [i["resumed_n_computed"] for i in infos],
         "ckpt_written_by": [i for i, present in ckpt_dirs.items() if present],
@@ -355,27 +378,27 @@ def write(args, s, infos, load):
     body = f"""
 Chen & Yen example (least-squares observer with covariance reset, γ = {C.GAMMA:g}, p0 = {C.P0:g},
 T = {C.T_RESET:g}), x(0) ~ N(0, I), x̂(0) = [5, −5], 11 save points on [0, {args.t1:g}], adaptive Tsit5
-(rtol 1e-6), {args.n} trajectories in chunks of {s['chunk_size']}, key `PRNGKey({SEED})`.
+(rtol 1e-6), {args.n} trajectories in chunks of {s["chunk_size"]}, key `PRNGKey({SEED})`.
 
 {args.processes} processes on localhost, each calling
 `jax.distributed.initialize(coordinator_address="127.0.0.1:<free port>", num_processes={args.processes},
-process_id=i)` with {args.local_devices} CPU device(s) each; `jax.devices()` then lists {s['global_devices']}
+process_id=i)` with {args.local_devices} CPU device(s) each; `jax.devices()` then lists {s["global_devices"]}
 devices and `obsjax.monte_carlo` shards each chunk over a mesh spanning both processes
-(cross-process collectives: `jax_cpu_collectives_implementation = {s['collectives']!r}`, the default of this jax).
+(cross-process collectives: `jax_cpu_collectives_implementation = {s["collectives"]!r}`, the default of this jax).
 
 ## Agreement with one process
 
 | check | result |
 |---|---|
-| max \\|‖x̃‖ (multi-process) − ‖x̃‖ (one process)\\| over all processes, trajectories and save times | {s['max_diff']:.3g} |
-| status equal on every process | {s['status_equal']} |
-| failed trajectories | {s['failed']} |
-| interrupted after one chunk (`max_chunks=1`): trajectories done | {s['part_n_done']} |
-| resumed: trajectories computed | {s['resumed_n_computed']} |
-| resumed − one process | {s['max_diff_resumed']:.3g} |
-| checkpoint directories written (process ids; each process was given its own) | {s['ckpt_written_by']} |
-| a mesh that leaves a process out raises `ValueError` on every process | {s['partial_mesh_refused']} |
-| the checkpoint of another study (2γ) raises `ValueError` on every process | {s['other_study_refused']} |
+| max \\|‖x̃‖ (multi-process) − ‖x̃‖ (one process)\\| over all processes, trajectories and save times | {s["max_diff"]:.3g} |
+| status equal on every process | {s["status_equal"]} |
+| failed trajectories | {s["failed"]} |
+| interrupted after one chunk (`max_chunks=1`): trajectories done | {s["part_n_done"]} |
+| resumed: trajectories computed | {s["resumed_n_computed"]} |
+| resumed − one process | {s["max_diff_resumed"]:.3g} |
+| checkpoint directories written (process ids; each process was given its own) | {s["ckpt_written_by"]} |
+| a mesh that leaves a process out raises `ValueError` on every process | {s["partial_mesh_refused"]} |
+| the checkpoint of another study (2γ) raises `ValueError` on every process | {s["other_study_refused"]} |
 
 Verdict: {"**agrees to 1e-12**" if ok else "**does not agree**"} (target: process 0's result equals the
 single-process result to 1e-12).  A difference in the last bits is expected: each device runs the vmapped
@@ -388,19 +411,19 @@ moves ‖x̃‖ by about 3e-14 as well (values up to about 12).
 |---|---|---|---|---|---|
 {rows}
 
-One ordinary process, one device: warm-up {s['single_warmup_s']:.1f} s, study {s['single_study_s']:.2f} s (best of {args.repeat}),
-{s['single_throughput']:.0f} trajectories/s.
+One ordinary process, one device: warm-up {s["single_warmup_s"]:.1f} s, study {s["single_study_s"]:.2f} s (best of {args.repeat}),
+{s["single_throughput"]:.0f} trajectories/s.
 
-Speed-up of {args.processes} processes over one: **{s['speedup']:.2f}×** (wall time of the slower process's study
+Speed-up of {args.processes} processes over one: **{s["speedup"]:.2f}×** (wall time of the slower process's study
 against the single process's study).{same_batch} Whole multi-process launch (start, initialise, warm up, study,
-checkpointed study, exit): {s['multi_wall_s']:.1f} s.
+checkpointed study, exit): {s["multi_wall_s"]:.1f} s.
 
 The machine has {os.cpu_count()} CPU cores, shared with other work (see below); the multi-process run and
 the single-process run came one after the other, never at the same time.  With other work running
 (load average {load.start[0][0]:.1f} at the start), two processes also win a larger share of the cores
 from the scheduler than one, so the speed-up mixes parallelism with scheduling; the same study on two
 devices of one process is in [d_sharding.md](d_sharding.md).  The "Versions" list below was taken in the
-launcher process (one device, no `jax.distributed`); each worker saw {s['global_devices']} devices.
+launcher process (one device, no `jax.distributed`); each worker saw {s["global_devices"]} devices.
 """
     C.write_result(
         "multihost_local",

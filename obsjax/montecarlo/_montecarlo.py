@@ -698,9 +698,10 @@ def monte_carlo(
             if n_proc == 1:
                 mismatch = _read_checkpoint(ckpt, fp, n, chunk, n_chunks, norms, status, done)
             else:
+                # any failure is told to the other processes before it is raised, or they would wait
                 try:
                     mismatch = _read_checkpoint(ckpt, fp, n, chunk, n_chunks, norms, status, done)
-                except Exception as e:  # tell the other processes before raising, or they would wait
+                except Exception as e:  # noqa: BLE001
                     failure = e
         if n_proc > 1:
             flag = np.int32(2 if failure is not None else int(mismatch))
