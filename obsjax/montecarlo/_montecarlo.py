@@ -550,7 +550,8 @@ def monte_carlo(
       uncertainty); the returned plant must have the same structure (e.g. ``eqx.tree_at`` on its leaves).
     - `chunk_size`: trajectories per chunk (rounded up to a multiple of the number of devices).
     - `checkpoint`: directory for resumable per-chunk results, or ``None``.
-    - `devices`: ``None`` (all of ``jax.devices()``), a number of devices, or a list of devices.
+    - `devices`: ``None`` (all of ``jax.devices()``), a number of devices, or a list of devices (with
+      several processes, several devices must include one of every process).
     - `quantiles`: levels of the ‖x̃(t)‖ bands.
     - `conv_tol`, `conv_relative`: the convergence time is the first save time after which
       ‖x̃(t)‖ ≤ conv_tol · ‖x̃(t0)‖ (or ≤ conv_tol when ``conv_relative=False``) for the rest of the horizon.
