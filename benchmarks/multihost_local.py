@@ -62,6 +62,7 @@ def study_kwargs(args):
         "ts": np.linspace(0.0, args.t1, 11),
         "chunk_size": args.chunk_size,
         "progress": False,
+        "lockstep": args.lockstep,
     }
 
 
@@ -223,7 +224,7 @@ def forward(args) -> list[str]:
     return [
         "--n", str(args.n), "--t1", str(args.t1), "--chunk-size", str(args.chunk_size),
         "--processes", str(args.processes), "--local-devices", str(args.local_devices),
-        "--repeat", str(args.repeat),
+        "--repeat", str(args.repeat), *(["--lockstep"] if args.lockstep else []),
     ]  # fmt: skip
 
 
@@ -236,18 +237,23 @@ def single_process(args):
 
     plant, obs = C.chen_yen()
     kw = study_kwargs(args)
+    per_device = args.chunk_size // (args.processes * args.local_devices)
+    if args.lockstep:
+        # lock-step steps depend on which trajectories share a batch: one process integrates the same
+        # batches as the workers' devices (chunks of one device's share)
+        kw["chunk_size"] = per_device
     key = jr.PRNGKey(SEED)
     t0 = time.perf_counter()
-    obsjax.monte_carlo(plant, obs, key, args.chunk_size, devices=1, **kw)
+    obsjax.monte_carlo(plant, obs, key, kw["chunk_size"], devices=1, **kw)
     warm = time.perf_counter() - t0
     res, study_s = timed(
         lambda: obsjax.monte_carlo(plant, obs, key, args.n, devices=1, **kw), args.repeat
     )
     info = {"warmup_s": warm, "study_s": study_s, "devices": len(jax.devices())}
-    if args.timing_small_chunk:
+    if args.timing_small_chunk and not args.lockstep:
         # the same per-kernel batch as each worker's device (a vmapped adaptive solve runs until its
         # slowest member, so a smaller batch alone wastes fewer steps)
-        kw["chunk_size"] = args.chunk_size // (args.processes * args.local_devices)
+        kw["chunk_size"] = per_device
         obsjax.monte_carlo(plant, obs, key, kw["chunk_size"], devices=1, **kw)
         small, info["small_study_s"] = timed(
             lambda: obsjax.monte_carlo(plant, obs, key, args.n, devices=1, **kw), args.repeat
@@ -276,6 +282,11 @@ def main(argv=None):
     ap.add_argument("--local-devices", type=int, default=1, help="CPU devices per process")
     ap.add_argument("--timeout", type=float, default=540.0, help="seconds for the workers")
     ap.add_argument("--no-write", action="store_true", help="do not write the result file")
+    ap.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="monte_carlo(lockstep=True); writes results/multihost_local_lockstep.md",
+    )
     ap.add_argument(
         "--no-small-chunk",
         dest="timing_small_chunk",
@@ -375,10 +386,17 @@ def write(args, s, infos, load):
             f" (same result to {s['single_small_max_diff']:.1g}), and against it the {args.processes}"
             f" processes give **{s['speedup_same_batch']:.2f}×**."
         )
+    lock = ""
+    if args.lockstep:
+        lock = (
+            "\n\n`monte_carlo(..., lockstep=True)`: each device integrates its share of a chunk as one"
+            " lock-step batch (`simulate_batch`); the single-process run uses chunks of one device's share,"
+            " so that it integrates the same batches."
+        )
     body = f"""
 Chen & Yen example (least-squares observer with covariance reset, γ = {C.GAMMA:g}, p0 = {C.P0:g},
 T = {C.T_RESET:g}), x(0) ~ N(0, I), x̂(0) = [5, −5], 11 save points on [0, {args.t1:g}], adaptive Tsit5
-(rtol 1e-6), {args.n} trajectories in chunks of {s["chunk_size"]}, key `PRNGKey({SEED})`.
+(rtol 1e-6), {args.n} trajectories in chunks of {s["chunk_size"]}, key `PRNGKey({SEED})`.{lock}
 
 {args.processes} processes on localhost, each calling
 `jax.distributed.initialize(coordinator_address="127.0.0.1:<free port>", num_processes={args.processes},
@@ -426,8 +444,9 @@ devices of one process is in [d_sharding.md](d_sharding.md).  The "Versions" lis
 launcher process (one device, no `jax.distributed`); each worker saw {s["global_devices"]} devices.
 """
     C.write_result(
-        "multihost_local",
-        "Multi-process Monte-Carlo on one machine (jax.distributed, 2 processes)",
+        "multihost_local_lockstep" if args.lockstep else "multihost_local",
+        f"Multi-process Monte-Carlo on one machine (jax.distributed, {args.processes} processes"
+        + (", lock-step)" if args.lockstep else ")"),
         body,
         load,
         script="multihost_local",
