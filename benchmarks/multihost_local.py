@@ -67,13 +67,17 @@ def study_kwargs(args):
 
 
 def timed(fn, repeat):
-    """(result, best wall seconds) of `repeat` calls of fn (a whole study: host work included)."""
-    best, out = float("inf"), None
+    """(result, best wall seconds, CPU seconds of this process in that call) of `repeat` calls of fn
+    (a whole study: host work included).  CPU time does not depend on the share of the cores the
+    scheduler gave the process, wall time does."""
+    best, cpu, out = float("inf"), float("nan"), None
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return out, best
+        wall, c = time.perf_counter() - t0, time.process_time() - c0
+        if wall < best:
+            best, cpu = wall, c
+    return out, best, cpu
 
 
 # ------------------------------------------------------------------------------------------------ a worker
@@ -121,7 +125,7 @@ def worker(args):
     info["warmup_s"] = time.perf_counter() - t1
 
     # 3. the timed study (best of --repeat)
-    res, info["study_s"] = timed(
+    res, info["study_s"], info["study_cpu_s"] = timed(
         lambda: obsjax.monte_carlo(plant, obs, key, args.n, **kw), args.repeat
     )
 
@@ -246,16 +250,21 @@ def single_process(args):
     t0 = time.perf_counter()
     obsjax.monte_carlo(plant, obs, key, kw["chunk_size"], devices=1, **kw)
     warm = time.perf_counter() - t0
-    res, study_s = timed(
+    res, study_s, study_cpu = timed(
         lambda: obsjax.monte_carlo(plant, obs, key, args.n, devices=1, **kw), args.repeat
     )
-    info = {"warmup_s": warm, "study_s": study_s, "devices": len(jax.devices())}
+    info = {
+        "warmup_s": warm,
+        "study_s": study_s,
+        "study_cpu_s": study_cpu,
+        "devices": len(jax.devices()),
+    }
     if args.timing_small_chunk and not args.lockstep:
         # the same per-kernel batch as each worker's device (a vmapped adaptive solve runs until its
         # slowest member, so a smaller batch alone wastes fewer steps)
         kw["chunk_size"] = per_device
         obsjax.monte_carlo(plant, obs, key, kw["chunk_size"], devices=1, **kw)
-        small, info["small_study_s"] = timed(
+        small, info["small_study_s"], info["small_study_cpu_s"] = timed(
             lambda: obsjax.monte_carlo(plant, obs, key, args.n, devices=1, **kw), args.repeat
         )
         info["small_chunk"] = kw["chunk_size"]
@@ -353,6 +362,8 @@ def main(argv=None):
         "multi_warmup_s": [round(i["warmup_s"], 2) for i in infos],
         "multi_wall_s": wall,
         "single_study_s": ref_info["study_s"],
+        "single_study_cpu_s": ref_info["study_cpu_s"],
+        "multi_study_cpu_s": [i["study_cpu_s"] for i in infos],
         "single_warmup_s": ref_info["warmup_s"],
     }
     summary["multi_throughput"] = args.n / summary["multi_study_s"]
@@ -373,7 +384,7 @@ def write(args, s, infos, load):
     ok = s["max_diff"] <= 1e-12 and s["max_diff_resumed"] <= 1e-12 and s["status_equal"]
     rows = "\n".join(
         f"| {i['process_index']} | {', '.join(i['local_devices'])} | {i['init_s']:.1f} | "
-        f"{i['warmup_s']:.1f} | {i['study_s']:.2f} | {args.n / i['study_s']:.0f} |"
+        f"{i['warmup_s']:.1f} | {i['study_s']:.2f} | {i['study_cpu_s']:.2f} | {args.n / i['study_s']:.0f} |"
         for i in infos
     )
     same_batch = ""
@@ -385,6 +396,13 @@ def write(args, s, infos, load):
             f" {s['single_small_study_s']:.2f} s"
             f" (same result to {s['single_small_max_diff']:.1g}), and against it the {args.processes}"
             f" processes give **{s['speedup_same_batch']:.2f}×**."
+        )
+    bits = ""
+    if not args.lockstep:
+        bits = (
+            "  A difference in the last bits is expected: each device runs the vmapped kernel on its"
+            " share of a chunk, and in one process changing only the chunk size (1024 against 512, one"
+            " device) moves ‖x̃‖ by about 3e-14 as well (values up to about 12)."
         )
     lock = ""
     if args.lockstep:
@@ -419,17 +437,16 @@ devices and `obsjax.monte_carlo` shards each chunk over a mesh spanning both pro
 | the checkpoint of another study (2γ) raises `ValueError` on every process | {s["other_study_refused"]} |
 
 Verdict: {"**agrees to 1e-12**" if ok else "**does not agree**"} (target: process 0's result equals the
-single-process result to 1e-12).  A difference in the last bits is expected: each device runs the vmapped
-kernel on half a chunk, and in one process changing only the chunk size (1024 against 512, one device)
-moves ‖x̃‖ by about 3e-14 as well (values up to about 12).
+single-process result to 1e-12).{bits}
 
 ## Timings
 
-| process | local devices | start-up (s) | warm-up study, one chunk: trace + compile + run (s) | study, best of {args.repeat} (s) | trajectories/s |
-|---|---|---|---|---|---|
+| process | local devices | start-up (s) | warm-up study, one chunk: trace + compile + run (s) | study, best of {args.repeat} (s) | its CPU time (s) | trajectories/s |
+|---|---|---|---|---|---|---|
 {rows}
 
-One ordinary process, one device: warm-up {s["single_warmup_s"]:.1f} s, study {s["single_study_s"]:.2f} s (best of {args.repeat}),
+One ordinary process, one device: warm-up {s["single_warmup_s"]:.1f} s, study {s["single_study_s"]:.2f} s (best of {args.repeat};
+CPU time {s["single_study_cpu_s"]:.2f} s),
 {s["single_throughput"]:.0f} trajectories/s.
 
 Speed-up of {args.processes} processes over one: **{s["speedup"]:.2f}×** (wall time of the slower process's study
@@ -437,7 +454,10 @@ against the single process's study).{same_batch} Whole multi-process launch (sta
 checkpointed study, exit): {s["multi_wall_s"]:.1f} s.
 
 The machine has {os.cpu_count()} CPU cores, shared with other work (see below); the multi-process run and
-the single-process run came one after the other, never at the same time.  With other work running
+the single-process run came one after the other, never at the same time.  CPU time, which the share of
+the cores does not change: {sum(s["multi_study_cpu_s"]):.2f} s in all for the {args.processes} processes against
+{s["single_study_cpu_s"]:.2f} s for one ({sum(s["multi_study_cpu_s"]) / s["single_study_cpu_s"]:.2f}× the CPU
+time of one process for the same trajectories).  With other work running
 (load average {load.start[0][0]:.1f} at the start), two processes also win a larger share of the cores
 from the scheduler than one, so the speed-up mixes parallelism with scheduling; the same study on two
 devices of one process is in [d_sharding.md](d_sharding.md).  The "Versions" list below was taken in the
