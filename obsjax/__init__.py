@@ -17,6 +17,7 @@ from . import noise as noise
 from . import signals as signals
 from ._simulate import Trajectory as Trajectory
 from ._simulate import simulate as simulate
+from ._simulate_batch import simulate_batch as simulate_batch
 from .observers._base import AbstractObserver as AbstractObserver
 from .observers._luenberger import FunctionalObserver as FunctionalObserver
 from .observers._luenberger import Luenberger as Luenberger

@@ -270,6 +270,20 @@ def test_plot_and_summary(base):
 # ---- bad input: one test per ValueError ---------------------------------------------------------------------
 
 
+def test_lockstep_agrees_with_independent_solves():
+    """Lock-step batches take other steps than independent solves: the same study to the tolerance."""
+    tight = dict(rtol=1e-10, atol=1e-12)
+    ind = run(simulate_kwargs=tight)
+    lock = run(lockstep=True, simulate_kwargs=tight)
+    np.testing.assert_array_equal(lock.status, 0)
+    np.testing.assert_allclose(lock.error_norm, ind.error_norm, atol=1e-8)
+
+
+def test_lockstep_refuses_param_sampler():
+    with pytest.raises(ValueError, match="lockstep=True"):
+        run(lockstep=True, param_sampler=lambda k, p: p)
+
+
 def test_bad_n():
     with pytest.raises(ValueError, match="`n`"):
         run(n=0)
@@ -362,7 +376,11 @@ _SHARD_SCRIPT = textwrap.dedent(
     r1 = obsjax.monte_carlo(SCALAR_PLANT, RESET_OBS, jr.PRNGKey(6), 20, devices=1, **kw2)
     r4 = obsjax.monte_carlo(SCALAR_PLANT, RESET_OBS, jr.PRNGKey(6), 20, devices=4, **kw2)
     d2 = float(np.max(np.abs(r1.error_norm - r4.error_norm)))
-    print("MAXDIFF", d1, d2, one.n_failed, r4.n_failed)
+    tight = dict(simulate_kwargs=dict(rtol=1e-10, atol=1e-12))
+    one_t = obsjax.monte_carlo(PLANT, OBS, jr.PRNGKey(5), 50, devices=1, **kw, **tight)
+    lock4 = obsjax.monte_carlo(PLANT, OBS, jr.PRNGKey(5), 50, devices=4, lockstep=True, **kw, **tight)
+    d3 = float(np.max(np.abs(one_t.error_norm - lock4.error_norm)))
+    print("MAXDIFF", d1, d2, one.n_failed, r4.n_failed, d3)
     """
 )
 
@@ -383,8 +401,9 @@ def test_sharded_equals_unsharded():
     )
     assert out.returncode == 0, out.stderr[-3000:]
     line = [ln for ln in out.stdout.splitlines() if ln.startswith("MAXDIFF")][0]
-    d1, d2, f1, f4 = line.split()[1:]
+    d1, d2, f1, f4, d3 = line.split()[1:]
     assert float(d1) <= 1e-12 and float(d2) <= 1e-12
+    assert float(d3) <= 1e-7  # lock-step shards: the same study to the solver tolerance
     assert int(f1) == 0 and int(f4) == 0
     print(line)
 

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array, concrete_value, vector
+from .._linalg import spd_solve
 from ..systems._plants import AbstractSystem
 from ._base import AbstractObserver
 
@@ -87,14 +88,14 @@ class ExtendedKalman(AbstractObserver):
         """The Kalman gain P Hᵀ R⁻¹, shape (n, m)."""
         xh, P = z
         H = jax.jacfwd(self.model.h, argnums=1)(t, xh, u)
-        return jnp.linalg.solve(self.R, H @ P).T
+        return spd_solve(0.5 * (self.R + self.R.T), H @ P).T
 
     def vector_field(self, t, z, y, u):
         xh, P = z
         f, h = self.model.f, self.model.h
         F = jax.jacfwd(f, argnums=1)(t, xh, u)
         H = jax.jacfwd(h, argnums=1)(t, xh, u)
-        RinvHP = jnp.linalg.solve(self.R, H @ P)  # R⁻¹ H P, (m, n)
+        RinvHP = spd_solve(0.5 * (self.R + self.R.T), H @ P)  # R⁻¹ H P, (m, n)
         dx = f(t, xh, u) + RinvHP.T @ (y - h(t, xh, u))
         dP = F @ P + P @ F.T + self.Q - (H @ P).T @ RinvHP
         return dx, 0.5 * (dP + dP.T)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value, matrix
+from .._linalg import spd_solve
 from ._base import AbstractObserver
 from ._least_squares import _check_model
 
@@ -97,7 +98,7 @@ class KalmanBucy(AbstractObserver):
     def gain(self, t, z):
         """Kalman gain L(t) = P Cᵀ Rv⁻¹, shape (n, m)."""
         C = self.model.C_of(t)
-        return jnp.linalg.solve(self.Rv, C @ z.P).T
+        return spd_solve(0.5 * (self.Rv + self.Rv.T), C @ z.P).T
 
     def vector_field(self, t, z, y, u):
         A, C = self.model.A_of(t), self.model.C_of(t)

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from .._checks import as_float_array, concrete_value, positive
+from .._linalg import spd_solve
 from ..systems._plants import LTV
 from ._base import AbstractObserver
 
@@ -254,7 +255,7 @@ class LeastSquaresReset(AbstractObserver):
         C = self.model.C_of(t)
         w = z.Phi.T @ C.T
         Qinv = 0.5 * (z.Qinv + z.Qinv.T)
-        L = z.Phi @ jnp.linalg.solve(Qinv, w)
+        L = z.Phi @ spd_solve(Qinv, w)
         return L, w, C
 
     def gain(self, t, z):

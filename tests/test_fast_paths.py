@@ -1,0 +1,217 @@
+"""The fast paths: fixed-step Runge-Kutta scan, lock-step batches, the unrolled SPD solve."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import obsjax
+from obsjax._fixed_step import grid, tableau_of
+from obsjax._linalg import spd_solve
+from obsjax._simulate_batch import lockstep_norm
+
+CY_PLANT = obsjax.chen_yen_example()
+CY_OBS = obsjax.LeastSquaresReset(CY_PLANT, gamma=20.0, p0=0.1, T=0.25)
+X0, XH0 = jnp.array([1.0, -1.0]), jnp.array([5.0, -5.0])
+TIGHT = dict(rtol=1e-11, atol=1e-13)
+
+
+# ---------------------------------------------------------------- spd_solve
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 8, 10])
+def test_spd_solve_matches_numpy(n):
+    rng = np.random.default_rng(n)
+    M = rng.normal(size=(n, n))
+    A = M @ M.T + n * np.eye(n)
+    B = rng.normal(size=(n, 3))
+    np.testing.assert_allclose(spd_solve(jnp.asarray(A), jnp.asarray(B)), np.linalg.solve(A, B), rtol=1e-11)
+    np.testing.assert_allclose(spd_solve(jnp.asarray(A), jnp.asarray(B[:, 0])), np.linalg.solve(A, B[:, 0]), rtol=1e-11)
+
+
+def test_spd_solve_gradient_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(3, 3))
+    A0 = jnp.asarray(M @ M.T + 3 * np.eye(3))
+    b = jnp.asarray(rng.normal(size=3))
+    E = jnp.asarray(rng.normal(size=(3, 3)))
+    E = E + E.T
+    f = lambda s: jnp.sum(spd_solve(A0 + s * E, b) ** 2)
+    g = jax.grad(f)(0.0)
+    h = 1e-6
+    np.testing.assert_allclose(g, (f(h) - f(-h)) / (2 * h), rtol=1e-7)
+
+
+def test_spd_solve_rejects_bad_shapes():
+    with pytest.raises(ValueError, match="spd_solve"):
+        spd_solve(jnp.eye(2), jnp.ones(3))
+
+
+# ---------------------------------------------------------------- fixed-step path
+
+
+def test_tableau_of_explicit_and_implicit_solvers():
+    a, b, c = tableau_of(diffrax.Tsit5())
+    assert len(b) == 6 and np.isclose(b.sum(), 1.0)  # the FSAL stage (weight 0) is trimmed
+    assert tableau_of(diffrax.Euler())[1].tolist() == [1.0]
+    assert tableau_of(diffrax.Kvaerno5()) is None
+
+
+def test_grid_puts_breakpoints_on_saves_resets_and_before_jumps():
+    g = grid(np.array([0.0, 0.3, 1.0]), 0.1, reset_period=0.25, jumps=[0.6])
+    starts = np.asarray(g["start"])
+    np.testing.assert_allclose(starts, [0.0, 0.25, 0.3, 0.5, 0.6, 0.75])
+    assert g["reset"].tolist() == [False, True, False, True, False, True]
+    # the interval ending at the jump 0.6 stops one float before it
+    assert starts[3] + g["h"][3] * g["nsteps"][3] < 0.6
+    assert g["save_idx"].tolist() == [0, 2, 6]
+    seen = []
+    jax.jit(lambda t: seen.append(grid(t, 0.1)) or t)(jnp.array([0.0, 1.0]))
+    assert seen == [None]  # traced save times: no concrete grid (simulate then uses diffrax)
+
+
+def test_fixed_step_scan_matches_diffrax_constant_steps_with_resets():
+    """Same tableau, same steps: the direct scan equals diffeqsolve(ConstantStepSize) segment by segment."""
+    ts = np.linspace(0.0, 5.0, 21)
+    a = obsjax.simulate(CY_PLANT, CY_OBS, X0, XH0, ts, adaptive=False, dt0=0.0125)
+    # traced ts force the diffrax route
+    route = jax.jit(
+        lambda t: obsjax.simulate(CY_PLANT, CY_OBS, X0, XH0, t, adaptive=False, dt0=0.0125, max_segments=20)
+    )
+    b = route(jnp.asarray(ts))
+    np.testing.assert_allclose(a.error, b.error, atol=1e-12)
+    np.testing.assert_allclose(a.z.Qinv, b.z.Qinv, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "plant,obs,ts,order",
+    [
+        # save times off the reset grid: intervals of unequal step counts (masked steps)
+        (CY_PLANT, CY_OBS, np.linspace(0.0, 3.0, 8), 5),
+        # a switched plant: the grid must step onto the declared jumps to keep the method's order
+        (
+            obsjax.switching_ltv_example(period=0.7, horizon=4.0),
+            obsjax.LeastSquaresReset(obsjax.switching_ltv_example(period=0.7, horizon=4.0), 20.0, 1.0, 0.93),
+            np.linspace(0.0, 3.0, 7),
+            5,
+        ),
+    ],
+)
+def test_fixed_step_converges_at_the_method_order(plant, obs, ts, order):
+    """Halving h divides the error by ≈ 2^order (Tsit5: 5), measured against a tight adaptive solve."""
+    x0 = jnp.ones(plant.n)
+    xh0 = jnp.zeros(plant.n)
+    ref = obsjax.simulate(plant, obs, x0, xh0, ts, **TIGHT)
+    errs = []
+    for h in (0.05, 0.025):
+        tr = obsjax.simulate(plant, obs, x0, xh0, ts, adaptive=False, dt0=h)
+        errs.append(float(jnp.max(jnp.abs(tr.error - ref.error))))
+    rate = np.log2(errs[0] / errs[1])
+    assert rate > order - 1.0, (errs, rate)
+
+
+def test_fixed_step_gradient_matches_finite_differences():
+    ts = np.linspace(0.0, 2.0, 9)
+
+    def loss(gamma):
+        obs = obsjax.LeastSquaresReset(CY_PLANT, gamma=gamma, p0=0.1, T=0.25)
+        tr = obsjax.simulate(CY_PLANT, obs, X0, XH0, ts, adaptive=False, dt0=0.025)
+        return jnp.sum(tr.error_norm**2)
+
+    g = jax.jit(jax.grad(loss))(20.0)
+    h = 1e-4
+    lj = jax.jit(loss)
+    np.testing.assert_allclose(g, (lj(20.0 + h) - lj(20.0 - h)) / (2 * h), rtol=1e-6)
+
+
+def test_fixed_step_euler_is_forward_euler():
+    plant = obsjax.LTI([[-1.0]], None, [[1.0]])
+    obs = obsjax.Luenberger(plant, [[1.0]])
+    tr = obsjax.simulate(plant, obs, jnp.ones(1), jnp.zeros(1), jnp.array([0.0, 1.0]), adaptive=False, dt0=0.1,
+                         solver=diffrax.Euler())
+    # x̃' = -2 x̃ with forward Euler: (1 - 0.2)^10
+    np.testing.assert_allclose(tr.error[-1, 0], -(0.8**10), rtol=1e-13)
+
+
+# ---------------------------------------------------------------- lock-step batches
+
+TS_B = np.linspace(0.0, 3.0, 13)
+
+
+def _batch(n=16, seed=0):
+    x0s = jr.normal(jr.key(seed), (n, 2))
+    return x0s, jnp.broadcast_to(XH0, (n, 2))
+
+
+def test_lockstep_batch_matches_individual_solves():
+    x0s, xh0s = _batch()
+    lock = obsjax.simulate_batch(CY_PLANT, CY_OBS, x0s, xh0s, TS_B, rtol=1e-9, atol=1e-11)
+    ref = jax.vmap(lambda a, b: obsjax.simulate(CY_PLANT, CY_OBS, a, b, TS_B, **TIGHT))(x0s, xh0s)
+    assert lock.error.shape == ref.error.shape == (16, 13, 2)
+    assert lock.ts.shape == (16, 13)
+    np.testing.assert_allclose(lock.error, ref.error, atol=1e-8)
+    np.testing.assert_allclose(lock.z.Phi, ref.z.Phi, atol=1e-8)
+    np.testing.assert_array_equal(lock.status, 0)
+
+
+def test_lockstep_batch_with_band_limited_noise_matches_individual_solves():
+    x0s, xh0s = _batch(6)
+    keys = jr.split(jr.key(3), 6)
+    noise = obsjax.noise.BandLimitedNoise(0.05, 0.05)
+    lock = obsjax.simulate_batch(CY_PLANT, CY_OBS, x0s, xh0s, TS_B, noise=noise, keys=keys, rtol=1e-10, atol=1e-12)
+    ref = jax.vmap(
+        lambda a, b, k: obsjax.simulate(CY_PLANT, CY_OBS, a, b, TS_B, noise=noise, key=k, rtol=1e-10, atol=1e-12)
+    )(x0s, xh0s, keys)
+    np.testing.assert_allclose(lock.y, ref.y, atol=1e-12)  # the same noise draw per member
+    np.testing.assert_allclose(lock.error, ref.error, atol=1e-7)
+
+
+def test_lockstep_nonfinite_member_does_not_stop_the_others():
+    x0s, xh0s = _batch(4)
+    x0s = x0s.at[1, 0].set(jnp.nan)
+    tr = obsjax.simulate_batch(CY_PLANT, CY_OBS, x0s, xh0s, TS_B, throw=False)
+    assert tr.status.tolist() == [0, 2, 0, 0]
+    ref = obsjax.simulate(CY_PLANT, CY_OBS, x0s[2], xh0s[2], TS_B, **TIGHT)
+    np.testing.assert_allclose(tr.error[2], ref.error, atol=1e-5)
+
+
+def test_lockstep_norm_is_the_worst_members_rms():
+    y = (jnp.array([[3.0, 4.0], [1.0, 1.0], [jnp.nan, 0.0]]),)
+    np.testing.assert_allclose(lockstep_norm(y), np.sqrt(12.5))
+
+
+def test_lockstep_batch_gradient_matches_finite_differences():
+    x0s, xh0s = _batch(4)
+
+    def loss(p0):
+        obs = obsjax.LeastSquaresReset(CY_PLANT, gamma=20.0, p0=p0, T=0.25)
+        tr = obsjax.simulate_batch(CY_PLANT, obs, x0s, xh0s, TS_B, rtol=1e-10, atol=1e-12)
+        return jnp.mean(jnp.sum(tr.error_norm**2, axis=1))
+
+    g = jax.jit(jax.grad(loss))(0.1)
+    h = 1e-5
+    lj = jax.jit(loss)
+    np.testing.assert_allclose(g, (lj(0.1 + h) - lj(0.1 - h)) / (2 * h), rtol=1e-5)
+
+
+def test_simulate_batch_falls_back_to_vmap_for_fixed_steps():
+    x0s, xh0s = _batch(3)
+    a = obsjax.simulate_batch(CY_PLANT, CY_OBS, x0s, xh0s, TS_B, adaptive=False, dt0=0.025)
+    b = jax.vmap(lambda x, xh: obsjax.simulate(CY_PLANT, CY_OBS, x, xh, TS_B, adaptive=False, dt0=0.025))(x0s, xh0s)
+    np.testing.assert_array_equal(a.error, b.error)
+
+
+def test_simulate_batch_rejects_bad_input():
+    x0s, xh0s = _batch(3)
+    with pytest.raises(ValueError, match="`x0s` must have shape"):
+        obsjax.simulate_batch(CY_PLANT, CY_OBS, x0s[0], xh0s, TS_B)
+    with pytest.raises(ValueError, match="`xhat0s` must have shape"):
+        obsjax.simulate_batch(CY_PLANT, CY_OBS, x0s, xh0s[:2], TS_B)
+    with pytest.raises(ValueError, match="`keys`"):
+        obsjax.simulate_batch(CY_PLANT, CY_OBS, x0s, xh0s, TS_B, noise=obsjax.noise.BandLimitedNoise(0.1, 0.1))
+    with pytest.raises(ValueError, match="`keys` must hold 3 keys"):
+        obsjax.simulate_batch(
+            CY_PLANT, CY_OBS, x0s, xh0s, TS_B, noise=obsjax.noise.BandLimitedNoise(0.1, 0.1), keys=jr.split(jr.key(0), 2)
+        )
