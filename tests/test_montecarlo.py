@@ -535,3 +535,34 @@ def test_two_processes_equal_one_process():
     # a mesh that leaves a process out, or process 0's checkpoint of another study, is refused by every
     # process (no hang)
     assert r["partial_mesh_refused"] and r["other_study_refused"]
+
+
+def test_study_kernels_carry_no_host_callbacks():
+    """Runtime checks inside a study become NaN (status 2), not host callbacks: a multi-device CPU program
+    with callbacks runs its shards one after another (benchmarks/results/d_sharding.md)."""
+    import equinox as eqx
+
+    from obsjax.montecarlo._montecarlo import _runtime_checks_as_nan
+
+    plant = obsjax.chen_yen_example()
+    obs = obsjax.LeastSquaresReset(plant, 20.0, 0.1, 0.25)
+    ts = np.linspace(0.0, 1.0, 5)
+
+    def f(x0, study=False):
+        return obsjax.simulate(plant, obs, x0, jnp.zeros(2), ts, throw=False, _study=study).error_norm
+
+    plain = str(jax.make_jaxpr(f)(jnp.ones(2)))
+    assert "callback" in plain  # diffrax checks SaveAt.ts of each reset segment at run time
+    with _runtime_checks_as_nan():
+        inside = str(jax.make_jaxpr(lambda x: f(x, True))(jnp.ones(2)))
+        batch = str(
+            jax.make_jaxpr(lambda x: obsjax.simulate_batch(plant, obs, x, x, ts, throw=False).error)(
+                jnp.ones((3, 2))
+            )
+        )
+        fired = jax.jit(lambda x: eqx.error_if(x, x > 0, "fires"))(jnp.ones(()))
+    assert "callback" not in inside
+    assert "callback" not in batch
+    assert np.isnan(fired)
+    with pytest.raises(Exception, match="fires"):  # outside a study, checks raise again
+        jax.block_until_ready(jax.jit(lambda x: eqx.error_if(x, x > 0, "fires"))(jnp.ones(())))
