@@ -1,7 +1,8 @@
-"""Run the benchmarks (a)-(e), each in its own process, each writing benchmarks/results/<name>.md.
+"""Run the benchmarks (a)-(e) and (m) (a two-process study on localhost), each in its own process, each
+writing benchmarks/results/<name>.md.
 
-Usage: ``python benchmarks/run_all.py [a b c d e] [--large N]`` (``obsjax bench`` calls this).  ``--large N`` also
-runs the N-trajectory sharded study of (d) (10⁶ takes a quarter of an hour on 2 cores).
+Usage: ``python benchmarks/run_all.py [a b c d e m] [--large N]`` (``obsjax bench`` calls this).  ``--large N`` also
+runs the N-trajectory sharded study of (d) (10⁶ takes a few minutes on 2 cores with the lock-step kernel).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ BENCHMARKS = {
     "c": "c_compile_time.py",
     "d": "d_sharding.py",
     "e": "e_lti_python_control.py",
+    "m": "multihost_local.py",
 }
 
 

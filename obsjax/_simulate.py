@@ -85,6 +85,13 @@ def _drift(t, state, args: _Args):
     return args.plant.f(t, x, u), args.observer.vector_field(t, z, y, u)
 
 
+def _drift_in_study(t, state, args):
+    """The same vector field as ``_drift``, as a distinct function: diffrax caches the trace of
+    ``diffeqsolve`` by its terms, so studies (``monte_carlo``, which traces its kernel with runtime checks as
+    NaN) never reuse a trace made outside one, nor leave theirs to ``simulate``."""
+    return _drift(t, state, args)
+
+
 class _MeasurementNoiseTerm(diffrax.AbstractTerm):
     """Diffusion of white measurement noise: d(x, z) ⊃ (0, ∂ż/∂y · σ dW).
 
@@ -144,6 +151,7 @@ def simulate(
     max_steps: int | None = 16384,
     max_segments: int | None = None,
     throw: bool = True,
+    _study: bool = False,
 ) -> Trajectory:
     """Simulate the true plant and an observer together: one diffrax solve over the joint state (x, z).
 
@@ -223,6 +231,7 @@ def simulate(
     z0 = observer.init(t0, xhat0, plant.h(t0, x0, u0) + v0)
 
     # Terms, solver, step-size control.
+    drift = _drift_in_study if _study else _drift
     if isinstance(noise, WhiteNoise):
         t0c, t1c = _concrete_span(ts_np)
         span = t1c - t0c
@@ -230,14 +239,14 @@ def simulate(
             dt0 = span / 2000.0
         bm = diffrax.VirtualBrownianTree(t0c, t1c, tol=dt0 / 2, shape=(m,), key=key)
         terms = diffrax.MultiTerm(
-            diffrax.ODETerm(_drift), _MeasurementNoiseTerm(noise.sigma, bm)
+            diffrax.ODETerm(drift), _MeasurementNoiseTerm(noise.sigma, bm)
         )
         solver = diffrax.Euler() if solver is None else solver
         adaptive = False
         if max_steps is not None:
             max_steps = max(max_steps, int(math.ceil(span / dt0)) + 16)
     else:
-        terms = diffrax.ODETerm(_drift)
+        terms = diffrax.ODETerm(drift)
         if solver is None:
             # Observers that know their own stiffness (the high-gain TLO) pick the solver.
             pick = getattr(observer, "recommended_solver", None)

@@ -343,7 +343,7 @@ def main(argv=None) -> int:
     p_rep.add_argument("--out", default="obsjax-reproduce", help="output directory")
     p_rep.add_argument("--list", action="store_true", help="list the available reproductions")
     p_bench = sub.add_parser("bench", help="run the benchmarks (benchmarks/run_all.py)")
-    p_bench.add_argument("names", nargs="*", help="a b c d e (default: all)")
+    p_bench.add_argument("names", nargs="*", help="a b c d e m (default: all)")
     p_bench.add_argument("--dir", default=None, help="the benchmarks directory")
     args = parser.parse_args(argv)
 

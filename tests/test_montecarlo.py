@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -503,3 +504,65 @@ def test_demo_smoke(tmp_path, capsys):
         r.complete and r.n == 40 for r in out["results"].values()
     )
     assert len(out["history"]["loss"]) == 2
+
+
+# ---- several processes (jax.distributed on localhost, CPU collectives) ---------------------------------------
+
+
+def test_two_processes_equal_one_process():
+    # benchmarks/multihost_local.py starts 2 processes that call jax.distributed.initialize and run the Chen &
+    # Yen study over a mesh spanning both, then the same study in one ordinary process.
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    n, chunk = 48, 24
+    out = subprocess.run(
+        [sys.executable, os.path.join(ROOT, "benchmarks", "multihost_local.py"), "--n", str(n),
+         "--chunk-size", str(chunk), "--t1", "2", "--no-write", "--no-small-chunk", "--repeat", "1",
+         "--timeout", "200"],
+        env=env, capture_output=True, text=True, timeout=300, cwd=ROOT, check=False,
+    )  # fmt: skip
+    assert out.returncode == 0, (out.stdout[-2000:], out.stderr[-3000:])
+    line = next(ln for ln in out.stdout.splitlines() if ln.startswith("RESULT "))
+    r = json.loads(line[len("RESULT ") :])
+    assert r["processes"] == 2 and r["global_devices"] == 2
+    # every process returns the single-process result (the study, and the interrupted-then-resumed one)
+    assert r["max_diff"] <= 1e-12 and r["max_diff_resumed"] <= 1e-12 and r["status_equal"]
+    assert r["failed"] == 0
+    # interrupted after one chunk, then resumed: only the missing chunk is computed, on both processes
+    assert r["part_n_done"] == [chunk, chunk] and r["resumed_n_computed"] == [n - chunk, n - chunk]
+    # only process 0 touched its checkpoint directory; process 1 got the finished chunk from it
+    assert r["ckpt_written_by"] == [0]
+    assert r["ckpt_files_p0"] == ["chunk_000000.npz", "chunk_000001.npz", "meta.json"]
+    # a mesh that leaves a process out, or process 0's checkpoint of another study, is refused by every
+    # process (no hang)
+    assert r["partial_mesh_refused"] and r["other_study_refused"]
+
+
+def test_study_kernels_carry_no_host_callbacks():
+    """Runtime checks inside a study become NaN (status 2), not host callbacks: a multi-device CPU program
+    with callbacks runs its shards one after another (benchmarks/results/d_sharding.md)."""
+    import equinox as eqx
+
+    from obsjax.montecarlo._montecarlo import _runtime_checks_as_nan
+
+    plant = obsjax.chen_yen_example()
+    obs = obsjax.LeastSquaresReset(plant, 20.0, 0.1, 0.25)
+    ts = np.linspace(0.0, 1.0, 5)
+
+    def f(x0, study=False):
+        return obsjax.simulate(plant, obs, x0, jnp.zeros(2), ts, throw=False, _study=study).error_norm
+
+    plain = str(jax.make_jaxpr(f)(jnp.ones(2)))
+    assert "callback" in plain  # diffrax checks SaveAt.ts of each reset segment at run time
+    with _runtime_checks_as_nan():
+        inside = str(jax.make_jaxpr(lambda x: f(x, True))(jnp.ones(2)))
+        batch = str(
+            jax.make_jaxpr(lambda x: obsjax.simulate_batch(plant, obs, x, x, ts, throw=False).error)(
+                jnp.ones((3, 2))
+            )
+        )
+        fired = jax.jit(lambda x: eqx.error_if(x, x > 0, "fires"))(jnp.ones(()))
+    assert "callback" not in inside
+    assert "callback" not in batch
+    assert np.isnan(fired)
+    with pytest.raises(Exception, match="fires"):  # outside a study, checks raise again
+        jax.block_until_ready(jax.jit(lambda x: eqx.error_if(x, x > 0, "fires"))(jnp.ones(())))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import inspect
@@ -362,6 +363,7 @@ def _one(dyn, cfg: _Config, key, i):
         key=kn if noise is not None else None,
         throw=False,
         max_segments=cfg.max_segments,
+        _study=True,
         **dict(cfg.sim_kwargs),
     )
     return traj.error_norm, traj.status
@@ -389,6 +391,39 @@ def _lockstep(dyn, cfg: _Config, key, idx):
 
 def _wrap_key(key_data, impl):
     return jr.wrap_key_data(key_data) if impl is None else jr.wrap_key_data(key_data, impl=impl)
+
+
+@contextlib.contextmanager
+def _runtime_checks_as_nan():
+    """Trace with equinox's runtime checks (``eqx.error_if``, also inside diffrax) as NaN instead of a host
+    callback that raises.
+
+    Inside a study every trajectory runs with ``throw=False``, so a check that fires should mark that
+    trajectory failed (non-finite: status 2, counted), not abort the study.  It also matters for speed: on the
+    CPU runtime, a multi-device program that contains host callbacks (even in branches never taken, as
+    diffrax's checks of ``SaveAt.ts`` are) runs its device partitions one after another; without them the
+    shards of a ``shard_map`` run in parallel (benchmarks/results/d_sharding.md).  equinox reads its error
+    mode when a check is traced, from ``equinox._errors``; a fresh jitted check function avoids reusing one
+    traced in raise mode.  If equinox's internals differ, this does nothing.
+    """
+    try:
+        import equinox._errors as E
+
+        old = (E.EQX_ON_ERROR, E.branched_error_if_impl_jit)
+    except (ImportError, AttributeError):
+        yield
+        return
+    impl = E.branched_error_if_impl
+
+    def as_nan(x, pred, index, msgs, *, on_error):  # a new function: a new jit cache, no raise-mode reuse
+        return impl(x, pred, index, msgs, on_error="nan" if on_error == "default" else on_error)
+
+    E.EQX_ON_ERROR = "nan"
+    E.branched_error_if_impl_jit = eqx.filter_jit(as_nan)
+    try:
+        yield
+    finally:
+        E.EQX_ON_ERROR, E.branched_error_if_impl_jit = old
 
 
 @eqx.filter_jit
@@ -444,9 +479,49 @@ def _fingerprint(dyn, ts, n, chunk_size, key_data, names) -> str:
 
 
 def _atomic_savez(path, **arrays):
-    tmp = f"{path}.tmp{jax.process_index()}.npz"  # one temporary per process (several hosts, shared disk)
+    tmp = f"{path}.tmp{jax.process_index()}.npz"
     np.savez(tmp, **arrays)
     os.replace(tmp, path)
+
+
+def _read_checkpoint(ckpt, fp, n, chunk, n_chunks, norms, status, done) -> bool:
+    """Load the finished chunks of checkpoint directory `ckpt` into `norms`, `status`, `done` (in place),
+    or start it (meta.json) when it is new.  Returns True when it holds a different study."""
+    os.makedirs(ckpt, exist_ok=True)
+    meta_path = os.path.join(ckpt, "meta.json")
+    if os.path.exists(meta_path):
+        with open(meta_path) as fh:
+            meta = json.load(fh)
+        if meta.get("fingerprint") != fp:
+            return True
+        for c in range(n_chunks):
+            path = os.path.join(ckpt, f"chunk_{c:06d}.npz")
+            if os.path.exists(path):
+                with np.load(path) as data:
+                    lo, hi = c * chunk, min((c + 1) * chunk, n)
+                    norms[lo:hi] = data["error_norm"]
+                    status[lo:hi] = data["status"]
+                done[c] = True
+    else:
+        with open(meta_path, "w") as fh:
+            json.dump(
+                {
+                    "fingerprint": fp,
+                    "n": n,
+                    "chunk_size": chunk,
+                    "n_chunks": n_chunks,
+                    "version": _CHECKPOINT_VERSION,
+                },
+                fh,
+            )
+    return False
+
+
+def _broadcast_from_lead(tree):
+    """Process 0's values of a pytree of host arrays, on every process (a collective: all must call it)."""
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.broadcast_one_to_all(tree)
 
 
 def _resolve_devices(devices):
@@ -510,14 +585,18 @@ def monte_carlo(
     study raises ``ValueError``.  ``max_chunks`` bounds the chunks computed in one call (a time-boxed
     run); the result then has ``complete == False``.
 
-    **Several hosts.**  Call ``jax.distributed.initialize()`` in every process before ``monte_carlo``;
-    ``jax.devices()`` then lists the devices of all hosts and the mesh spans them.  Every process runs
-    the same script with the same arguments; each device computes its slice of each chunk, and the
-    per-trajectory results are gathered to every process (``process_allgather``) before the host-side
-    statistics, so every process returns the same result.  For resumable multi-host studies give every
-    process the same ``checkpoint`` directory on a shared file system (each writes the same chunk files,
-    atomically), so that all processes skip the same chunks on resume.  (This path follows JAX's
-    multi-process API; it is tested here only with several devices in one process.)
+    **Several hosts.**  Call ``jax.distributed.initialize(coordinator_address, num_processes,
+    process_id)`` in every process before anything else touches JAX (on CPU the cross-process
+    collectives are gloo's, ``jax_cpu_collectives_implementation``, the default).  ``jax.devices()`` then
+    lists the devices of every process and the mesh spans them.  Every process runs the same script with
+    the same arguments; each process feeds the index slices of its own devices, each device computes its
+    slice of each chunk, and the per-trajectory results are gathered to every process
+    (``process_allgather``) before the host-side statistics, so every process returns the same result.
+    Process 0 alone reads and writes the ``checkpoint`` directory and shows the progress bar; on resume it
+    sends the list of finished chunks and their results to the other processes, so the directory needs
+    to exist only on process 0's file system.  A mesh of several devices must include a device of every
+    process.  Tested with two processes on one machine (``benchmarks/multihost_local.py``): the result
+    equals the single-process one to 1e-12, and an interrupted study resumes.
 
     **Arguments:**
 
@@ -536,7 +615,8 @@ def monte_carlo(
       uncertainty); the returned plant must have the same structure (e.g. ``eqx.tree_at`` on its leaves).
     - `chunk_size`: trajectories per chunk (rounded up to a multiple of the number of devices).
     - `checkpoint`: directory for resumable per-chunk results, or ``None``.
-    - `devices`: ``None`` (all of ``jax.devices()``), a number of devices, or a list of devices.
+    - `devices`: ``None`` (all of ``jax.devices()``), a number of devices, or a list of devices (with
+      several processes, several devices must include one of every process).
     - `quantiles`: levels of the ‖x̃(t)‖ bands.
     - `conv_tol`, `conv_relative`: the convergence time is the first save time after which
       ‖x̃(t)‖ ≤ conv_tol · ‖x̃(t0)‖ (or ≤ conv_tol when ``conv_relative=False``) for the rest of the horizon.
@@ -634,6 +714,13 @@ def monte_carlo(
 
     devices = _resolve_devices(devices)
     D = len(devices)
+    if D > 1 and jax.process_count() > 1:
+        missing = set(range(jax.process_count())) - {d.process_index for d in devices}
+        if missing:
+            raise ValueError(
+                f"`devices` spans {D} devices but none of processes {sorted(missing)}: in a multi-process "
+                "run (jax.distributed) a mesh of several devices must include a device of every process."
+            )
     chunk = int(math.ceil(chunk_size / D) * D)
     mesh = None
     if D > 1:
@@ -666,6 +753,11 @@ def monte_carlo(
     status = np.full((n,), -1, dtype=np.int32)
     done = np.zeros(n_chunks, dtype=bool)
 
+    # Several processes (jax.distributed): process 0 alone reads and writes the checkpoint; the other
+    # processes receive the list of finished chunks and their results from it (a collective), so all of
+    # them skip the same chunks and return the same result, whether or not the disk is shared.
+    n_proc = jax.process_count()
+    lead = jax.process_index() == 0
     ckpt = None
     if checkpoint is not None:
         ckpt = os.fspath(checkpoint)
@@ -681,36 +773,35 @@ def monte_carlo(
         if lockstep:  # lock-step results depend on which trajectories share a batch
             names.append(f"lockstep, {D} devices")
         fp = _fingerprint(dyn, ts_arr, n, chunk, key_data, names)
-        os.makedirs(ckpt, exist_ok=True)
-        meta_path = os.path.join(ckpt, "meta.json")
-        if os.path.exists(meta_path):
-            with open(meta_path) as fh:
-                meta = json.load(fh)
-            if meta.get("fingerprint") != fp:
-                raise ValueError(
-                    f"checkpoint directory {ckpt!r} holds a different study (gains, plant, ts, key, n, "
-                    "chunk size, samplers or number of devices differ): delete it or choose another path."
+        mismatch, failure = False, None
+        if lead:
+            if n_proc == 1:
+                mismatch = _read_checkpoint(ckpt, fp, n, chunk, n_chunks, norms, status, done)
+            else:
+                # any failure is told to the other processes before it is raised, or they would wait
+                try:
+                    mismatch = _read_checkpoint(ckpt, fp, n, chunk, n_chunks, norms, status, done)
+                except Exception as e:  # noqa: BLE001
+                    failure = e
+        if n_proc > 1:
+            flag = np.int32(2 if failure is not None else int(mismatch))
+            flag, done = _broadcast_from_lead((flag, done.astype(np.int32)))
+            if failure is not None:
+                raise failure
+            if flag == 2:
+                raise RuntimeError(
+                    f"process 0 could not read or start the checkpoint directory {ckpt!r} (see its error)."
                 )
-            for c in range(n_chunks):
-                path = os.path.join(ckpt, f"chunk_{c:06d}.npz")
-                if os.path.exists(path):
-                    with np.load(path) as data:
-                        lo, hi = c * chunk, min((c + 1) * chunk, n)
-                        norms[lo:hi] = data["error_norm"]
-                        status[lo:hi] = data["status"]
-                    done[c] = True
-        else:
-            with open(meta_path, "w") as fh:
-                json.dump(
-                    {
-                        "fingerprint": fp,
-                        "n": n,
-                        "chunk_size": chunk,
-                        "n_chunks": n_chunks,
-                        "version": _CHECKPOINT_VERSION,
-                    },
-                    fh,
-                )
+            mismatch, done = bool(flag), done.astype(bool)
+        if mismatch:
+            raise ValueError(
+                f"checkpoint directory {ckpt!r} holds a different study (gains, plant, ts, key, n, "
+                "chunk size, samplers or number of devices differ): delete it or choose another path."
+            )
+        if n_proc > 1:
+            for c in np.flatnonzero(done):
+                lo, hi = c * chunk, min((c + 1) * chunk, n)
+                norms[lo:hi], status[lo:hi] = _broadcast_from_lead((norms[lo:hi], status[lo:hi]))
 
     todo = [c for c in range(n_chunks) if not done[c]]
     if max_chunks is not None:
@@ -719,11 +810,12 @@ def monte_carlo(
     sharding_in = None
     if mesh is not None:
         sharding_in = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-    multi = jax.process_count() > 1
+    # The outputs live on every process's devices only when the mesh spans several processes.
+    gather = mesh is not None and len({d.process_index for d in devices}) > 1
 
     it = todo
     bar = None
-    if progress and todo:
+    if progress and todo and lead:
         from tqdm.auto import tqdm
 
         bar = tqdm(todo, desc="monte_carlo", unit="chunk", leave=False)
@@ -739,8 +831,9 @@ def monte_carlo(
             idx_dev = jax.make_array_from_callback((chunk,), sharding_in, lambda s, idx=idx: idx[s])
         else:
             idx_dev = jnp.asarray(idx)
-        en, st = _chunk_kernel(dyn, key_data, idx_dev, cfg)
-        if multi:
+        with _runtime_checks_as_nan():
+            en, st = _chunk_kernel(dyn, key_data, idx_dev, cfg)
+        if gather:
             from jax.experimental import multihost_utils
 
             en, st = multihost_utils.process_allgather((en, st), tiled=True)
@@ -749,7 +842,7 @@ def monte_carlo(
         norms[lo:hi] = en
         status[lo:hi] = st
         computed += hi - lo
-        if ckpt is not None:
+        if ckpt is not None and lead:
             _atomic_savez(os.path.join(ckpt, f"chunk_{c:06d}.npz"), error_norm=en, status=st)
         if bar is not None:
             bar.set_postfix(failed=int(np.sum(status > 0)))

@@ -47,6 +47,64 @@ def risk_measure(losses, risk):
     raise ValueError(f"`risk` must be 'mean', 'worst' or ('cvar', α), got {risk!r}.")
 
 
+def risk_weights(risk, batch: int) -> np.ndarray:
+    """Weights w (batch,) on the ascending-sorted losses, so that ``risk_measure(l, risk) = Σ_i w_i l_(i)``.
+
+    The risk measure then enters :func:`tune` as data rather than as traced code, so one compilation
+    serves ``"mean"``, ``"worst"`` and every ``("cvar", α)``.  A non-finite loss sorts last and makes the
+    weighted sum non-finite whatever its weight (a failed scenario is never averaged away).
+    """
+    batch = int(batch)
+    w = np.zeros(batch)
+    if risk == "mean":
+        w[:] = 1.0 / batch
+    elif risk in ("worst", "max"):
+        w[-1] = 1.0
+    elif isinstance(risk, tuple) and len(risk) == 2 and risk[0] == "cvar":
+        alpha = float(risk[1])
+        if not 0.0 <= alpha < 1.0:
+            raise ValueError(f"CVaR level α must be in [0, 1), got {alpha}.")
+        k = max(1, int(math.ceil((1.0 - alpha) * batch)))
+        w[batch - k :] = 1.0 / k
+    else:
+        raise ValueError(f"`risk` must be 'mean', 'worst' or ('cvar', α), got {risk!r}.")
+    return w
+
+
+def _sorted_weighted(losses, weights):
+    s = jnp.sort(losses)
+    # 0·NaN would be NaN anyway; spelled out so that a failed scenario always poisons the value
+    return jnp.where(jnp.all(jnp.isfinite(losses)), jnp.sum(weights * s), jnp.nan)
+
+
+@eqx.filter_jit
+def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec):
+    """J(θ) and ∇J for :func:`tune`.  Module-level, with every array an argument: calls that differ only
+    in array values (initial gains, scenarios, risk weights, keys) reuse one compilation.
+    ``spec`` holds the static rest (where, loss, single, plant_batched, noise, u, max_segments,
+    simulate_kwargs, and ts as a tuple of floats: simulate needs concrete save times)."""
+    where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts = spec
+    ts = np.asarray(ts, dtype=float)  # concrete inside the trace
+    plant_axis = eqx.if_array(0) if plant_batched else None
+
+    def J(th):
+        new = tuple(th) if signs is None else tuple(s * jnp.exp(t) for s, t in zip(signs, th))
+        obs = eqx.tree_at(where, observer, new[0] if single else new)
+
+        def one(pl, x0, xh0, k):
+            traj = simulate(
+                pl, obs, x0, xh0, ts, u=u, noise=noise, key=k, throw=False,
+                max_segments=max_segments, **dict(simulate_kwargs),
+            )
+            val = loss(traj)
+            return jnp.where(traj.status == 0, val, jnp.nan)
+
+        losses = eqx.filter_vmap(one, in_axes=(plant_axis, 0, 0, 0))(plant, x0s, xhat0s, keys)
+        return _sorted_weighted(losses, weights)
+
+    return jax.value_and_grad(J)(theta)
+
+
 def _as_tuple(x):
     return tuple(x) if isinstance(x, (tuple, list)) else (x,)
 
@@ -100,6 +158,11 @@ def tune(
     (``eqx.tree_at`` skips ``__check_init__``).  Observers with a reset period T are simulated with a
     number of segments recomputed from the current T (a retrace happens only when it grows past a
     power-of-two bucket).
+
+    The gradient is compiled once per problem structure and reused across calls: calls that differ only in
+    array values (initial gains, scenario batches of the same size, the risk measure, which enters as
+    weights on the sorted losses, see :func:`risk_weights`) do not recompile, provided they pass the same
+    ``where`` and ``loss`` objects (a lambda written inside a loop is a new object each time).
 
     **Returns:** :class:`TuneResult`.
     """
@@ -162,26 +225,16 @@ def tune(
         ns = num_segments(T, 0.0, span)
         return int(2 ** math.ceil(math.log2(max(ns, 1))))
 
-    # array leaves of a batched plant are mapped; callables (LTV's A(t), C(t)) are shared
-    plant_axis = eqx.if_array(0) if plant_batched else None
+    weights = jnp.asarray(risk_weights(risk, batch))
+    spec_kwargs = tuple(sorted(simulate_kwargs.items()))
+    ts_key = tuple(float(v) for v in np.asarray(ts, dtype=float).ravel())
 
-    @eqx.filter_jit
     def value_and_grad(theta, max_segments):
-        def J(th):
-            obs = build(th)
-
-            def one(pl, x0, xh0, k):
-                traj = simulate(
-                    pl, obs, x0, xh0, ts, u=u, noise=noise, key=k, throw=False,
-                    max_segments=max_segments, **simulate_kwargs,
-                )
-                val = loss(traj)
-                return jnp.where(traj.status == 0, val, jnp.nan)
-
-            losses = eqx.filter_vmap(one, in_axes=(plant_axis, 0, 0, 0))(plant, x0s, xhat0s, keys)
-            return risk_measure(losses, risk)
-
-        return jax.value_and_grad(J)(theta)
+        # array leaves of a batched plant are mapped; callables (LTV's A(t), C(t)) are shared
+        spec = (where, loss, single, plant_batched, noise, u, max_segments, spec_kwargs, ts_key)
+        return _value_and_grad(
+            theta, signs if positive else None, observer, plant, x0s, xhat0s, keys, weights, spec
+        )
 
     opt_state = optimizer.init(theta0)
     update = jax.jit(optimizer.update)
