@@ -245,7 +245,7 @@ def main(batch=4096, n_scipy=24, repeat=3):
     body = f"""
 Chen & Yen example (γ = {C.GAMMA}, p0 = {C.P0}, T = {C.T_RESET}, 40 reset segments on [0, 10]), batch of
 {batch} initial conditions x(0) ~ N(0, I), x̂(0) = [5, -5], saved at the 41 reset instants.  obsjax calls are
-one `jax.jit` of `jax.vmap(simulate)`, warmed up, timed with `block_until_ready`, best of ≥ {repeat} (float64).
+one `jax.jit` (of `jax.vmap(simulate)`, or of `simulate_batch`), warmed up, timed with `block_until_ready`, best of ≥ {repeat} (float64).
 
 | method | time per batch (best / median) | trajectories/s | ratio to SciPy loop |
 |---|---|---|---|

@@ -150,6 +150,7 @@ def simulate(
     adaptive: bool = True,
     max_steps: int | None = 16384,
     max_segments: int | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
     _study: bool = False,
 ) -> Trajectory:
@@ -183,6 +184,10 @@ def simulate(
       the solver's Butcher tableau on a grid through every save time, reset instant and plant jump, each
       interval cut into ⌈Δ/dt0⌉ equal steps (see ``obsjax/_fixed_step.py``).
     - `max_steps`: per solve (per segment for resetting observers).
+    - `adjoint`: how diffrax differentiates each solve (default ``RecursiveCheckpointAdjoint()``, with
+      log₂(max_steps) checkpoints); e.g. ``RecursiveCheckpointAdjoint(checkpoints=max_steps)`` stores every
+      step of a short fixed-step segment and skips recomputation in reverse mode.  Unused by the direct
+      fixed-step path (a ``lax.scan``, differentiated by JAX).
     - `max_segments`: number of reset segments, needed only when the reset period is traced under ``jit``
       (outside ``jit`` it is computed as ceil((t1 − t0) / T)); must satisfy max_segments·T ≥ t1 − t0.
     - `throw`: raise on solver failure or non-finite values; ``False`` returns ``status`` instead, so a failing
@@ -278,6 +283,7 @@ def simulate(
             stepsize_controller=ctrl,
             max_steps=max_steps,
             throw=False,
+            **({} if adjoint is None else {"adjoint": adjoint}),
         )
         ok = sol.result == diffrax.RESULTS.successful
         return sol.ys, ok

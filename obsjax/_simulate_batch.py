@@ -68,6 +68,7 @@ def simulate_batch(
     adaptive: bool = True,
     max_steps: int | None = 16384,
     max_segments: int | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
     lockstep: bool = True,
     throw: bool = True,
 ) -> Trajectory:
@@ -126,7 +127,7 @@ def simulate_batch(
 
     common = dict(
         u=u, controller=controller, noise=noise, solver=solver, rtol=rtol, atol=atol, dt0=dt0,
-        adaptive=adaptive, max_steps=max_steps, max_segments=max_segments, throw=throw,
+        adaptive=adaptive, max_steps=max_steps, max_segments=max_segments, adjoint=adjoint, throw=throw,
     )
     if not lockstep or not adaptive or isinstance(noise, WhiteNoise):
         if noise is None:
@@ -179,6 +180,7 @@ def simulate_batch(
             term, solver, s0, s1, dt0, state, args=ctx,
             saveat=diffrax.SaveAt(ts=save_ts, t1=True),
             stepsize_controller=ctrl, max_steps=max_steps, throw=False,
+            **({} if adjoint is None else {"adjoint": adjoint}),
         )
         return sol.ys, sol.result == diffrax.RESULTS.successful
 
