@@ -98,8 +98,8 @@ reverse pass is the cost of the step's own vector-Jacobian products (six stages 
 L = Φ Qinv⁻¹ w and Φ's and Qinv's equations), not of recomputation.  T is tuned, so these fixed-step solves
 go through diffrax (the direct fixed-step scan needs a concrete reset grid); the forward got about 1.5×
 faster this session (the unrolled SPD solve), the reverse pass less, which put the fixed-step ratio at the
-target: ratios near 5 vary by about ±10 % between runs on this machine (5.47 and 5.29 for the first
-fixed-step row in two quiet runs today).
+target: the margin is thin, and ratios vary by about ±10 % between runs on this machine (5.47 and 5.29
+for the first fixed-step row in two earlier quiet runs today with best of 3 calls; this table is best of 7).
 
 Gradients that were timed, against central finite differences of the same forward function:
 
@@ -112,6 +112,6 @@ Gradients that were timed, against central finite differences of the same forwar
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--batch", type=int, default=64)
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=7)
     a = ap.parse_args()
     main(a.batch, a.repeat)
