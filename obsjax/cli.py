@@ -15,18 +15,13 @@ import traceback
 ALIASES: dict[str, tuple[str, ...]] = {
     "chen-yen": ("chen_yen",),
     "chenyen": ("chen_yen",),
-    "000": ("chen_yen",),
     "hassan": ("luenberger", "adaptive"),
     "thesis": ("luenberger", "adaptive"),
-    "001": ("luenberger", "adaptive"),
     "lovass-nagy": ("lovass_nagy",),
     "chaisanguanmitt": ("lovass_nagy",),
-    "002": ("lovass_nagy",),
     "huang-zhu": ("huang_zhu",),
     "tlo": ("huang_zhu",),
-    "003": ("huang_zhu",),
     "byrski-fuksa": ("byrski_fuksa",),
-    "004": ("byrski_fuksa",),
 }
 #: the order of ``--all`` for the documents' modules (others found in obsjax/_reproduce follow)
 DOCUMENT_MODULES = (
@@ -54,20 +49,16 @@ def available_reproductions() -> list[str]:
 
 
 def resolve_document(name: str) -> tuple[str, ...]:
-    """Alias, seed-file prefix or module name -> module names (ValueError for an unknown name)."""
+    """Alias or module name -> module names (ValueError for an unknown name)."""
     key = name.strip().lower().replace("_", "-").replace(" ", "-")
-    if key.endswith(".txt"):
-        key = key[:3]
     if key in ALIASES:
         return ALIASES[key]
-    if key[:3] in ALIASES and key[:3].isdigit():
-        return ALIASES[key[:3]]
     mod = name.strip().lower().replace("-", "_")
     known = set(DOCUMENT_MODULES) | set(available_reproductions())
     if mod in known:
         return (mod,)
     raise ValueError(
-        f"unknown document {name!r}: use one of {', '.join(sorted(set(ALIASES) - {'000', '001', '002', '003', '004'}))}, "
+        f"unknown document {name!r}: use one of {', '.join(sorted(ALIASES))}, "
         f"a module name ({', '.join(sorted(known))}) or --all."
     )
 
@@ -151,9 +142,9 @@ def demo(
     t0 = time.perf_counter()
     ts = np.linspace(0.0, 10.0, 201)
     # Independent SciPy references (solve_ivp, rtol 1e-10, the Riccati form (15) of P, segment by segment).
-    # For T = 2 at t = 1 and t = 5 they differ from shared/REFERENCE.md (4.973, 1.172), which is inconsistent
-    # with both this SciPy run and obsjax there; at t = 2 and t = 10 all three agree.
-    ref = {0.25: (5.775, 7.126, 1.052, 3.347e-2), 2.0: (4.853, 5.280, 1.120, 3.707e-3)}
+    from obsjax._reproduce.references import CHEN_YEN_ERROR_NORM
+
+    ref = {T: tuple(CHEN_YEN_ERROR_NORM[(20.0, 0.1, T)].values()) for T in (0.25, 2.0)}
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
     print(
         "Chen & Yen example, γ = 20, p0 = 0.1, x̂(0) = [5, -5]  (‖x̃(t)‖; SciPy reference in brackets)"

@@ -10,6 +10,7 @@ import scipy.linalg
 
 import obsjax
 from obsjax import analysis as an
+from obsjax._reproduce.references import CHEN_YEN_OPEN_LOOP_NORM_10
 from obsjax.observers._least_squares import _SW_A1, _SW_A2, _SW_C1, _SW_C2
 
 CY = obsjax.chen_yen_example()
@@ -56,8 +57,8 @@ def test_transition_matrix_example_scipy_and_open_loop_instability():
     )
     Phi = np.asarray(an.transition_matrix(CY, 10.0, 0.0))
     np.testing.assert_allclose(Phi, sol.y[:, -1].reshape(2, 2), rtol=1e-7, atol=1e-9)
-    # REFERENCE.md: the open loop is unstable, ‖x(10)‖ = 11.63 from x(0) = [5, -5].
-    assert abs(np.linalg.norm(Phi @ [5.0, -5.0]) - 11.63) < 5e-3
+    # The open loop is unstable, ‖x(10)‖ = 11.63 from x(0) = [5, -5] (independent SciPy value).
+    assert abs(np.linalg.norm(Phi @ [5.0, -5.0]) - CHEN_YEN_OPEN_LOOP_NORM_10) < 5e-3
 
 
 def test_gramians_lti_closed_form():

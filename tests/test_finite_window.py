@@ -1,8 +1,8 @@
-"""Byrski & Fuksa's minimum-norm finite-window observer (seed 004): kernels (25)-(28), norm (15)/(31), the
+"""Byrski & Fuksa's minimum-norm finite-window observer (1982): kernels (25)-(28), norm (15)/(31), the
 defining properties (16), (18), exact reconstruction, minimality, disturbance bound, gradients, the
 sliding-window observer in `simulate` and the closed loop (33)-(42).
 
-Independent references: the paper's closed forms (30), (31) and REFERENCE.md; SciPy (`expm`, `solve_ivp`)
+Independent references: the paper's closed forms (30), (31) and an independent discretisation's values (obsjax/_reproduce/references.py); SciPy (`expm`, `solve_ivp`)
 on the same problems; a direct finite-dimensional discretisation of the minimum-norm problem of Theorem 1
 (a KKT solve in NumPy that shares no code with the Hamiltonian/matrix-exponential formulas); central finite
 differences for gradients.
@@ -17,14 +17,16 @@ import scipy.integrate as si
 import scipy.linalg as sl
 
 import obsjax
+from obsjax._reproduce.references import BYRSKI_FUKSA_NORM31
 
 A29 = np.array([[0.0, 1.0], [0.0, 0.0]])
 B29 = np.array([[0.0], [1.0]])
 C29 = np.array([[2.0, 0.0]])
 MODEL29 = obsjax.LTI(A29, B29, C29)
 
-# REFERENCE.md, Byrski & Fuksa: the norm (31) checked by an independent discretisation.
-REFERENCE_31 = {0.5: 5.11731, 1.0: 2.09271, 2.0: 1.28257, 4.0: 1.22576}
+# Byrski & Fuksa: the norm (31) checked by an independent discretisation (values and provenance in
+# obsjax/_reproduce/references.py).
+REFERENCE_31 = BYRSKI_FUKSA_NORM31
 
 
 def norm31(T):
@@ -60,7 +62,7 @@ def random_plant(n, m, p, seed):
 
 
 # ------------------------------------------------------------------------------------------------------
-# Item 2: the norm (31) and REFERENCE.md
+# Item 2: the norm (31) and the reference values
 # ------------------------------------------------------------------------------------------------------
 
 

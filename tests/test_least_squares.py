@@ -1,6 +1,6 @@
 """Chen & Yen's least-squares observer with covariance reset, and the Kalman-Bucy baseline.
 
-Independent references: REFERENCE.md's figures, a SciPy solve_ivp implementation of (9), (11), (13), (15)
+Independent references: the SciPy figures of obsjax/_reproduce/references.py, a SciPy solve_ivp implementation of (9), (11), (13), (15)
 written here, the Theorem's bound from the analysis module, SciPy's algebraic Riccati solver, central finite
 differences.  Each compiled function is built once and reused (keep this file fast).
 """
@@ -17,6 +17,7 @@ import scipy.linalg
 import obsjax
 from obsjax import analysis as an
 from obsjax._checks import concrete_value
+from obsjax._reproduce.references import CHEN_YEN_ERROR_NORM
 
 CY = obsjax.chen_yen_example()
 SW = obsjax.switching_ltv_example()
@@ -31,7 +32,7 @@ def _idx(t):
 
 @eqx.filter_jit
 def _run_example(obs):
-    # Fig. 1/2 setting: x(0) = 0, no input, so x̃ = x̂ and x̃(0) = [5, -5] (REFERENCE.md).
+    # Fig. 1/2 setting: x(0) = 0, no input, so x̃ = x̂ and x̃(0) = [5, -5].
     return obsjax.simulate(
         CY,
         obs,
@@ -94,24 +95,15 @@ def _scipy_error_norms(gamma, p0, T, times, tend=10.0):
     return out
 
 
-# ---------------------------------------------------------------- Figs. 1 and 2, REFERENCE.md
+# ---------------------------------------------------------------- Figs. 1 and 2, reference values
 def _agrees(ours, ref):
-    """Within 1e-4 relative, or equal to the 4 significant digits REFERENCE.md prints (1.052 stands for
+    """Within 1e-4 relative, or equal to the 4 significant digits the reference table keeps (1.052 stands for
     any value in [1.0515, 1.0525): 4.8e-4 relative, so 1e-4 cannot be asked of every entry)."""
     return abs(ours - ref) <= 1e-4 * abs(ref) or f"{ours:.4g}" == f"{ref:.4g}"
 
 
 @pytest.mark.parametrize(
-    "gamma, p0, T, ref",
-    [
-        (20.0, 0.1, 0.25, {1.0: 5.775, 2.0: 7.126, 5.0: 1.052, 10.0: 3.347e-2}),
-        # Fig. 2: REFERENCE.md's entries for t = 1 and t = 5 are the values at t = 0.96 and t = 4.96
-        # (one 0.04 s sample early in the reference's own grid); at t = 1 and 5 themselves the law gives
-        # 4.8527 and 1.1198, checked against SciPy in test_figures_match_scipy.
-        (20.0, 0.1, 2.0, {0.96: 4.973, 2.0: 5.280, 4.96: 1.172, 10.0: 3.707e-3}),
-        (40.0, 0.1, 0.25, {10.0: 6.037e-4}),
-        (20.0, 1.0, 0.25, {10.0: 1.702e-4}),
-    ],
+    "gamma, p0, T, ref", [(*key, ref) for key, ref in CHEN_YEN_ERROR_NORM.items()]
 )
 def test_reference_figures(gamma, p0, T, ref):
     nrm = np.asarray(_example(gamma, p0, T).error_norm)

@@ -1,8 +1,8 @@
-"""Byrski & Fuksa (seed 004): the figures of the paper's example and of its Section 4, reproduced.
+"""Byrski & Fuksa ("Optimal finite parameter observer", 1982): the figures of the paper's example and of its Section 4, reproduced.
 
 - ``byrski_fuksa_norm31.png``: the norm (31) of the optimal observer of the double integrator (29) against
   the window length T (obsjax's matrix-exponential norm (15) by (28) and by (25)-(26), the closed form (31),
-  the values of REFERENCE.md and the limit √1.5).
+  an independent discretisation's values and the limit √1.5).
 - ``byrski_fuksa_kernels30.png``: the optimal kernels G1, G2 at T = 1 against the closed form (30).
 - ``byrski_fuksa_deadbeat.png``: the closed loop (33)-(35) with u = P x̂, eig(A + BP) = {−1, −2}: the state,
   the estimate, the state-feedback trajectory of (42) from x(T) (Lemma 4), and the decay of ‖x‖ against
@@ -101,12 +101,13 @@ def reproduce(outdir: str) -> list[str]:
     # 1. the norm (31)
     Ts = np.linspace(0.3, 6.0, 58)
     n28, n25 = norm_curve(Ts, "(28)"), norm_curve(Ts, "(25)")
-    ref = {0.5: 5.11731, 1.0: 2.09271, 2.0: 1.28257, 4.0: 1.22576}
+    from .references import BYRSKI_FUKSA_NORM31 as ref
+
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.semilogy(Ts, norm31(Ts), "k-", lw=3, alpha=0.3, label="closed form (31)")
     ax.semilogy(Ts, n28, "C0-", label="obsjax, (28) (matrix exponentials)")
     ax.semilogy(Ts[::4], n25[::4], "C1o", ms=4, label="obsjax, (25)-(26)")
-    ax.semilogy(list(ref), list(ref.values()), "C3s", mfc="none", ms=8, label="REFERENCE.md")
+    ax.semilogy(list(ref), list(ref.values()), "C3s", mfc="none", ms=8, label="independent discretisation")
     ax.axhline(np.sqrt(1.5), color="gray", ls="--", label=r"limit $\sqrt{1.5}$")
     ax.set_xlabel("window length T")
     ax.set_ylabel(r"$\|(G_1, G_2)\|(T)$")

@@ -1,7 +1,7 @@
-"""Chen & Yen (seed 000): Figs. 1 and 2, the state estimation error of the example, reproduced.
+"""Chen & Yen (IEEE TAC 44(9), 1999): Figs. 1 and 2, the state estimation error of the example, reproduced.
 
 - ``chen_yen_fig1.png``: x̃(t) = x̂(t) − x(t) for γ = 20, p0 = 0.1, x̂(0) = [5, −5], T = 0.25 (Fig. 1): the
-  two components (as in the paper) and ‖x̃(t)‖ on a log scale with the values of REFERENCE.md, the reset
+  two components (as in the paper) and ‖x̃(t)‖ on a log scale with independent SciPy reference values, the reset
   instants and the Theorem's guaranteed envelope Π ρ_k ‖x̃(0)‖ (22).
 - ``chen_yen_fig2.png``: the same with T = 2 (Fig. 2).
 
@@ -15,12 +15,10 @@ import sys
 
 import numpy as np
 
-# REFERENCE.md (‖x̃‖ at t = 1, 2, 5, 10).  For T = 2 the entries it gives for t = 1 and t = 5 (4.973, 1.172)
-# are the values of ‖x̃‖ at t = 0.96 and 4.96; they are plotted at those times.
-REFERENCE = {
-    0.25: {1.0: 5.775, 2.0: 7.126, 5.0: 1.052, 10.0: 3.347e-2},
-    2.0: {0.96: 4.973, 2.0: 5.280, 4.96: 1.172, 10.0: 3.707e-3},
-}
+from .references import CHEN_YEN_ERROR_NORM
+
+# Independent SciPy values of ‖x̃‖ at t = 1, 2, 5, 10 (see obsjax/_reproduce/references.py), by period T.
+REFERENCE = {T: CHEN_YEN_ERROR_NORM[(20.0, 0.1, T)] for T in (0.25, 2.0)}
 
 
 def simulate_example(T, gamma=20.0, p0=0.1, ts=None, rtol=1e-9, atol=1e-11):
@@ -71,7 +69,7 @@ def _figure(T, path):
     ax1.legend()
     ax2.semilogy(ts, nrm, label="‖x̃(t)‖ (obsjax)")
     ref = REFERENCE[T]
-    ax2.semilogy(list(ref), list(ref.values()), "o", mfc="none", color="k", label="REFERENCE.md")
+    ax2.semilogy(list(ref), list(ref.values()), "o", mfc="none", color="k", label="SciPy reference")
     ax2.semilogy(env_t, env, "--", color="gray", lw=1, label="Theorem: Π ρ_k ‖x̃(0)‖ (22)")
     for k in range(1, len(rho)):
         ax2.axvline(k * T, color="C2", lw=0.4, alpha=0.4)

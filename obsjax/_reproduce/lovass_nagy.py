@@ -1,4 +1,4 @@
-"""Reproduce the examples of Chaisanguanmitt's slides (002_74dc3fe675433a48.txt) on Lovass-Nagy observers,
+"""Reproduce the examples of K. Chaisanguanmitt's slides "Developed observers for time-varying linear systems" on Lovass-Nagy observers,
 min-max initial-state estimation and their combination with a Luenberger observer.
 
 ``reproduce(outdir)`` writes:

@@ -1,7 +1,7 @@
 """Byrski & Fuksa: the minimum-norm finite-window observer and its closed loop.
 
 Source: W. Byrski, S. Fuksa, "Optimal finite parameter observer. An application to synthesis of stabilizing
-feedback for a linear system" (seed ``004_381b28a6a8360c24.txt``).  Equation numbers below are the paper's.
+feedback for a linear system" (journal article, received March 1982).  Equation numbers below are the paper's.
 
 For the LTI model ẋ = A x + B u, y = C x (12), the state at the end of a window of length T is an integral
 of the measured output and input over the window (14)::

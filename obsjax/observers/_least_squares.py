@@ -1,7 +1,7 @@
 """Chen & Yen's least-squares observer with covariance reset for LTV systems.
 
 Source: M.-S. Chen and J.-Y. Yen, "Application of the least squares algorithm to the observer design for
-linear time-varying systems", IEEE TAC 44(9), 1999 (``seeds/000_feec7a3e030c3a73.txt``).
+linear time-varying systems", IEEE Transactions on Automatic Control, 44(9), 1999.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def chen_yen_example(B=None) -> LTV:
     The (2, 1) entry is taken as printed, ``-1 + 1.5 sin t cos t`` (the textbook Markus-Yamabe matrix has
     ``-1 - 1.5 sin t cos t``, whose solutions grow like e^{t/2}: ‖x(10)‖ ≈ 742 from [5, -5]).  With the
     printed matrix the open loop is unstable but mildly so, ‖x(10)‖ = 11.63 from x(0) = [5, -5], as in
-    the paper and in REFERENCE.md.  ``√t`` is implemented with a zero derivative at t = 0 so that
+    the paper and in an independent SciPy integration.  ``√t`` is implemented with a zero derivative at t = 0 so that
     gradients with respect to the reset period T stay finite.
 
     **Arguments:**
