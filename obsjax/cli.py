@@ -208,7 +208,8 @@ def monte_carlo_figure(results: dict, path: str) -> str:
     ax1.set_ylabel("trajectories per bin")
     ax1.set_title("convergence times", fontsize=10)
     ax1.grid(True, alpha=0.3)
-    ax1.legend(fontsize=8)
+    ax1.set_ylim(0.0, 1.5 * ax1.get_ylim()[1])  # room for the legend above the bars
+    ax1.legend(fontsize=8, loc="upper center")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
