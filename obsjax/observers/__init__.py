@@ -8,3 +8,7 @@ from ._kudva_narendra import ErrorModel2 as ErrorModel2
 from ._kudva_narendra import KudvaNarendra as KudvaNarendra
 from ._luders_narendra import LudersNarendra as LudersNarendra
 from ._luders_narendra import luders_narendra_form as luders_narendra_form
+from ._adaptive_common import auxiliary_matrices as auxiliary_matrices
+from ._ls_identifier import LeastSquaresIdentifier as LeastSquaresIdentifier
+from ._minimal_adaptive import MinimalAdaptiveObserver as MinimalAdaptiveObserver
+from ._nonminimal_adaptive import NonMinimalAdaptiveObserver as NonMinimalAdaptiveObserver
