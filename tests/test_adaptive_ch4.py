@@ -83,7 +83,9 @@ def ch4_runs():
     out = {}
     for kind in ("minimal", "nonminimal"):
         for which, amps in (("rich", EX["amplitudes"]), ("poor", EX["poor_amplitudes"])):
-            out[kind, which] = simulate_chapter4(kind, EX, gamma=5.0, amplitudes=amps, t1=T1, num=NUM)
+            out[kind, which] = simulate_chapter4(
+                kind, EX, gamma=5.0, amplitudes=amps, t1=T1, num=NUM
+            )
     return out
 
 
@@ -112,7 +114,9 @@ def test_minimal_error_equivalence_pointwise():
     """The proposition of section 4.5.1: at any state, ε = e − ρ (ρ = Σ φ_i C_i ω⁽¹⁾ + ψ_i C_i ω⁽²⁾) obeys
     ε̇ = K ε + d θᵀ v, with θ = [a − â; b̂ − b] (jvp of the plant + observer vector field; C_i in closed form)."""
     n = 3
-    obs = obsjax.MinimalAdaptiveObserver(n, [-2.0, -3.0], 0.5, jnp.array([1.0, 2.0, 3.0, 0.5, 1.5, 2.5]))
+    obs = obsjax.MinimalAdaptiveObserver(
+        n, [-2.0, -3.0], 0.5, jnp.array([1.0, 2.0, 3.0, 0.5, 1.5, 2.5])
+    )
     plant = obsjax.kreisselmeier_form(A3, B3)
     d = np.r_[1.0, np.real(np.poly([-2.0, -3.0]))[1:]]
     C = c_closed_form(d)
@@ -120,15 +124,17 @@ def test_minimal_error_equivalence_pointwise():
     rng = np.random.default_rng(0)
     for _ in range(3):
         x = rng.normal(size=n)
-        z = obsjax.observers._minimal_adaptive.MinimalAdaptiveState(*(
-            jnp.asarray(rng.normal(size=s)) for s in (n, n, n, n - 1, n - 1)
-        ))
+        z = obsjax.observers._minimal_adaptive.MinimalAdaptiveState(
+            *(jnp.asarray(rng.normal(size=s)) for s in (n, n, n, n - 1, n - 1))
+        )
         u = rng.normal(size=1)
         y = plant.h(0.0, x, u)
         dz = obs.vector_field(0.0, z, y, u)
         dx = np.asarray(plant.f(0.0, x, u))
         phi, psi = A3 - np.asarray(z.a), np.asarray(z.b) - B3
-        rho = np.einsum("i,imj,j->m", phi, C, z.omega_y) + np.einsum("i,imj,j->m", psi, C, z.omega_u)
+        rho = np.einsum("i,imj,j->m", phi, C, z.omega_y) + np.einsum(
+            "i,imj,j->m", psi, C, z.omega_u
+        )
         drho = (
             np.einsum("i,imj,j->m", -np.asarray(dz.a), C, z.omega_y)
             + np.einsum("i,imj,j->m", phi, C, dz.omega_y)
@@ -171,15 +177,20 @@ def minimal_rhs(example, G, amps):
 
 def test_minimal_matches_scipy(ch4_runs):
     """x̂, â, b̂ of the simulation equal a SciPy DOP853 integration of (4.12)-(4.18) as rebuilt."""
-    ts, _, traj, obs = ch4_runs["minimal", "rich"]
+    ts, _, traj, _ = ch4_runs["minimal", "rich"]
     n = 3
     G = chapter4_gain(EX, 5.0)
     a0 = np.where(EX["adapt"][:n], 0.0, A3)
     b0 = np.where(EX["adapt"][n:], 0.0, B3)
     w0 = np.r_[np.zeros(2 * n), a0, b0, np.zeros(2 * (n - 1))]
     sol = scipy.integrate.solve_ivp(
-        minimal_rhs(EX, G, EX["amplitudes"]), (0.0, 60.0), w0, method="DOP853", rtol=1e-11,
-        atol=1e-13, t_eval=ts[ts <= 60.0],
+        minimal_rhs(EX, G, EX["amplitudes"]),
+        (0.0, 60.0),
+        w0,
+        method="DOP853",
+        rtol=1e-11,
+        atol=1e-13,
+        t_eval=ts[ts <= 60.0],
     )
     k = sol.t.shape[0]
     np.testing.assert_allclose(np.asarray(traj.xhat[:k]), sol.y[n : 2 * n].T, atol=2e-5)
@@ -219,7 +230,7 @@ def state_from_filters(alpha, bhat, rho, oy, ou, y):
 
 def test_nonminimal_matches_scipy(ch4_runs):
     """ŷ, â, b̂ and the state estimate equal a SciPy integration of (4.19) with Figs. 4.4-4.5 as rebuilt."""
-    ts, _, traj, obs = ch4_runs["nonminimal", "rich"]
+    ts, _, traj, _ = ch4_runs["nonminimal", "rich"]
     n = 3
     lam0 = EX["lam"]
     rho = np.real(np.poly(EX["filter_poles"]))[1:]
@@ -250,8 +261,14 @@ def test_nonminimal_matches_scipy(ch4_runs):
     np.testing.assert_allclose(np.asarray(traj.z.b[:k]), sol.y[2 * n + 1 : 3 * n + 1].T, atol=2e-5)
     for j in (0, 40, 80, k - 1):
         w = sol.y[:, j]
-        xh = state_from_filters(c - w[n + 1 : 2 * n + 1], w[2 * n + 1 : 3 * n + 1], rho,
-                                w[3 * n + 1 : 4 * n], w[4 * n :], w[0])
+        xh = state_from_filters(
+            c - w[n + 1 : 2 * n + 1],
+            w[2 * n + 1 : 3 * n + 1],
+            rho,
+            w[3 * n + 1 : 4 * n],
+            w[4 * n :],
+            w[0],
+        )
         np.testing.assert_allclose(np.asarray(traj.xhat[j]), xh, atol=5e-5)
 
 
@@ -261,13 +278,24 @@ def test_nonminimal_state_estimate_exact_at_matching_point():
     probe = obsjax.NonMinimalAdaptiveObserver(n, EX["filter_poles"], EX["lam"], 1.0)
     a_s, b_s = probe.matching_point(jnp.asarray(A3), jnp.asarray(B3))
     obs = obsjax.NonMinimalAdaptiveObserver(
-        n, EX["filter_poles"], EX["lam"], jnp.asarray(1e-300 * np.ones(2 * n)), a0=a_s, b0=b_s,
+        n,
+        EX["filter_poles"],
+        EX["lam"],
+        jnp.asarray(1e-300 * np.ones(2 * n)),
+        a0=a_s,
+        b0=b_s,
         adapt=EX["adapt"],
     )
     traj = obsjax.simulate(
-        obsjax.kreisselmeier_form(A3, B3), obs, jnp.array([1.0, -1.0, 2.0]), jnp.zeros(n),
-        jnp.linspace(0.0, T1, NUM), u=obsjax.signals.multisine(EX["amplitudes"], EX["frequencies"]),
-        rtol=1e-8, atol=1e-10, max_steps=400_000,
+        obsjax.kreisselmeier_form(A3, B3),
+        obs,
+        jnp.array([1.0, -1.0, 2.0]),
+        jnp.zeros(n),
+        jnp.linspace(0.0, T1, NUM),
+        u=obsjax.signals.multisine(EX["amplitudes"], EX["frequencies"]),
+        rtol=1e-8,
+        atol=1e-10,
+        max_steps=400_000,
     )
     e = np.asarray(traj.error_norm)
     assert e[0] > 0.5 and e[20] < 1e-2 and e[40] < 1e-5 and e[-1] < 1e-8  # t = 0, 10, 20, 200
@@ -296,7 +324,7 @@ def test_poor_input_stalls(ch4_runs):
     """u = sin 0.8t (2 spectral lines, 4 unknowns): the output error vanishes, the parameters stall far from
     the truth, and the regressor is not rich by (4.21) (nor persistently exciting)."""
     for kind in ("minimal", "nonminimal"):
-        ts, err, traj, obs = ch4_runs[kind, "poor"]
+        ts, err, traj, _ = ch4_runs[kind, "poor"]
         _, err_rich, _, _ = ch4_runs[kind, "rich"]
         yhat = traj.xhat[:, 0] if kind == "minimal" else traj.z.yhat
         out = np.abs(np.asarray(yhat) - np.asarray(traj.y[:, 0]))
@@ -322,8 +350,9 @@ def test_identifier_matches_scipy(ident_runs):
             al = np.array([1.0, np.sin(t), c[0] * np.cos(2 * t) + c[1] * np.sin(t)])
             return -(al * (al @ Kh) - al * (al @ K))
 
-        sol = scipy.integrate.solve_ivp(rhs, (0, ts[-1]), np.zeros(3), method="DOP853", rtol=1e-12,
-                                        atol=1e-14, t_eval=ts)
+        sol = scipy.integrate.solve_ivp(
+            rhs, (0, ts[-1]), np.zeros(3), method="DOP853", rtol=1e-12, atol=1e-14, t_eval=ts
+        )
         np.testing.assert_allclose(np.asarray(traj.xhat), sol.y.T, atol=1e-8)
 
 
@@ -332,7 +361,9 @@ def test_identifier_rich_converges_at_the_morgan_narendra_rate(ident_runs):
     windows), itself no slower than its gramian bound; V = ½K̃ᵀΓ⁻¹K̃ is non-increasing."""
     ts, Kt, traj, ident = ident_runs["rich"]
     T = 2 * np.pi
-    mn = obsjax.analysis.morgan_narendra(IdentifierRegressor(IDENTIFIER_3["rich"]), T, 60.0, delta0=0.8)
+    mn = obsjax.analysis.morgan_narendra(
+        IdentifierRegressor(IDENTIFIER_3["rich"]), T, 60.0, delta0=0.8
+    )
     assert mn.uniform and mn.rate >= mn.rate_bound > 0
     nrm = np.linalg.norm(Kt, axis=1)
     bound = nrm[0] * np.exp(-mn.rate * np.clip(ts - T, 0.0, None))
@@ -344,12 +375,13 @@ def test_identifier_rich_converges_at_the_morgan_narendra_rate(ident_runs):
 
 def test_identifier_poor_stalls_along_the_unexcited_direction(ident_runs):
     """α_3 = 2α_2: wᵀ α(t) ≡ 0 for w = (0, 2, −1)/√5, so wᵀK̃ is constant; morgan_narendra finds w."""
-    ts, Kt, traj, ident = ident_runs["poor"]
+    _, Kt, _, _ = ident_runs["poor"]
     w = np.array([0.0, 2.0, -1.0]) / np.sqrt(5.0)
     np.testing.assert_allclose(Kt @ w, Kt[0] @ w, atol=1e-9)
     assert np.linalg.norm(Kt[-1] - (Kt[-1] @ w) * w) < 1e-6  # the excited part has converged
-    mn = obsjax.analysis.morgan_narendra(IdentifierRegressor(IDENTIFIER_3["poor"]), 2 * np.pi, 60.0,
-                                         delta0=0.8)
+    mn = obsjax.analysis.morgan_narendra(
+        IdentifierRegressor(IDENTIFIER_3["poor"]), 2 * np.pi, 60.0, delta0=0.8
+    )
     assert not mn.uniform and mn.rate == 0.0 and mn.epsilon0 == 0.0
     assert abs(abs(mn.direction @ w) - 1.0) < 1e-8
 
@@ -372,19 +404,31 @@ def test_morgan_narendra_closed_forms_and_the_pe_test():
     over δ0 are δ0, 2 sin(δ0/2) sin(τ + δ0/2) and sin δ0 cos(2τ + δ0), orthogonal over a period, so
     ε_0 = min(δ0, √2 |sin(δ0/2)|, |sin δ0|/√2).  α = (1, sin t, 2 sin t) is not rich.  Both verdicts agree
     with is_persistently_exciting."""
-    T, d0, horizon = 2 * np.pi, 0.8, 60.0  # nine windows, as in the identifier tests (one compilation)
-    rich = obsjax.analysis.morgan_narendra(IdentifierRegressor(IDENTIFIER_3["rich"]), T, horizon, delta0=d0)
+    T, d0, horizon = (
+        2 * np.pi,
+        0.8,
+        60.0,
+    )  # nine windows, as in the identifier tests (one compilation)
+    rich = obsjax.analysis.morgan_narendra(
+        IdentifierRegressor(IDENTIFIER_3["rich"]), T, horizon, delta0=d0
+    )
     assert rich.uniform and bool(rich)
-    assert rich.eta1 == pytest.approx(np.pi, rel=1e-8) and rich.eta2 == pytest.approx(2 * np.pi, rel=1e-8)
+    assert rich.eta1 == pytest.approx(np.pi, rel=1e-8) and rich.eta2 == pytest.approx(
+        2 * np.pi, rel=1e-8
+    )
     assert rich.a == pytest.approx(0.5, rel=1e-8) and rich.b == pytest.approx(-2 * np.pi, rel=1e-8)
     assert rich.per_window.shape == (9, 5) and rich.search_window == pytest.approx(2 * T)
     eps = min(d0, np.sqrt(2) * abs(np.sin(d0 / 2)), abs(np.sin(d0)) / np.sqrt(2))
     assert rich.epsilon0 == pytest.approx(eps, rel=1e-7)
     assert rich.rate >= rich.rate_bound > 0
-    poor = obsjax.analysis.morgan_narendra(IdentifierRegressor(IDENTIFIER_3["poor"]), T, horizon, delta0=d0)
+    poor = obsjax.analysis.morgan_narendra(
+        IdentifierRegressor(IDENTIFIER_3["poor"]), T, horizon, delta0=d0
+    )
     assert not poor.uniform and poor.epsilon0 == 0.0 and poor.rate == 0.0 and poor.a < 1e-12
-    pe = {w: obsjax.analysis.is_persistently_exciting(IdentifierRegressor(IDENTIFIER_3[w]), T, 2 * T)
-          for w in ("rich", "poor")}
+    pe = {
+        w: obsjax.analysis.is_persistently_exciting(IdentifierRegressor(IDENTIFIER_3[w]), T, 2 * T)
+        for w in ("rich", "poor")
+    }
     assert bool(pe["rich"]) and not bool(pe["poor"])
     assert pe["rich"].eta1 == pytest.approx(rich.eta1, rel=1e-8)
 
@@ -401,17 +445,25 @@ def test_scalar_error_system_420():
         ts, e, phi, psi = simulate_420(which)
         A_, w_, ph_ = SCALAR_420_INPUTS[which]
 
-        def rhs420(t, E):
+        def rhs420(t, E, A_=A_, w_=w_, ph_=ph_):
             # the plant ẋ_p = a_p x_p + b_p u and (4.20) as printed: [[−K, x_p, u], [−γ1 x_p, 0, 0], [−γ2 u, 0, 0]]
             xp, u = E[3], A_ * np.sin(w_ * t + ph_)
             A = np.array([[-k, xp, u], [-g * xp, 0.0, 0.0], [-g * u, 0.0, 0.0]])
             return np.r_[A @ E[:3], ex["ap"] * xp + ex["bp"] * u]
 
-        sol = scipy.integrate.solve_ivp(rhs420, (0, ts[-1]), [0.0, -ex["ap"], -ex["bp"], 0.0],
-                                        method="DOP853", rtol=1e-12, atol=1e-14, t_eval=ts)
+        sol = scipy.integrate.solve_ivp(
+            rhs420,
+            (0, ts[-1]),
+            [0.0, -ex["ap"], -ex["bp"], 0.0],
+            method="DOP853",
+            rtol=1e-12,
+            atol=1e-14,
+            t_eval=ts,
+        )
         B = Scalar420Regressor(which)
-        np.testing.assert_allclose(-np.asarray(jax.vmap(B)(jnp.asarray(ts)))[:, 0] / np.sqrt(g), sol.y[3],
-                                   atol=1e-9)  # the closed form of x_p used for (4.21)
+        np.testing.assert_allclose(
+            -np.asarray(jax.vmap(B)(jnp.asarray(ts)))[:, 0] / np.sqrt(g), sol.y[3], atol=1e-9
+        )  # the closed form of x_p used for (4.21)
         np.testing.assert_allclose(np.c_[e, phi, psi], sol.y[:3].T, atol=1e-7)
         mn = obsjax.analysis.morgan_narendra(B, 2 * np.pi, 8 * np.pi, t0=20.0, delta0=1.0)
         final = np.abs(np.r_[e[-1], phi[-1], psi[-1]])
@@ -437,6 +489,7 @@ def test_morgan_narendra_bad_input():
 #: Fixed Ralston (2nd-order Runge–Kutta) steps: autodiff and central differences then differentiate the same
 #: discrete flow, and the reverse-mode compilation is a fraction of an adaptive solve's.
 FIXED = {"solver": diffrax.Ralston(), "adaptive": False, "dt0": 0.01}
+
 
 def _fd_check(loss, obs, leaves, h=1e-5, rel=1e-4):
     g = eqx.filter_grad(loss)(obs)
@@ -478,7 +531,9 @@ def test_gradients_match_central_differences(kind, lam):
 
 
 def test_identifier_gradient_matches_central_differences():
-    ident = obsjax.LeastSquaresIdentifier(3, IdentifierRegressor(IDENTIFIER_3["rich"]), Gamma=jnp.array([1.0, 0.5, 2.0]))
+    ident = obsjax.LeastSquaresIdentifier(
+        3, IdentifierRegressor(IDENTIFIER_3["rich"]), Gamma=jnp.array([1.0, 0.5, 2.0])
+    )
     K = jnp.asarray(IDENTIFIER_3["K"])
     ts = jnp.linspace(0.0, 10.0, 41)
 
@@ -519,11 +574,21 @@ def test_guards_survive_jit():
     no = obsjax.NonMinimalAdaptiveObserver(2, [-1.0], 1.0, jnp.ones(4))
     li = obsjax.LeastSquaresIdentifier(2, lambda t, u: jnp.ones(2), Gamma=jnp.ones(2))
     cases = [
-        (lambda v: eqx.tree_at(lambda o: o.Gamma, mo, v * jnp.ones(4)).prepare().Gamma, "`Gamma` must be > 0"),
+        (
+            lambda v: eqx.tree_at(lambda o: o.Gamma, mo, v * jnp.ones(4)).prepare().Gamma,
+            "`Gamma` must be > 0",
+        ),
         (lambda v: eqx.tree_at(lambda o: o.lam0, no, v).prepare().lam0, "`lam0` must be > 0"),
-        (lambda v: eqx.tree_at(lambda o: o.filter_poles, mo, -v * jnp.ones(1)).prepare().filter_poles,
-         "`filter_poles` must satisfy Re < 0"),
-        (lambda v: eqx.tree_at(lambda o: o.Gamma, li, v * jnp.ones(2)).prepare().Gamma, "`Gamma` must be > 0"),
+        (
+            lambda v: (
+                eqx.tree_at(lambda o: o.filter_poles, mo, -v * jnp.ones(1)).prepare().filter_poles
+            ),
+            "`filter_poles` must satisfy Re < 0",
+        ),
+        (
+            lambda v: eqx.tree_at(lambda o: o.Gamma, li, v * jnp.ones(2)).prepare().Gamma,
+            "`Gamma` must be > 0",
+        ),
     ]
     for fn, match in cases:
         assert jnp.all(jnp.isfinite(jax.jit(fn)(1.0)))

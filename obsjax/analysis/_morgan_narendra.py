@@ -20,13 +20,14 @@ and the exponential rate of (i) (exact per window, and a bound from the gramians
 from __future__ import annotations
 
 import dataclasses
+
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._ltv import _RTOL, _ATOL, _n_periods, _pos_float, _solve
+from ._ltv import _ATOL, _RTOL, _n_periods, _pos_float, _solve
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,8 +155,15 @@ def _windows(B, starts, T, delta0, n, m, rtol, atol):
 
     def window(s):
         lead0 = _solve(
-            lambda tau, c, args: _matrix(B, tau, n, m), None, s, s + delta0, jnp.zeros((n, m)),
-            diffrax.SaveAt(t1=True), rtol, atol, 65536,
+            lambda tau, c, args: _matrix(B, tau, n, m),
+            None,
+            s,
+            s + delta0,
+            jnp.zeros((n, m)),
+            diffrax.SaveAt(t1=True),
+            rtol,
+            atol,
+            65536,
         )[0]
 
         def rhs(tau, state, args):
@@ -166,7 +174,9 @@ def _windows(B, starts, T, delta0, n, m, rtol, atol):
             return b, _matrix(B, tau + delta0, n, m), bbT, M @ M.T, -bbT @ Phi
 
         y0 = (jnp.zeros((n, m)), lead0, jnp.zeros((n, n)), jnp.zeros((n, n)), jnp.eye(n))
-        _, _, G, H, Phi = _solve(rhs, None, s, s + T, y0, diffrax.SaveAt(t1=True), rtol, atol, 65536)
+        _, _, G, H, Phi = _solve(
+            rhs, None, s, s + T, y0, diffrax.SaveAt(t1=True), rtol, atol, 65536
+        )
         return 0.5 * (G[0] + G[0].T), 0.5 * (H[0] + H[0].T), jnp.linalg.norm(Phi[0], 2)
 
     return jax.vmap(window)(starts)
@@ -175,11 +185,17 @@ def _windows(B, starts, T, delta0, n, m, rtol, atol):
 def _signal_shape(B, t0):
     """(n, m) of B(t), read at t0 ((n,) counts as (n, 1))."""
     if not callable(B):
-        raise ValueError(f"`B` must be a callable of t returning an (n,) or (n, m) array, got {type(B).__name__}.")
+        raise ValueError(  # noqa: TRY004 (bad input is a ValueError throughout obsjax)
+            f"`B` must be a callable of t returning an (n,) or (n, m) array, got {type(B).__name__}."
+        )
     try:
         b0 = jnp.asarray(B(jnp.asarray(t0)))
     except Exception as e:  # noqa: BLE001
-        raise ValueError(f"`B` must be a callable of t returning an (n, m) array; it failed: {e}") from None
+        raise ValueError(
+            f"`B` must be a callable of t returning an (n, m) array; it failed: {e}"
+        ) from None
     if b0.ndim not in (1, 2):
-        raise ValueError(f"`B(t)` must return an (n,) or (n, m) array, got shape {tuple(b0.shape)}.")
+        raise ValueError(
+            f"`B(t)` must return an (n,) or (n, m) array, got shape {tuple(b0.shape)}."
+        )
     return b0.shape[0], 1 if b0.ndim == 1 else b0.shape[1]

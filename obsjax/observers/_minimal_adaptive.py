@@ -51,7 +51,7 @@ class MinimalAdaptiveObserver(AbstractObserver):
     - (4.13)-(4.14): K = [−k | Ā],  x̂̇ = K x̂ + (k − â) x_1 + b̂ u + w⁽¹⁾ + w⁽²⁾ (the printed "k x̂" is K x̂);
     - (4.15): with e = x̂ − x, φ = a − â, ψ = b̂ − b, θ = [φ | ψ], Z = [x_1, u]:  ė = K e + θ Z + w,
       ε_1 = hᵀ e (ε_1 = x̂_1 − y);
-    - (4.18): θ̇ = −Γ ε_1 v, v = [v⁽¹⁾; v⁽²⁾], i.e. â̇ = −φ̇ = Γ_a ε_1 v⁽¹⁾ and b̂̇ = ψ̇ = −Γ_b ε_1 v⁽²⁾.
+    - (4.16)-(4.18): θ̇ = −Γ ε_1 v, v = [v⁽¹⁾; v⁽²⁾] (θ as the 2n-vector [φ; ψ]), i.e. â̇ = −φ̇ and b̂̇ = ψ̇.
 
     **Rebuilt** (the text names but does not print v, w, d; "v(t) = G(pPZ(t))", "w = w(θ, V)" and the
     garbled second system of the proposition are read as v = G(p) Z, w = w(θ̇, filter states),
@@ -71,8 +71,11 @@ class MinimalAdaptiveObserver(AbstractObserver):
 
     Lyapunov argument: since K d = −λ d, ε̇_1 = −λ ε_1 + θᵀ v + η(t), where η = hᵀKε + λ ε_1 decays with
     the modes of K and vanishes identically when e(0) = 0.  With V = ½ ε_1² + ½ θᵀ Γ⁻¹ θ
-    (:meth:`lyapunov`), V̇ = −λ ε_1² + ε_1 η: V is non-increasing whenever x̂(0) = x(0).  Parameter
-    convergence needs v sufficiently rich: n distinct frequencies in u when all 2n parameters are unknown.
+    (:meth:`lyapunov`), V̇ = −λ ε_1² + ε_1 η: V is non-increasing whenever x̂(0) = x(0).  (ε_1, θ) is the
+    second class of (4.21) with A = −λ and B = −Γ^{1/2} v, so the parameters converge uniformly when v is
+    sufficiently rich (:func:`obsjax.analysis.morgan_narendra`): n distinct frequencies in u when all 2n
+    parameters are unknown.  With the same filters (D = R, λ = λ_0) and consistent initial states, this law
+    and :class:`obsjax.NonMinimalAdaptiveObserver` produce the same parameter estimates.
 
     **Arguments:**
 
@@ -85,7 +88,8 @@ class MinimalAdaptiveObserver(AbstractObserver):
     - `adapt`: optional 2n booleans, False for parameters that are known: they stay at a0/b0 (the rate is
       restricted to the unknown ones, M Γ M).
 
-    ``parameters(z)`` returns (â, b̂).
+    ``parameters(z)`` returns (â, b̂).  The field ``cache`` holds the design (k, K, d, δ, C_i) that
+    ``prepare`` computes once per solve (``None`` otherwise).
 
     **Example:**::
 
@@ -167,7 +171,7 @@ class MinimalAdaptiveObserver(AbstractObserver):
         n = self.n
         x1 = jnp.asarray(y).reshape(-1)[0]
         u = jnp.asarray(u).reshape(-1)[0]
-        k, K, d, delta, C = self._design()
+        k, K, _, delta, C = self._design()
         v = jnp.concatenate(
             [filter_regressor(z.omega_y, x1, delta), filter_regressor(z.omega_u, u, delta)]
         )
@@ -197,7 +201,7 @@ class MinimalAdaptiveObserver(AbstractObserver):
         """v = [v⁽¹⁾; v⁽²⁾] of (4.18) (vectorised over a leading time axis)."""
 
         def one(zz, yy, uu):
-            _, _, _, delta = self.design()
+            delta = self.design()[3]
             yy, uu = jnp.asarray(yy).reshape(-1)[0], jnp.asarray(uu).reshape(-1)[0]
             return jnp.concatenate(
                 [filter_regressor(zz.omega_y, yy, delta), filter_regressor(zz.omega_u, uu, delta)]

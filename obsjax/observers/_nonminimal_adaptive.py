@@ -35,7 +35,7 @@ class NonMinimalAdaptiveState(eqx.Module):
 
 class NonMinimalAdaptiveObserver(AbstractObserver):
     r"""Non-minimal adaptive observer with the plant output fed back (thesis section 4.5.2, (4.19),
-    Figs. 4.4-4.5; Lüders–Narendra).
+    Figs. 4.4-4.5).
 
     The plant is SISO of order n with transfer function T_p(s) = Q_p(s)/R_p(s), deg Q_p ≤ n − 1, R_p monic of
     degree n.  **As printed:** with R(s) Hurwitz of degree n − 1 (monic; roots ``filter_poles``) and λ_0 > 0,
@@ -45,7 +45,9 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
     so that (s + λ_0) y = Q_p/R u − P_p/R y: Fig. 4.4, with the *plant* output y in the feedback path
     (Fig. 4.5).  Adaptive law (4.19), with a rate Γ in place of the unit gain:
 
-        â̇_i = −e_1 v⁽¹⁾_i,   b̂̇_i = −e_1 v⁽²⁾_i   (i = 1..n),   i.e. θ̇ = −Γ e_1 v,  θ = [â; b̂], v = [v⁽¹⁾; v⁽²⁾].
+        â̇_i = −e_1 v⁽¹⁾_i,   b̂̇_i = −e_1 v⁽²⁾_i   (i = 1..n),   i.e. θ̇ = −Γ e_1 v,  θ = [â; b̂], v = [v⁽¹⁾; v⁽²⁾]
+
+    (the OCR prints "â_i = −e_i v_i(1)": the dot of the derivative and the index 1 of the output error are lost).
 
     **Rebuilt** (Figs. 4.4-4.5 are not in the text): the regressors are the outputs of two identical filters
     1/R(s) (states ω⁽¹⁾, ω⁽²⁾ of dimension n − 1, zero at t0), v⁽¹⁾_i = s^{n−i}/R(s) y and
@@ -56,7 +58,8 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
     where b̂ estimates the coefficients of Q_p (b_i of s^{n−i}) and â those of −P_p (the feedback path of
     Fig. 4.4 enters with a minus sign, 1/(1 + ...)); with this sign the printed law (4.19) is the one for
     which the Lyapunov argument holds.  The plant obeys ẏ = −λ_0 y + aᵀv⁽¹⁾ + bᵀv⁽²⁾ + τ(t), τ a transient
-    of the filters' initial state that decays with the roots of R, so ė_1 = −λ_0 e_1 + θ̃ᵀ v − τ
+    of the initial states of plant and filters that decays with the roots of R (τ ≡ 0 when the plant starts
+    at rest), so ė_1 = −λ_0 e_1 + θ̃ᵀ v − τ
     (θ̃ = θ − θ*), and V = ½ e_1² + ½ θ̃ᵀ Γ⁻¹ θ̃ (:meth:`lyapunov`) has V̇ = −λ_0 e_1² − e_1 τ(t): the error
     system is (4.20)-(4.21)(ii) with A = −λ_0 and B(t) = −Γ^{1/2} v.
 
@@ -79,6 +82,7 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
     - `adapt`: optional 2n booleans, False for known parameters (held at a0/b0).
 
     ``parameters(z)`` returns the estimates (α̂, b̂) of the plant form (4.12), ``z.a``/``z.b`` the law's own.
+    The field ``cache`` holds (R, (s + λ_0)R) coefficients computed by ``prepare`` once per solve.
 
     **Example:**::
 
@@ -145,9 +149,7 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
         """Coefficients (c_1, ..., c_n) of (s + λ_0) R(s) = s^n + c_1 s^{n−1} + ... + c_n."""
         if self.cache is not None:
             return self.cache[1]
-        return poly_from_roots(
-            jnp.concatenate([-jnp.reshape(self.lam0, (1,)), self.filter_poles])
-        )
+        return poly_from_roots(jnp.concatenate([-jnp.reshape(self.lam0, (1,)), self.filter_poles]))
 
     def matching_point(self, a, b):
         """(a*, b*) of the law for a plant (4.12) with parameters (a, b): a* = c − a, b* = b, where
@@ -173,7 +175,11 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
         dyhat = -self.lam0 * z.yhat + z.a @ v1 + z.b @ v2  # Figs. 4.4-4.5
         dtheta = -e1 * masked_rate(self.Gamma, self.adapt, jnp.concatenate([v1, v2]))  # (4.19)
         return NonMinimalAdaptiveState(
-            dyhat, filter_step(z.omega_y, y, rho), filter_step(z.omega_u, u, rho), dtheta[:n], dtheta[n:]
+            dyhat,
+            filter_step(z.omega_y, y, rho),
+            filter_step(z.omega_u, u, rho),
+            dtheta[:n],
+            dtheta[n:],
         )
 
     def estimate(self, t, z: NonMinimalAdaptiveState, y):
@@ -231,7 +237,10 @@ def _state_map(alpha, b, rho):
         U = jnp.concatenate([jnp.ones(1, alpha.dtype), alpha[: j - 1]])  # degree j − 1
         V = b[: j - 1]  # degree j − 2 (empty for j = 1)
         q, rem = _divmod_monic(jnp.convolve(U, R), Rp)
-        S = _sub(jnp.convolve(q, b) if q.shape[0] else jnp.zeros(0), jnp.convolve(V, R) if V.shape[0] else jnp.zeros(0))
+        S = _sub(
+            jnp.convolve(q, b) if q.shape[0] else jnp.zeros(0),
+            jnp.convolve(V, R) if V.shape[0] else jnp.zeros(0),
+        )
         rows_r.append(_ascending(rem, n))
         rows_s.append(_ascending(S, n - 1))
     return jnp.stack(rows_r), jnp.stack(rows_s)
