@@ -149,6 +149,48 @@ def test_minimal_error_equivalence_pointwise():
         assert abs(rho[0]) < 1e-12  # ρ_1 ≡ 0: e and ε have the same output
 
 
+def test_minimal_lyapunov_derivative_pointwise_full_gain():
+    """With a full s.p.d. Γ and known a_1, b_1 (held at the truth): V̇ = −λ ε_1² + ε_1 η at any state, where
+    η = hᵀK ε + λ ε_1 and ε = e − ρ (jvp of V along the plant + observer flow; ρ from the closed-form C_i)."""
+    n, lam = 3, 0.5
+    rng = np.random.default_rng(1)
+    M = rng.normal(size=(6, 6))
+    Gamma = M @ M.T + 0.5 * np.eye(6)
+    obs = obsjax.MinimalAdaptiveObserver(n, [-2.0, -3.0], lam, Gamma, adapt=EX["adapt"])
+    plant = obsjax.kreisselmeier_form(A3, B3)
+    d = np.r_[1.0, np.real(np.poly([-2.0, -3.0]))[1:]]
+    C = c_closed_form(d)
+    K = companion(np.real(np.poly([-lam, -2.0, -3.0]))[1:])
+    a, b = jnp.asarray(A3), jnp.asarray(B3)
+    for _ in range(3):
+        x = jnp.asarray(rng.normal(size=n))
+        z = obs.init(0.0, jnp.asarray(rng.normal(size=n)), None)
+        z = eqx.tree_at(
+            lambda s: (s.a, s.b, s.omega_y, s.omega_u),
+            z,
+            tuple(
+                jnp.asarray(v)
+                for v in (
+                    np.r_[A3[0], rng.normal(size=2)],
+                    np.r_[B3[0], rng.normal(size=2)],
+                    rng.normal(size=2),
+                    rng.normal(size=2),
+                )
+            ),
+        )
+        u = jnp.asarray(rng.normal(size=1))
+        dz = obs.vector_field(0.0, z, plant.h(0.0, x, u), u)
+        dx = plant.f(0.0, x, u)
+        _, dV = jax.jvp(lambda zz, xx: obs.lyapunov(zz, xx[:1], a, b), (z, x), (dz, dx))
+        phi, psi = A3 - np.asarray(z.a), np.asarray(z.b) - B3
+        rho = np.einsum("i,imj,j->m", phi, C, z.omega_y) + np.einsum(
+            "i,imj,j->m", psi, C, z.omega_u
+        )
+        eps = np.asarray(z.xhat - x) - rho
+        eta = (K @ eps)[0] + lam * eps[0]
+        assert float(dV) == pytest.approx(-lam * eps[0] ** 2 + eps[0] * eta, rel=1e-9, abs=1e-12)
+
+
 def minimal_rhs(example, G, amps):
     """Plant (4.12) + observer (4.14), filters, (4.18), written with NumPy (closed-form C_i)."""
     a, b = np.asarray(example["a"]), np.asarray(example["b"])
