@@ -11,3 +11,5 @@ from ._ltv import observability_gramian as observability_gramian
 from ._ltv import regressor_gramian as regressor_gramian
 from ._ltv import transition_matrix as transition_matrix
 from ._ltv import uniform_observability_constants as uniform_observability_constants
+from ._morgan_narendra import MorganNarendra as MorganNarendra
+from ._morgan_narendra import morgan_narendra as morgan_narendra
