@@ -46,6 +46,9 @@ from .observers._luders_narendra import luders_narendra_form as luders_narendra_
 from .observers._kudva_narendra import KudvaNarendra as KudvaNarendra
 from .observers._kudva_narendra import ErrorModel1 as ErrorModel1
 from .observers._kudva_narendra import ErrorModel2 as ErrorModel2
+from .observers._ls_identifier import LeastSquaresIdentifier as LeastSquaresIdentifier
+from .observers._minimal_adaptive import MinimalAdaptiveObserver as MinimalAdaptiveObserver
+from .observers._nonminimal_adaptive import NonMinimalAdaptiveObserver as NonMinimalAdaptiveObserver
 from .observers._finite_window import FiniteWindow as FiniteWindow
 from .observers._least_squares import LeastSquaresReset as LeastSquaresReset
 from .observers._least_squares import LeastSquaresState as LeastSquaresState

@@ -148,3 +148,18 @@ def test_readme_tour_snippet_prints_what_it_promises(tmp_path):
     assert re.search(r"γ·p0 = [\d.]+, T = [\d.]+: mean ISE [\d.]+ -> [\d.]+", out)
     assert "MonteCarloResult(n=2000" in out and "failed=0" in out
     assert (tmp_path / "monte_carlo.png").stat().st_size > 10_000
+
+
+def test_api_reference_documents_every_public_name():
+    pages = "".join(
+        open(p, encoding="utf-8").read() for p in glob.glob(os.path.join(ROOT, "docs", "api", "*.md"))
+    )
+    documented = set(re.findall(r"^::: ([\w.]+)", pages, flags=re.MULTILINE))
+    short = {d.rsplit(".", 1)[-1] for d in documented}
+    missing = [
+        f"{mod.__name__}.{n}"
+        for mod in [obsjax, *MODULES]
+        for n in _public(mod)
+        if f"{mod.__name__}.{n}" not in documented and n not in short
+    ]
+    assert not missing, f"add a `::: <name>` line to a page of docs/api/ for {missing}"

@@ -5,6 +5,8 @@
   `uniform_observability_constants` ((2), (3), (16), (17)), `regressor_gramian` (16),
   `is_persistently_exciting` (Definition 2, (7)), `chen_yen_bound` (the Theorem's contraction factor per
   reset period) and `decay_rate` (exponential rate fitted to a simulated error).
+- Adaptive laws (Hassan thesis, (4.20)-(4.21)): `morgan_narendra`, the Morgan–Narendra richness
+  constants and certified convergence rates of a regressor (`MorganNarendra`).
 
 Example:
 
@@ -29,6 +31,8 @@ from ._ltv import observability_gramian as observability_gramian
 from ._ltv import regressor_gramian as regressor_gramian
 from ._ltv import transition_matrix as transition_matrix
 from ._ltv import uniform_observability_constants as uniform_observability_constants
+from ._morgan_narendra import MorganNarendra as MorganNarendra
+from ._morgan_narendra import morgan_narendra as morgan_narendra
 
 # Every public name imported above (keep this line last: names added above it are exported too).
 __all__ = [
