@@ -853,9 +853,9 @@ def reproduce_chapter4(outdir: str) -> list[str]:
                          label=f"‖K̃‖, {w} α: a = {mn.a:.3g}, ε₀ = {mn.epsilon0:.3g}")
     ts, Kt, _, _ = runs["rich"]
     mn = mns["rich"]
-    for sig, ls, lab in ((mn.rate, "k--", "σ from Φ of (4.21)(i)"), (mn.rate_bound, "k:", "σ_G from ∫ααᵀ")):
+    for sig, ls, lab in ((mn.rate, "k--", "σ from Φ of (4.21)(i)"), (mn.rate_bound, "k:", r"$\sigma_G$ from ∫ααᵀ")):
         bound = np.linalg.norm(Kt[0]) * np.exp(-sig * np.clip(ts - period, 0.0, None))
-        axes[1].semilogy(ts, bound, ls, lw=0.8, label=f"‖K̃(0)‖e^(−σ(t−T)), {lab} = {sig:.3g}")
+        axes[1].semilogy(ts, bound, ls, lw=0.8, label=r"$\|\tilde K(0)\|\,e^{-\sigma(t-T)}$" + f", {lab} = {sig:.3g}")
     axes[1].semilogy(ts, np.abs(runs["poor"][1] @ null) + 1e-16, "C3-.", label="|wᵀK̃|, poor α (constant)")
     axes[1].set(xlabel="time t (s)", ylabel="‖K̂ − K‖", ylim=(1e-9, 10),
                 title="‖K̂ − K‖ and the Morgan–Narendra certificate")
@@ -863,7 +863,7 @@ def reproduce_chapter4(outdir: str) -> list[str]:
     for w, c in (("rich", "C0"), ("poor", "C3")):
         pw = mns[w].per_window
         axes[2].semilogy(np.arange(len(pw)), np.clip(pw[:, 0] / period, 1e-17, None), "o-", color=c,
-                         label=f"λ_min ∫ααᵀ / T, {w}")
+                         label=r"$\lambda_{\min}$ ∫ααᵀ / T, " + w)
         axes[2].semilogy(np.arange(len(pw)), np.clip(pw[:, 2], 1e-17, None), "s--", color=c,
                          label=f"ε₀ (δ₀ = 1), {w}")
     axes[2].set(xlabel="window k (T = 2π s)", ylabel="per-window excitation", ylim=(1e-18, 10),
@@ -935,9 +935,9 @@ def reproduce_chapter4(outdir: str) -> list[str]:
                          label=f"{which}: ε₀ = {mn.epsilon0:.3g}")
     axes[2].set_ylim(1e-18, 10)
     axes[2].set(xlabel=f"window k (T = 2π s, from t = {t0:g} s)", ylabel="per-window excitation",
-                title="B = −[√γ₁ x_p; √γ₂ u]: (4.21)(i) a and (ii) ε₀")
+                title=r"B = −[√γ₁ $x_p$; √γ₂ u]: (4.21)(i) a and (ii) ε₀")
     axes[2].legend(fontsize=8)
-    fig.suptitle("Scalar error system (4.20): ẋ_p = −x_p + 2u identified by (4.4)-(4.7), K = 2, γ₁ = γ₂ = 4")
+    fig.suptitle(r"Scalar error system (4.20): $\dot x_p = -x_p + 2u$ identified by (4.4)-(4.7), K = 2, γ₁ = γ₂ = 4")
     fig.tight_layout()
     paths.append(_save(fig, outdir, "adaptive_ch4_morgan_narendra.png"))
     return paths
