@@ -283,13 +283,16 @@ def reproduce(outdir: str) -> list[str]:
 
     # 1. Kreisselmeier: the three schemes, parameter estimates and ‖p − p*‖ with fitted rates.
     runs = {
-        "gradient (6.16)": simulate_kreisselmeier(ex, "gradient", gamma=2.0, t1=300.0),
-        "generalized (6.19)": simulate_kreisselmeier(ex, "generalized", gamma=2.0, t1=300.0),
+        "gradient (6.16)": simulate_kreisselmeier(ex, "gradient", gamma=2.0, t1=300.0, num=3001),
+        "generalized (6.19)": simulate_kreisselmeier(
+            ex, "generalized", gamma=2.0, t1=300.0, num=3001
+        ),
         "integral (6.23), q = 0.2": simulate_kreisselmeier(
-            ex, "integral", gamma=2.0, q=0.2, t1=300.0
+            ex, "integral", gamma=2.0, q=0.2, t1=300.0, num=3001
         ),
     }
-    fig, axes = plt.subplots(1, 4, figsize=(20, 4))
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
+    axes = axes.ravel()
     truth = np.r_[ex["a"], ex["b"]]
     labels = [f"â{i + 1}" for i in range(2)] + [f"b̂{i + 1}" for i in range(2)]
     for ax, (name, (ts, _, traj, obs)) in zip(axes[:3], runs.items()):
@@ -297,47 +300,57 @@ def reproduce(outdir: str) -> list[str]:
         est = np.concatenate([np.asarray(a_hat), np.asarray(b_hat)], axis=-1)
         for k in range(4):
             ax.plot(ts, est[:, k], label=labels[k])
-            ax.axhline(truth[k], color="k", lw=0.5, ls="--")
-        ax.set(xlabel="t", title=f"{name}: (â, b̂) of (6.2)", ylim=(-1, 4))
+            ax.axhline(
+                truth[k], color="k", lw=0.5, ls="--", label="true values" if k == 0 else None
+            )
+        ax.set(
+            xlabel="time t (s)",
+            ylabel="parameter estimates",
+            title=f"{name}: (â, b̂) of (6.2)",
+            ylim=(-1, 4),
+        )
         ax.legend(ncol=2, fontsize=8)
     for name, (ts, err, _, _) in runs.items():
         lo, hi = (20.0, 200.0) if name.startswith("integral") else (ts[-1] / 3, ts[-1])
         rate = fit_rate(ts, err, lo=lo, hi=hi)
         axes[3].semilogy(ts, err, label=f"{name}: σ = {rate:.3g}")
-    axes[3].axhline(1e-3, color="k", lw=0.5, ls=":")
-    axes[3].set(xlabel="t", ylabel="‖p − p*‖ / ‖p*‖", title="Kreisselmeier, 2nd order, γ = 2")
+    axes[3].axhline(1e-3, color="k", lw=0.5, ls=":", label="relative error $10^{-3}$")
+    axes[3].set(
+        xlabel="time t (s)", ylabel="‖p − p*‖ / ‖p*‖", title="Kreisselmeier, 2nd order, γ = 2"
+    )
     axes[3].legend(fontsize=8)
     fig.tight_layout()
     paths.append(_save(fig, outdir, "adaptive_kreisselmeier_schemes.png"))
 
     # 2. Lüders–Narendra: state and parameter errors, Lyapunov function (5.11).
     ex_ln = LUDERS_NARENDRA_2
-    ts, err, traj, obs = simulate_luders_narendra(ex_ln, gamma=5.0, t1=200.0)
+    ts, err, traj, obs = simulate_luders_narendra(ex_ln, gamma=5.0, t1=200.0, num=4001)
     V = obs.lyapunov(traj.z, traj.y, jnp.asarray(ex_ln["a"]), jnp.asarray(ex_ln["b"]))
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
-    axes[0].semilogy(ts, np.abs(np.asarray(traj.error)) + 1e-16)
-    axes[0].set(xlabel="t", title="state errors |x̂_i − x_i|")
+    axes[0].semilogy(ts, np.abs(np.asarray(traj.error)) + 1e-16, label=["$i = 1$", "$i = 2$"])
+    axes[0].set(xlabel="time t (s)", ylabel=r"$|\hat x_i - x_i|$", title="state errors")
+    axes[0].legend()
     axes[1].semilogy(ts, err)
-    axes[1].set(xlabel="t", title="‖(α, β) − (a, b)‖ / ‖(a, b)‖")
+    axes[1].set(xlabel="time t (s)", ylabel="‖(α, β) − (a, b)‖ / ‖(a, b)‖", title="parameter error")
     axes[2].semilogy(ts, np.asarray(V))
-    axes[2].set(xlabel="t", title="Lyapunov function V (5.11), non-increasing")
+    axes[2].set(xlabel="time t (s)", ylabel="V", title="Lyapunov function V (5.11), non-increasing")
     fig.suptitle("Lüders–Narendra adaptive observer (5.3)-(5.12), 2nd order")
     fig.tight_layout()
     paths.append(_save(fig, outdir, "adaptive_luders_narendra.png"))
 
     # 3. Richness: one sinusoid on the 3rd-order plant (integral scheme) against three.
     ex3 = KREISSELMEIER_3
-    rich = simulate_kreisselmeier(ex3, "integral", gamma=2.0, q=0.2, t1=200.0, num=401)
+    rich = simulate_kreisselmeier(ex3, "integral", gamma=2.0, q=0.2, t1=200.0, num=2001)
     single = obsjax.signals.multisine([0.0, 1.0, 0.0], list(ex3["frequencies"]))  # u = sin(1.2 t)
     G = kreisselmeier_gain(ex3, 2.0)
-    poor = simulate_kreisselmeier(ex3, "integral", G=G, q=0.2, t1=200.0, num=401, u=single)
+    poor = simulate_kreisselmeier(ex3, "integral", G=G, q=0.2, t1=200.0, num=2001, u=single)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for name, (ts, err, traj, obs) in (("3 sinusoids", rich), ("1 sinusoid", poor)):
         yhat = np.asarray(jax_output(obs, traj))
         axes[0].semilogy(ts, np.abs(yhat - np.asarray(traj.y[:, 0])) + 1e-16, label=name)
         axes[1].semilogy(ts, err, label=name)
-    axes[0].set(xlabel="t", title="output error |ŷ − y|")
-    axes[1].set(xlabel="t", title="parameter error ‖p − p*‖/‖p*‖")
+    axes[0].set(xlabel="time t (s)", ylabel="|ŷ − y|", title="output error")
+    axes[1].set(xlabel="time t (s)", ylabel="‖p − p*‖ / ‖p*‖", title="parameter error")
     for ax in axes:
         ax.legend()
     fig.suptitle("Richness condition, 3rd-order plant, integral scheme (6.23)")
@@ -360,6 +373,56 @@ def _save(fig, outdir, name):
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def paper_values():
+    """The chapters' claims on their examples (the thesis gives no numbers for chapters 4-6): the integral
+    scheme (6.23) and the Lüders–Narendra observer (5.3)-(5.12) identify the plant's parameters under a
+    sufficiently rich input, and V of (5.11) never increases."""
+    import jax.numpy as jnp
+
+    from ._report import Row
+
+    ex = KREISSELMEIER_2
+    _, _, traj, obs = simulate_kreisselmeier(ex, "integral", gamma=2.0, q=0.2, t1=300.0)
+    a_hat, b_hat = (np.asarray(v)[-1] for v in obs.parameters(traj.z))
+    names = [f"a{i + 1}" for i in range(2)] + [f"b{i + 1}" for i in range(2)]
+    rows = [
+        Row(
+            f"Kreisselmeier (6.23), q = 0.2: {k} at t = 300 → plant's",
+            v,
+            float(e),
+            "ch. 6: p → p*",
+            rtol=1e-6,
+        )
+        for k, v, e in zip(names, [*ex["a"], *ex["b"]], [*a_hat, *b_hat])
+    ]
+    ex = LUDERS_NARENDRA_2
+    _, _, traj, obs = simulate_luders_narendra(ex, gamma=5.0, t1=200.0)
+    al, be = (np.asarray(v)[-1] for v in obs.parameters(traj.z))
+    rows += [
+        Row(
+            f"Lüders–Narendra (5.12): {k} at t = 200 → plant's",
+            v,
+            float(e),
+            "ch. 5: convergence",
+            rtol=1e-4,
+        )
+        for k, v, e in zip(names, [*ex["a"], *ex["b"]], [*al, *be])
+    ]
+    V = np.asarray(obs.lyapunov(traj.z, traj.y, jnp.asarray(ex["a"]), jnp.asarray(ex["b"])))
+    rows.append(
+        Row(
+            "Lüders–Narendra: max increase of V (5.11) between saves, relative to V(0)",
+            0.0,
+            float(np.max(np.diff(V)) / V[0]),
+            "ch. 5: V̇ ≤ 0",
+            rtol=0.0,
+            atol=1e-9,
+            relation="<=",
+        )
+    )
+    return rows
 
 
 # =========================================================================== chapter 4: identifier, minimal and
@@ -779,8 +842,8 @@ def reproduce_chapter4(outdir: str) -> list[str]:
         for i in range(3):
             axes[0].plot(ts, Kt[:, i] + K[i], ls, color=f"C{i}", label=f"K̂{i + 1} ({w} α)")
     for i in range(3):
-        axes[0].axhline(K[i], color="k", lw=0.5, ls=":")
-    axes[0].set(xlabel="t", title="estimates K̂ of (4.2), truth dotted")
+        axes[0].axhline(K[i], color="k", lw=0.5, ls=":", label="true values" if i == 0 else None)
+    axes[0].set(xlabel="time t (s)", ylabel="parameter estimates K̂", title="estimates K̂ of (4.2)")
     axes[0].legend(ncol=2, fontsize=8)
     null = np.array([0.0, 2.0, -1.0]) / np.sqrt(5.0)
     for w, c in (("rich", "C0"), ("poor", "C3")):
@@ -790,19 +853,20 @@ def reproduce_chapter4(outdir: str) -> list[str]:
                          label=f"‖K̃‖, {w} α: a = {mn.a:.3g}, ε₀ = {mn.epsilon0:.3g}")
     ts, Kt, _, _ = runs["rich"]
     mn = mns["rich"]
-    for sig, ls, lab in ((mn.rate, "k--", "σ from Φ of (4.21)(i)"), (mn.rate_bound, "k:", "σ_G from ∫ααᵀ")):
+    for sig, ls, lab in ((mn.rate, "k--", "σ from Φ of (4.21)(i)"), (mn.rate_bound, "k:", r"$\sigma_G$ from ∫ααᵀ")):
         bound = np.linalg.norm(Kt[0]) * np.exp(-sig * np.clip(ts - period, 0.0, None))
-        axes[1].semilogy(ts, bound, ls, lw=0.8, label=f"‖K̃(0)‖e^(−σ(t−T)), {lab} = {sig:.3g}")
+        axes[1].semilogy(ts, bound, ls, lw=0.8, label=r"$\|\tilde K(0)\|\,e^{-\sigma(t-T)}$" + f", {lab} = {sig:.3g}")
     axes[1].semilogy(ts, np.abs(runs["poor"][1] @ null) + 1e-16, "C3-.", label="|wᵀK̃|, poor α (constant)")
-    axes[1].set(xlabel="t", title="‖K̂ − K‖ and the Morgan–Narendra certificate", ylim=(1e-9, 10))
+    axes[1].set(xlabel="time t (s)", ylabel="‖K̂ − K‖", ylim=(1e-9, 10),
+                title="‖K̂ − K‖ and the Morgan–Narendra certificate")
     axes[1].legend(fontsize=8)
     for w, c in (("rich", "C0"), ("poor", "C3")):
         pw = mns[w].per_window
         axes[2].semilogy(np.arange(len(pw)), np.clip(pw[:, 0] / period, 1e-17, None), "o-", color=c,
-                         label=f"λ_min ∫ααᵀ / T, {w}")
+                         label=r"$\lambda_{\min}$ ∫ααᵀ / T, " + w)
         axes[2].semilogy(np.arange(len(pw)), np.clip(pw[:, 2], 1e-17, None), "s--", color=c,
                          label=f"ε₀ (δ₀ = 1), {w}")
-    axes[2].set(xlabel="window k (T = 2π)", ylim=(1e-18, 10),
+    axes[2].set(xlabel="window k (T = 2π s)", ylabel="per-window excitation", ylim=(1e-18, 10),
                 title="richness per window, (4.21)(i)-(ii); ≤ 1e-15 is rounding (zero)")
     axes[2].legend(fontsize=8)
     fig.suptitle("Identification law (4.2): α = (1, sin t, cos 2t) rich, α = (1, sin t, 2 sin t) poor")
@@ -815,7 +879,8 @@ def reproduce_chapter4(outdir: str) -> list[str]:
     for kind in ("minimal", "nonminimal"):
         for which, amps in (("rich", ex["amplitudes"]), ("poor", ex["poor_amplitudes"])):
             res[kind, which] = simulate_chapter4(kind, ex, gamma=5.0, amplitudes=amps)
-    fig, axes = plt.subplots(1, 4, figsize=(21, 4.2))
+    fig, axes = plt.subplots(2, 2, figsize=(13, 8.5))
+    axes = axes.ravel()
     truth = np.r_[ex["a"], ex["b"]]
     names = ["a₂", "a₃", "b₂", "b₃"]
     unknown = np.flatnonzero(ex["adapt"])
@@ -825,26 +890,26 @@ def reproduce_chapter4(outdir: str) -> list[str]:
         for j, i in enumerate(unknown):
             axes[0].plot(ts, est[:, i], ls, color=f"C{j}", label=f"{names[j]} ({kind})")
     for i in unknown:
-        axes[0].axhline(truth[i], color="k", lw=0.5, ls=":")
-    axes[0].set(xlabel="t", title="unknown parameters, rich u (truth dotted)")
+        axes[0].axhline(truth[i], color="k", lw=0.5, ls=":", label="true values" if i == unknown[0] else None)
+    axes[0].set(xlabel="time t (s)", ylabel="parameter estimates", title="unknown parameters, rich u")
     axes[0].legend(ncol=2, fontsize=8)
     for (kind, which), (ts, err, traj, obs) in res.items():
         ls = "-" if kind == "minimal" else "--"
         axes[1].semilogy(ts, err, ls, color="C0" if which == "rich" else "C3", label=f"{kind}, {which} u")
         if which == "rich":
             axes[2].semilogy(ts, np.asarray(traj.error_norm) + 1e-16, ls, label=kind)
-    axes[1].set(xlabel="t", title="‖(â, b̂) − (a, b)‖ / ‖(a, b)‖")
+    axes[1].set(xlabel="time t (s)", ylabel="‖(â, b̂) − (a, b)‖ / ‖(a, b)‖", title="parameter error")
     axes[1].legend(fontsize=8)
-    axes[2].set(xlabel="t", title="state error ‖x̂ − x‖ (form (4.12)), rich u")
+    axes[2].set(xlabel="time t (s)", ylabel="‖x̂ − x‖", title="state error (form (4.12)), rich u")
     axes[2].legend(fontsize=8)
     for kind, ls in (("minimal", "-"), ("nonminimal", "--")):
         ts, _, traj, obs = res[kind, "rich"]
         V = np.asarray(obs.lyapunov(traj.z, traj.y, np.asarray(ex["a"]), np.asarray(ex["b"])))
         axes[3].semilogy(ts, V, ls, label=f"{kind}: max increase {max(np.diff(V).max(), 0):.1e}")
-    axes[3].set(xlabel="t", title="V = ½ε₁² + ½θ̃ᵀΓ⁻¹θ̃ (x̂(0) = x(0), plant at rest)")
+    axes[3].set(xlabel="time t (s)", ylabel="V", title="V = ½ε₁² + ½θ̃ᵀΓ⁻¹θ̃ (x̂(0) = x(0), plant at rest)")
     axes[3].legend(fontsize=8)
     fig.suptitle(
-        "Adaptive observers of section 4.5 on y = (s² + 1.5s + 2)/((s + 1)(s² + s + 2)) u: a₁, b₁ known; "
+        "Adaptive observers of section 4.5 on y = (s² + 1.5s + 2)/((s + 1)(s² + s + 2)) u: a₁, b₁ known;\n"
         "rich u = sin 0.8t + sin 2.5t, poor u = sin 0.8t; Γ = 5/diag(mean vvᵀ)"
     )
     fig.tight_layout()
@@ -856,7 +921,7 @@ def reproduce_chapter4(outdir: str) -> list[str]:
         ts, e, phi, psi = simulate_420(which)
         for sig_, lab in ((e, "|e|"), (phi, "|φ|"), (psi, "|ψ|")):
             ax.semilogy(ts, np.abs(sig_) + 1e-16, label=lab)
-        ax.set(xlabel="t", title=f"(4.20), {title}", ylim=(1e-10, 10))
+        ax.set(xlabel="time t (s)", ylabel="error magnitudes", title=f"(4.20), {title}", ylim=(1e-10, 10))
         ax.legend(fontsize=8)
     t0 = 20.0
     for which, c in (("rich", "C0"), ("poor", "C3")):
@@ -869,10 +934,10 @@ def reproduce_chapter4(outdir: str) -> list[str]:
         axes[2].semilogy(np.arange(len(pw)), np.clip(pw[:, 2], 1e-17, None), "s--", color=c,
                          label=f"{which}: ε₀ = {mn.epsilon0:.3g}")
     axes[2].set_ylim(1e-18, 10)
-    axes[2].set(xlabel=f"window k (T = 2π, from t = {t0:g})",
-                title="B = −[√γ₁ x_p; √γ₂ u]: (4.21)(i) a and (ii) ε₀")
+    axes[2].set(xlabel=f"window k (T = 2π s, from t = {t0:g} s)", ylabel="per-window excitation",
+                title=r"B = −[√γ₁ $x_p$; √γ₂ u]: (4.21)(i) a and (ii) ε₀")
     axes[2].legend(fontsize=8)
-    fig.suptitle("Scalar error system (4.20): ẋ_p = −x_p + 2u identified by (4.4)-(4.7), K = 2, γ₁ = γ₂ = 4")
+    fig.suptitle(r"Scalar error system (4.20): $\dot x_p = -x_p + 2u$ identified by (4.4)-(4.7), K = 2, γ₁ = γ₂ = 4")
     fig.tight_layout()
     paths.append(_save(fig, outdir, "adaptive_ch4_morgan_narendra.png"))
     return paths

@@ -109,8 +109,11 @@ def reproduce(outdir: str) -> list[str]:
     ax.semilogy(Ts[::4], n25[::4], "C1o", ms=4, label="obsjax, (25)-(26)")
     ax.semilogy(list(ref), list(ref.values()), "C3s", mfc="none", ms=8, label="independent discretisation")
     ax.axhline(np.sqrt(1.5), color="gray", ls="--", label=r"limit $\sqrt{1.5}$")
-    ax.set_xlabel("window length T")
+    ax.set_xlabel("window length T (s)")
     ax.set_ylabel(r"$\|(G_1, G_2)\|(T)$")
+    ax.set_yticks([2, 3, 5, 10])
+    ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_title("Byrski & Fuksa (29): norm of the optimal observer (31)")
     ax.legend()
     fig.tight_layout()
@@ -132,10 +135,11 @@ def reproduce(outdir: str) -> list[str]:
         axs[0].plot(t, np.asarray(G1)[:, i, 0], f"C{i}--", label=f"row {i + 1}")
         axs[1].plot(t, g2[:, i], "k-", lw=3, alpha=0.3)
         axs[1].plot(t, np.asarray(G2)[:, i, 0], f"C{i}--", label=f"row {i + 1}")
-    axs[0].set_title(r"$G_1(t)$ (grey: closed form (30))")
-    axs[1].set_title(r"$G_2(t)$ (grey: closed form (30))")
+    axs[0].set_title(r"$G_1(s)$ (grey: closed form (30))")
+    axs[1].set_title(r"$G_2(s)$ (grey: closed form (30))")
     for a in axs:
-        a.set_xlabel("t in the window [0, T], T = 1")
+        a.set_xlabel("time s in the window [0, T] (s), T = 1 s")
+        a.set_ylabel("kernel entries")
         a.legend()
     fig.tight_layout()
     p = os.path.join(outdir, "byrski_fuksa_kernels30.png")
@@ -151,8 +155,9 @@ def reproduce(outdir: str) -> list[str]:
         axs[0].plot(ts, x[:, i], f"C{i}-", label=f"$x_{i + 1}$")
         axs[0].plot(ts, xh[:, i], f"C{i}:", label=rf"$\hat x_{i + 1}$")
         axs[0].plot(ts, x42[:, i], "k--", lw=1, label="(42) from x(T)" if i == 0 else None)
-    axs[0].axvline(1.0, color="gray", lw=0.8)
-    axs[0].set_xlabel("t")
+    axs[0].axvline(1.0, color="gray", lw=0.8, label="t = T: first full window")
+    axs[0].set_xlabel("time t (s)")
+    axs[0].set_ylabel("state and estimate")
     axs[0].set_title(r"closed loop (33)-(35), $u = P\hat x$, T = 1")
     axs[0].legend(ncol=2, fontsize=8)
     nx = np.linalg.norm(x, axis=1)
@@ -166,10 +171,11 @@ def reproduce(outdir: str) -> list[str]:
         nx[-1] * np.exp(rate * (ts[iT:] - ts[-1])),
         "k--",
         lw=1,
-        label=rf"slope {rate:.0f} = max Re eig(A+BP)",
+        label=rf"slope {rate:.0f} = max Re eig$(A + BP)$ (1/s)",
     )
-    axs[1].axvline(1.0, color="gray", lw=0.8)
-    axs[1].set_xlabel("t")
+    axs[1].axvline(1.0, color="gray", lw=0.8, label="t = T: first full window")
+    axs[1].set_xlabel("time t (s)")
+    axs[1].set_ylabel("norm")
     axs[1].set_title("deadbeat after T (Lemma 4)")
     axs[1].legend(fontsize=8)
     fig.tight_layout()
@@ -178,3 +184,74 @@ def reproduce(outdir: str) -> list[str]:
     plt.close(fig)
     paths.append(p)
     return paths
+
+
+def paper_values():
+    """The paper's closed forms for the double integrator (29): norm (31) and its limit √1.5, the kernels
+    (30), and the closed loop (33)-(42) (exact estimate after T, eig(A + BP) = {−1, −2})."""
+    import obsjax
+
+    from ._report import Row
+    from .references import BYRSKI_FUKSA_NORM31, BYRSKI_FUKSA_NORM31_LIMIT
+
+    Ts = np.array(list(BYRSKI_FUKSA_NORM31))
+    got = norm_curve(Ts, "(28)")
+    rows = [
+        Row(f"norm (31), T = {T:g}", float(norm31(T)), float(g), "closed form (31)")
+        for T, g in zip(Ts, got)
+    ]
+    rows += [
+        Row(f"norm (31), T = {T:g}", ref, float(g), "discretisation (600 points)", rtol=1e-4)
+        for (T, ref), g in zip(BYRSKI_FUKSA_NORM31.items(), got)
+    ]
+    rows.append(
+        Row(
+            "norm (31), T = 12 → √1.5",
+            BYRSKI_FUKSA_NORM31_LIMIT,
+            float(norm_curve(np.array([12.0]), "(28)")[0]),
+            "limit below (31)",
+            rtol=1e-5,
+        )
+    )
+    t = np.array([0.5])
+    G1, G2 = obsjax.FiniteWindow(_model29(), 1.0).kernels(t)
+    g1, g2 = kernels30(t, 1.0)
+    for name, G, g in (("G1", G1, g1), ("G2", G2, g2)):
+        rows += [
+            Row(
+                f"kernel (30) {name}(0.5)[{i + 1}], T = 1",
+                float(g[0, i]),
+                float(np.asarray(G)[0, i, 0]),
+                "closed form (30)",
+            )
+            for i in range(2)
+        ]
+    ts, x, xh, _, _ = deadbeat_loop()
+    after = ts >= 1.0 + 1e-9
+    rows.append(
+        Row(
+            "(33)-(35): max ‖x̂ − x‖ for t > T = 1 (Lemma 4)",
+            0.0,
+            float(np.max(np.linalg.norm(xh[after] - x[after], axis=1))),
+            "Lemma 4",
+            rtol=0.0,
+            atol=1e-7,
+        )
+    )
+    # The closed loop's eigenvalues identified from the simulated x1(t), t ≥ T, alone: a sampled solution
+    # of a 2nd-order linear ODE obeys x1[k+2] = c1 x1[k+1] + c0 x1[k] with roots z = exp(λ h) (Prony).
+    h = ts[1] - ts[0]
+    x1 = x[after, 0]
+    c = np.linalg.lstsq(np.stack([x1[1:-1], x1[:-2]], 1), x1[2:], rcond=None)[0]
+    lam = np.sort(np.log(np.roots([1.0, -c[0], -c[1]]).astype(complex)).real / h)
+    rows += [
+        Row(
+            f"(42): eigenvalue {i + 1} of the closed loop, from x1(t), t > T",
+            v,
+            float(lam[::-1][i]),
+            "text: eig(A + BP) = {−1, −2}",
+            rtol=1e-4,
+        )
+        for i, v in enumerate((-1.0, -2.0))
+    ]
+    return rows
