@@ -334,7 +334,7 @@ def adaptive_rk_solve(
     args=None,
     args_axes=None,
     solver: diffrax.AbstractSolver | None = None,
-    stepsize_controller: diffrax.PIDController | None = None,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
     dt0=None,
     ts=None,
     reset: Callable | None = None,
