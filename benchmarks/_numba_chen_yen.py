@@ -1,8 +1,8 @@
 """A hand-written Dormand–Prince 5(4) for Chen & Yen's plant and least-squares observer, in numba.
 
-The comparison point of ``g_numba_dopri5.py``: what a user writes without obsjax, one trajectory at a time,
-one thread.  The right-hand side is written out here from the paper's equations (Chen & Yen, IEEE TAC 44(9),
-1999, (1), (8), (11), (13) and the information form of (15)), not taken from obsjax:
+The comparison point of ``g_numba_dopri5.py``: what a user writes without obsjax, one trajectory at
+a time, one thread.  The right-hand side is written out here from the paper's equations (Chen & Yen,
+IEEE TAC 44(9), 1999, (1), (8), (11), (13) and the information form of (15)), not taken from obsjax:
 
     ẋ = A(t) x,        y = C(t) x,
     dx̂/dt = A x̂ + Φ Q⁻¹ w (y − C x̂),   w = Φᵀ Cᵀ,
@@ -11,11 +11,12 @@ one thread.  The right-hand side is written out here from the paper's equations 
 with A(t) = [[−1 + 1.5 cos²t, 1 − 1.5 sin t cos t], [−1 + 1.5 sin t cos t, −1 + 1.5 sin²t]] and
 C(t) = [cos √t + sin √t, 3 cos² √t], and at every t = kT the reset Φ = I, Q = I/(γ p0).
 
-The integrator: the Dormand–Prince pair with Shampine's embedded fourth-order weights (the pair diffrax's
-``Dopri5`` uses), first same as last; error norm RMS of err/(atol + rtol·max(|y0|, |y1|)) over the 12
-states; integral control h ← h·clip(0.9·err^(−1/5), 0.2, 10) (no growth after a rejection, at most 0.9×);
-each reset segment is a fresh solve whose first step is Hairer & Wanner's starting step (Solving ODEs I,
-II.4) or a given dt0; a step within 100 ULP of the segment's end is rounded onto it.
+The integrator: the Dormand–Prince pair with Shampine's embedded fourth-order weights (the pair
+diffrax's ``Dopri5`` uses), first same as last; error norm RMS of err/(atol + rtol·max(|y0|, |y1|))
+over the 12 states; integral control h ← h·clip(0.9·err^(−1/5), 0.2, 10) (no growth after a
+rejection, at most 0.9×); each reset segment is a fresh solve whose first step is Hairer & Wanner's
+starting step (Solving ODEs I, II.4) or a given dt0; a step within 100 ULP of the segment's end is
+rounded onto it.
 """
 
 from __future__ import annotations
@@ -88,7 +89,8 @@ def _rms_scaled(v, y0, y1, rtol, atol):
 
 @numba.njit(cache=False)
 def _start_step(t, y, f0, rtol, atol, tmp, f1):
-    """Hairer & Wanner's starting step for an order-5 pair (two evaluations of f, the first given)."""
+    """Hairer & Wanner's starting step for an order-5 pair (two evaluations of f, the first
+    given)."""
     d0 = 0.0
     d1 = 0.0
     for i in range(N):
@@ -145,9 +147,11 @@ def _segment(t0, t1, floor1, y, rtol, atol, dt0, max_steps, work):
             y1[i] = y[i] + h * (B1 * k1[i] + B3 * k3[i] + B4 * k4[i] + B5 * k5[i] + B6 * k6[i])
         rhs(tn, y1, k7)
         for i in range(N):
-            err[i] = h * (E1 * k1[i] + E3 * k3[i] + E4 * k4[i] + E5 * k5[i] + E6 * k6[i] + E7 * k7[i])
+            err[i] = h * (
+                E1 * k1[i] + E3 * k3[i] + E4 * k4[i] + E5 * k5[i] + E6 * k6[i] + E7 * k7[i]
+            )
         en = _rms_scaled(err, y, y1, rtol, atol)
-        if not en == en:  # NaN error: reject
+        if math.isnan(en):  # NaN error: reject
             en = math.inf
         keep = en < 1.0
         fac = 0.9 * en ** (-0.2) if en > 0.0 else math.inf
@@ -164,7 +168,7 @@ def _segment(t0, t1, floor1, y, rtol, atol, dt0, max_steps, work):
         tn = t + h * fac
         if tn > floor1:
             tn = t1 if keep else t + 0.5 * (t1 - t)
-        if tn <= t and t < t1:
+        if tn <= t < t1:
             return acc, rej, False
     return acc, rej, True
 
@@ -179,7 +183,8 @@ def _reset(y, q0):
 def solve_batch(x0s, xh0s, ends, floors, gamma_p0, rtol, atol, dt0, max_steps):
     """Every trajectory from t = 0 through the reset instants ``ends`` (the last is the horizon).
 
-    Returns ‖x̂ − x‖ at 0 and at every end (B, len(ends) + 1), accepted and rejected steps (B,), ok (B,).
+    Returns ‖x̂ − x‖ at 0 and at every end (B, len(ends) + 1), accepted and rejected steps (B,), ok
+    (B,).
     """
     B = x0s.shape[0]
     nseg = ends.shape[0]
@@ -213,7 +218,7 @@ def solve_batch(x0s, xh0s, ends, floors, gamma_p0, rtol, atol, dt0, max_steps):
 
 def segment_ends(T, t1):
     """The reset instants kT up to t1 (the last one t1) and the floats 100 ULP below each."""
-    n = int(math.ceil(t1 / T - 1e-9))
+    n = math.ceil(t1 / T - 1e-9)
     ends = np.minimum(T * np.arange(1, n + 1), t1)
     ends[-1] = t1
     floors = ends.copy()

@@ -1,17 +1,19 @@
-"""Benchmark (h): time to first result in fresh processes, with and without JAX's persistent compilation
-cache.
+"""Benchmark (h): time to first result in fresh processes, with and without JAX's persistent
+compilation cache.
 
-Each workload runs in three fresh processes: with the cache turned off (``OBSJAX_NO_COMPILATION_CACHE=1``),
-with the cache on and its directory just emptied (the first run after installation), and again with the
-directory the previous run filled (the second run).  Workloads:
+Each workload runs in three fresh processes: with the cache turned off
+(``OBSJAX_NO_COMPILATION_CACHE=1``), with the cache on and its directory just emptied (the first run
+after installation), and again with the directory the previous run filled (the second run).
+Workloads:
 
 - ``obsjax demo`` (the command line turns the cache on itself);
 - the first ``tune`` step of the README example (``steps=1``: compilation plus one gradient step);
 - the first chunk of a Monte-Carlo study (the README's study with ``n = chunk_size = 2500``).
 
-The library workloads call ``obsjax.enable_compilation_cache()`` when the cache is on.  Each process's wall
-time and CPU time (user + system, all threads) are recorded; the workload's own section is timed inside the
-process (after imports).  The cache directory is a fresh temporary one (``OBSJAX_COMPILATION_CACHE_DIR``).
+The library workloads call ``obsjax.enable_compilation_cache()`` when the cache is on.  Each
+process's wall time and CPU time (user + system, all threads) are recorded; the workload's own
+section is timed inside the process (after imports).  The cache directory is a fresh temporary one
+(``OBSJAX_COMPILATION_CACHE_DIR``).
 
 Usage: ``python benchmarks/h_first_call.py [--only demo,tune,mc] [--demo-n 10000]``.
 """
@@ -42,7 +44,8 @@ x0s = jax.random.normal(jax.random.PRNGKey(0), (16, 2)); xh0s = jnp.zeros((16, 2
 t0 = time.perf_counter()
 res = obsjax.tune(obs, plant, where=lambda o: (o.gamma, o.T), loss=obsjax.losses.ise, x0s=x0s,
                   xhat0s=xh0s, ts=jnp.linspace(0., 6., 61), optimizer=optax.adam(0.05), steps=1,
-                  noise=obsjax.noise.BandLimitedNoise(0.05, dt=0.02), key=jax.random.PRNGKey(1), progress=False)
+                  noise=obsjax.noise.BandLimitedNoise(0.05, dt=0.02), key=jax.random.PRNGKey(1),
+                  progress=False)
 jax.block_until_ready(res.observer)
 print("RESULT", json.dumps({"section": time.perf_counter() - t0, "import": t0 - t_start}))
 """
@@ -58,8 +61,8 @@ obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.25)
 t0 = time.perf_counter()
 mc = obsjax.monte_carlo(plant, obs, jax.random.PRNGKey(2), 2500,
                         x0_sampler=lambda k: 3 * jax.random.normal(k, (2,)),
-                        xhat0_sampler=lambda k: jnp.zeros(2), ts=jnp.linspace(0., 10., 41), chunk_size=2500,
-                        progress=False)
+                        xhat0_sampler=lambda k: jnp.zeros(2), ts=jnp.linspace(0., 10., 41),
+                        chunk_size=2500, progress=False)
 print("RESULT", json.dumps({"section": time.perf_counter() - t0, "import": t0 - t_start,
                             "failed": int(mc.n_failed)}))
 """
@@ -68,7 +71,9 @@ print("RESULT", json.dumps({"section": time.perf_counter() - t0, "import": t0 - 
 def _run(cmd, env, cwd):
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    out = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True, timeout=3600)
+    out = subprocess.run(
+        cmd, env=env, cwd=cwd, check=False, capture_output=True, text=True, timeout=3600
+    )
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -93,12 +98,27 @@ def _cache_size(d):
 def main(only=("demo", "tune", "mc"), demo_n=10_000):
     load = C.Load()
     work = tempfile.mkdtemp(prefix="obsjax-h-")
-    base = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT"))}
-    base["PYTHONPATH"] = C.ROOT + (os.pathsep + base["PYTHONPATH"] if base.get("PYTHONPATH") else "")
+    base = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT"))
+    }
+    base["PYTHONPATH"] = C.ROOT + (
+        os.pathsep + base["PYTHONPATH"] if base.get("PYTHONPATH") else ""
+    )
     base["JAX_PLATFORMS"] = base.get("JAX_PLATFORMS", "cpu")
     base["MPLBACKEND"] = "Agg"
     workloads = {
-        "demo": [sys.executable, "-m", "obsjax.cli", "demo", "--out", os.path.join(work, "demo"), "-n", str(demo_n)],
+        "demo": [
+            sys.executable,
+            "-m",
+            "obsjax.cli",
+            "demo",
+            "--out",
+            os.path.join(work, "demo"),
+            "-n",
+            str(demo_n),
+        ],
         "tune": [sys.executable, "-c", _TUNE],
         "mc": [sys.executable, "-c", _MC],
     }
@@ -117,15 +137,28 @@ def main(only=("demo", "tune", "mc"), demo_n=10_000):
                 wall, cpu, info = _run(workloads[name], env, work)
                 n, mib = _cache_size(cache)
                 rows.append((name, mode, wall, cpu, info, n, mib))
-                print(f"{name:5s} {mode:5s} process {wall:7.1f} s wall {cpu:7.1f} s CPU; section "
-                      f"{info.get('section', float('nan')):7.1f} s; cache {n} entries {mib:.1f} MiB", flush=True)
+                print(
+                    f"{name:5s} {mode:5s} process {wall:7.1f} s wall {cpu:7.1f} s CPU; section "
+                    f"{info.get('section', float('nan')):7.1f} s; cache {n} entries {mib:.1f} MiB",
+                    flush=True,
+                )
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    C.write_result("h_first_call", "Benchmark (h): time to first result in fresh processes",
-                   _report(rows, demo_n), load, script="h_first_call")
+    C.write_result(
+        "h_first_call",
+        "Benchmark (h): time to first result in fresh processes",
+        _report(rows, demo_n),
+        load,
+        script="h_first_call",
+    )
 
 
-_TARGETS = {("demo", "cold"): 30.0, ("demo", "warm"): 12.0, ("tune", "warm"): 5.0, ("mc", "warm"): 4.0}
+_TARGETS = {
+    ("demo", "cold"): 30.0,
+    ("demo", "warm"): 12.0,
+    ("tune", "warm"): 5.0,
+    ("mc", "warm"): 4.0,
+}
 _WHAT = {
     "demo": "`obsjax demo` (whole process; section = the demo's own total)",
     "tune": "first `tune` step of the README example (section: the `tune(..., steps=1)` call)",
@@ -135,36 +168,60 @@ _WHAT = {
 
 def _report(rows, demo_n):
     lines = [
-        "Each row is a fresh process. *off*: `OBSJAX_NO_COMPILATION_CACHE=1`; *cold*: cache on, directory just "
-        "emptied (first run after installation); *warm*: cache on, filled by the cold run (second run). "
-        f"The demo runs with `-n {demo_n}`.",
+        (
+            "Each row is a fresh process. *off*: `OBSJAX_NO_COMPILATION_CACHE=1`; *cold*: cache "
+            "on, "
+            "directory just emptied (first run after installation); *warm*: cache on, filled by "
+            "the cold "
+            f"run (second run). The demo runs with `-n {demo_n}`."
+        ),
         "",
-        "| workload | cache | process wall | process CPU | section wall | cache entries (MiB) | target |",
+        (
+            "| workload | cache | process wall | process CPU | section wall | cache entries (MiB) "
+            "| target |"
+        ),
         "|---|---|---|---|---|---|---|",
     ]
     for name, mode, wall, cpu, info, n, mib in rows:
         target = _TARGETS.get((name, mode))
         sec = info.get("section", float("nan"))
-        verdict = "" if target is None else C.verdict(sec if name != "demo" else wall, target, "lower")
+        measured = wall if name == "demo" else sec
+        verdict = (
+            "" if target is None else f"≤ {target:g} s: " + C.verdict(measured, target, "lower")
+        )
         lines.append(
-            f"| {_WHAT[name]} | {mode} | {wall:.1f} s | {cpu:.1f} s | {sec:.1f} s | {n} ({mib:.1f}) | "
-            f"{'' if target is None else f'≤ {target:g} s: '}{verdict} |"
+            f"| {_WHAT[name]} | {mode} | {wall:.1f} s | {cpu:.1f} s | {sec:.1f} s | "
+            f"{n} ({mib:.1f}) | {verdict} |"
         )
     demo = [r for r in rows if r[0] == "demo" and "demo_line" in r[4]]
     if demo:
-        lines += ["", "The demo's own summary lines:", ""] + [f"- {r[1]}: `{r[4]['demo_line']}`" for r in demo]
+        lines += ["", "The demo's own summary lines:", ""]
+        lines += [f"- {r[1]}: `{r[4]['demo_line']}`" for r in demo]
     lines += [
         "",
-        "What the cache can and cannot save: JAX writes a compiled program to the cache only if it carries no "
-        "host callback. `eqx.error_if` (the `throw=True` checks of `simulate`, and the checks inside diffrax) "
-        "is a host callback, so jitted `simulate` calls are compiled in every process; Monte-Carlo kernels "
-        "are traced with the checks as NaN (no callbacks) and are cached. Tracing and lowering are never "
-        "cached.",
+        (
+            "What the cache can and cannot save: JAX writes a compiled program to the cache only "
+            "if it "
+            "carries no host callback. `eqx.error_if` (the `throw=True` checks of `simulate`, and "
+            "the "
+            "checks inside diffrax) is a host callback, so jitted `simulate` calls are compiled in "
+            "every "
+            "process; Monte-Carlo kernels are traced with the checks as NaN (no callbacks) and are "
+            "cached. Tracing and lowering are never cached."
+        ),
         "",
-        "Targets (issue: time to first result, on a quiet 2-core machine): `obsjax demo` ≤ 30 s on its first "
-        "run and ≤ 12 s on its second, the first `tune` step ≤ 5 s, the first Monte-Carlo chunk ≤ 4 s.",
+        (
+            "Targets (issue: time to first result, on a quiet 2-core machine): `obsjax demo` ≤ 30 "
+            "s on "
+            "its first run and ≤ 12 s on its second, the first `tune` step ≤ 5 s, the first "
+            "Monte-Carlo chunk ≤ 4 s."
+        ),
         "",
-        "**Preliminary**: measured on a shared machine (see the load below); to be re-measured on a quiet one.",
+        (
+            "**Preliminary**: measured on a shared machine (see the load below); to be re-measured "
+            "on a "
+            "quiet one."
+        ),
     ]
     return "\n".join(lines)
 

@@ -1,16 +1,18 @@
 """JAX's persistent compilation cache, turned on by one call.
 
-A JAX program compiles each jitted function once per process; XLA's compilation of an adaptive solve takes
-seconds.  With the persistent compilation cache, compiled executables are written to a directory and read
-back by later processes that compile the same program (same jax/jaxlib version, backend, flags and HLO).
+A JAX program compiles each jitted function once per process; XLA's compilation of an adaptive solve
+takes seconds.  With the persistent compilation cache, compiled executables are written to a
+directory and read back by later processes that compile the same program (same jax/jaxlib version,
+backend, flags and HLO).
 
 Importing obsjax does not turn the cache on (no global side effect beyond float64).  The ``obsjax``
 command, the test suite and the notebooks run under it turn it on; a library user calls
 :func:`enable_compilation_cache` once.
 
-What is not cached: JAX writes no entry for a program that carries host callbacks (``jax.debug.print``,
-progress bars, and ``eqx.error_if``'s checks, which ``throw=True`` adds), nor for one that compiled in less
-than ``min_compile_time_secs``.  Tracing and lowering run in every process; only XLA's compilation is saved.
+What is not cached: JAX writes no entry for a program that carries host callbacks
+(``jax.debug.print``, progress bars, and ``eqx.error_if``'s checks, which ``throw=True`` adds), nor
+for one that compiled in less than ``min_compile_time_secs``.  Tracing and lowering run in every
+process; only XLA's compilation is saved.
 """
 
 from __future__ import annotations
@@ -39,10 +41,10 @@ def _opted_out() -> bool:
 def default_cache_dir() -> str:
     """The directory :func:`enable_compilation_cache` uses when given none.
 
-    ``$OBSJAX_COMPILATION_CACHE_DIR`` when set; else the user cache directory: ``$XDG_CACHE_HOME/obsjax/
-    jax-compilation-cache`` (``~/.cache/obsjax/jax-compilation-cache`` when ``XDG_CACHE_HOME`` is unset) on
-    Linux, ``~/Library/Caches/obsjax/jax-compilation-cache`` on macOS,
-    ``%LOCALAPPDATA%\\obsjax\\jax-compilation-cache`` on Windows.
+    ``$OBSJAX_COMPILATION_CACHE_DIR`` when set; else the user cache directory:
+    ``$XDG_CACHE_HOME/obsjax/jax-compilation-cache`` (``~/.cache/obsjax/jax-compilation-cache``
+    when ``XDG_CACHE_HOME`` is unset) on Linux, ``~/Library/Caches/obsjax/jax-compilation-cache`` on
+    macOS, ``%LOCALAPPDATA%\\obsjax\\jax-compilation-cache`` on Windows.
     """
     given = os.environ.get(DIR_ENV, "").strip()
     if given:
@@ -62,25 +64,29 @@ def enable_compilation_cache(
 ) -> str | None:
     """Turn on JAX's persistent compilation cache, so that later processes skip XLA's compilation.
 
-    Sets JAX's ``jax_compilation_cache_dir`` and ``jax_persistent_cache_min_compile_time_secs``; call it
-    once, before the first compilation whose result should be saved (programs compiled earlier in the
-    process are not written back).  Calling it again with another directory switches to that directory.
+    Sets JAX's ``jax_compilation_cache_dir`` and ``jax_persistent_cache_min_compile_time_secs``;
+    call it once, before the first compilation whose result should be saved (programs compiled
+    earlier in the process are not written back).  Calling it again with another directory switches
+    to that directory.
 
-    Opt out with the environment variable ``OBSJAX_NO_COMPILATION_CACHE=1``: this function then changes
-    nothing and returns ``None`` (the ``obsjax`` command and the test suite call it, so the variable turns
-    the cache off for them too).  JAX's own ``JAX_ENABLE_COMPILATION_CACHE=false`` is respected the same way.
+    Opt out with the environment variable ``OBSJAX_NO_COMPILATION_CACHE=1``: this function then
+    changes nothing and returns ``None`` (the ``obsjax`` command and the test suite call it, so the
+    variable turns the cache off for them too).  JAX's own ``JAX_ENABLE_COMPILATION_CACHE=false`` is
+    respected the same way.
 
-    The cache directory is trusted: an executable read from it runs in this process, so it must not be
-    writable by other users.  It is not size-limited; delete it to free the space (nothing else is lost).
+    The cache directory is trusted: an executable read from it runs in this process, so it must not
+    be writable by other users.  It is not size-limited; delete it to free the space (nothing else
+    is lost).
 
     **Arguments:**
 
-    - `path`: cache directory.  ``None``: ``$OBSJAX_COMPILATION_CACHE_DIR`` if set, else a directory already
-      given to JAX (``JAX_COMPILATION_CACHE_DIR``), else a directory under the user cache directory:
-      ``$XDG_CACHE_HOME/obsjax/jax-compilation-cache`` (``~/.cache/...`` when unset) on Linux,
-      ``~/Library/Caches/obsjax/jax-compilation-cache`` on macOS, ``%LOCALAPPDATA%\\obsjax\\...`` on Windows.
-    - `min_compile_time_secs`: programs whose compilation took less are not written (JAX's default is 1 s,
-      above the compile time of most single simulations; 0.2 s by default here).
+    - `path`: cache directory.  ``None``: ``$OBSJAX_COMPILATION_CACHE_DIR`` if set, else a directory
+      already given to JAX (``JAX_COMPILATION_CACHE_DIR``), else a directory under the user cache
+      directory: ``$XDG_CACHE_HOME/obsjax/jax-compilation-cache`` (``~/.cache/...`` when unset) on
+      Linux, ``~/Library/Caches/obsjax/jax-compilation-cache`` on macOS,
+      ``%LOCALAPPDATA%\\obsjax\\...`` on Windows.
+    - `min_compile_time_secs`: programs whose compilation took less are not written (JAX's default
+      is 1 s, above the compile time of most single simulations; 0.2 s by default here).
 
     **Returns:** the cache directory in use, or ``None`` when opted out.
 
@@ -113,8 +119,8 @@ def enable_compilation_cache(
 
 
 def cache_environment(path: str) -> dict[str, str]:
-    """Environment variables that give a child process (a notebook kernel, a benchmark) the same cache:
-    JAX reads them when it is imported."""
+    """Environment variables that give a child process (a notebook kernel, a benchmark) the same
+    cache: JAX reads them when it is imported."""
     return {
         "JAX_COMPILATION_CACHE_DIR": path,
         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": repr(

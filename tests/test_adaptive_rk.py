@@ -1,5 +1,5 @@
-"""The masked adaptive Runge–Kutta back-end against diffrax's diffeqsolve (step for step), closed forms, SciPy,
-the segmented diffrax solve of obsjax.simulate, and central finite differences."""
+"""The masked adaptive Runge–Kutta back-end against diffrax's diffeqsolve (step for step), closed
+forms, SciPy, the segmented diffrax solve of obsjax.simulate, and central finite differences."""
 
 import diffrax
 import equinox as eqx
@@ -27,15 +27,34 @@ def oscillator(t, y, args):
 
 @eqx.filter_jit
 def _solve(solver, y0, args, dt0):
-    return adaptive_rk_solve(oscillator, y0, 0.0, 5.0, args=args, args_axes=0, ts=TS, solver=solver,
-                             stepsize_controller=PID, dt0=dt0)
+    return adaptive_rk_solve(
+        oscillator,
+        y0,
+        0.0,
+        5.0,
+        args=args,
+        args_axes=0,
+        ts=TS,
+        solver=solver,
+        stepsize_controller=PID,
+        dt0=dt0,
+    )
 
 
 @eqx.filter_jit
 def _diffrax(solver, y0, args, dt0):
     def one(y, a):
-        sol = diffrax.diffeqsolve(diffrax.ODETerm(oscillator), solver, 0.0, 5.0, dt0, y, args=a,
-                                  saveat=diffrax.SaveAt(ts=TS), stepsize_controller=PID)
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(oscillator),
+            solver,
+            0.0,
+            5.0,
+            dt0,
+            y,
+            args=a,
+            saveat=diffrax.SaveAt(ts=TS),
+            stepsize_controller=PID,
+        )
         return sol.ys, sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"]
 
     return jax.vmap(one)(y0, args)
@@ -54,32 +73,58 @@ def test_step_for_step_with_diffrax(solver):
 
 
 def test_initial_step_selection_against_scipy():
-    # dt0=None: Hairer & Wanner's starting step; the solution meets the tolerance against SciPy's DOP853
+    # dt0=None: Hairer & Wanner's starting step; the solution meets the tolerance against SciPy's
+    # DOP853
     sol = _solve(diffrax.Tsit5(), Y0, ARGS, None)
     _, acc, _ = _diffrax(diffrax.Tsit5(), Y0, ARGS, 0.01)
     for b in range(5):
-        ref = solve_ivp(lambda t, y: np.asarray(oscillator(t, y, ARGS[b])), (0, 5), np.asarray(Y0[b]),
-                        method="DOP853", t_eval=np.asarray(TS), rtol=1e-12, atol=1e-14).y.T
+        ref = solve_ivp(
+            lambda t, y, a=ARGS[b]: np.asarray(oscillator(t, y, a)),
+            (0, 5),
+            np.asarray(Y0[b]),
+            method="DOP853",
+            t_eval=np.asarray(TS),
+            rtol=1e-12,
+            atol=1e-14,
+        ).y.T
         assert np.max(np.abs(np.asarray(sol.ys[b]) - ref)) < 2e-6
     # a different first step changes the count of steps by a few, not more
-    assert np.all(np.abs(np.asarray(sol.num_accepted_steps) - np.asarray(acc)) <= 0.1 * np.asarray(acc))
+    assert np.all(
+        np.abs(np.asarray(sol.num_accepted_steps) - np.asarray(acc)) <= 0.1 * np.asarray(acc)
+    )
 
 
-# ------------------------------------------------------------------------------------------ resets: Chen & Yen
+# ------------------------------------------------------------------------------------------ resets:
+# Chen & Yen
 
 PLANT = obsjax.chen_yen_example()
 
 
-def _chen_yen(gamma, T, x0s, xh0s, ts, t1, *, dt0=None, rtol=1e-6, atol=1e-8, adjoint=None, solver=None):
-    obs = eqx.tree_at(lambda o: (o.gamma, o.T), obsjax.LeastSquaresReset(PLANT, 20.0, 0.1, 0.25), (gamma, T))
+def _chen_yen(
+    gamma, T, x0s, xh0s, ts, t1, *, dt0=None, rtol=1e-6, atol=1e-8, adjoint=None, solver=None
+):
+    obs = eqx.tree_at(
+        lambda o: (o.gamma, o.T), obsjax.LeastSquaresReset(PLANT, 20.0, 0.1, 0.25), (gamma, T)
+    )
     args = _Args(PLANT, obs, None, None, None)
     z0 = jax.vmap(lambda x, xh: obs.init(0.0, xh, PLANT.h(0.0, x, jnp.zeros(0))))(x0s, xh0s)
-    n = int(np.ceil(t1 / 0.2)) + 1  # a static bound on the number of resets (those beyond t1 are ignored)
+    n = (
+        int(np.ceil(t1 / 0.2)) + 1
+    )  # a static bound on the number of resets (those beyond t1 are ignored)
     return adaptive_rk_solve(
-        _drift, (x0s, z0), 0.0, t1, args=args, ts=ts, dt0=dt0, solver=solver,
+        _drift,
+        (x0s, z0),
+        0.0,
+        t1,
+        args=args,
+        ts=ts,
+        dt0=dt0,
+        solver=solver,
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-        reset=lambda t, y, a: (y[0], a.observer.reset(t, y[1])), reset_ts=T * jnp.arange(1, n),
-        max_steps=4096, adjoint=adjoint,
+        reset=lambda t, y, a: (y[0], a.observer.reset(t, y[1])),
+        reset_ts=T * jnp.arange(1, n),
+        max_steps=4096,
+        adjoint=adjoint,
     )
 
 
@@ -88,16 +133,21 @@ XH0S = jnp.tile(jnp.array([5.0, -5.0]), (3, 1))
 
 
 def test_resets_match_the_segmented_diffrax_solve():
-    # save times on and between the reset instants; the same first step in every segment as diffrax's
+    # save times on and between the reset instants; the same first step in every segment as
+    # diffrax's
     ts = jnp.linspace(0.0, 2.0, 17)
     sol = jax.jit(lambda x, xh: _chen_yen(20.0, 0.25, x, xh, ts, 2.0, dt0=0.01))(X0S, XH0S)
     obs = obsjax.LeastSquaresReset(PLANT, 20.0, 0.1, 0.25)
-    ref = jax.jit(jax.vmap(lambda x, xh: obsjax.simulate(PLANT, obs, x, xh, ts, dt0=0.01)))(X0S, XH0S)
+    ref = jax.jit(jax.vmap(lambda x, xh: obsjax.simulate(PLANT, obs, x, xh, ts, dt0=0.01)))(
+        X0S, XH0S
+    )
     assert np.all(np.asarray(sol.status) == SUCCESS)
     np.testing.assert_allclose(sol.ys[0], ref.x, rtol=0, atol=1e-11)
     np.testing.assert_allclose(sol.ys[1].xhat, ref.xhat, rtol=0, atol=1e-11)
     # the state saved at a reset instant is the state after the reset (right-continuous)
-    np.testing.assert_allclose(sol.ys[1].Phi[:, 4], jnp.broadcast_to(jnp.eye(2), (3, 2, 2)), atol=1e-15)
+    np.testing.assert_allclose(
+        sol.ys[1].Phi[:, 4], jnp.broadcast_to(jnp.eye(2), (3, 2, 2)), atol=1e-15
+    )
 
 
 def _toy(t, y, a):
@@ -106,21 +156,28 @@ def _toy(t, y, a):
 
 
 def _toy_loss(p, adjoint=None):
-    # p = (a, T, y0): a gain of the vector field, the reset period (reset q -> q/2 + 1 at kT), a start value
+    # p = (a, T, y0): a gain of the vector field, the reset period (reset q -> q/2 + 1 at kT), a
+    # start value
     y0 = jnp.array([[1.0, 0.5], [-0.5, 1.0]]).at[0, 0].set(p[2])
     sol = adaptive_rk_solve(
-        _toy, y0, 0.0, 1.0, args=p[0], ts=jnp.linspace(0.0, 1.0, 5),
+        _toy,
+        y0,
+        0.0,
+        1.0,
+        args=p[0],
+        ts=jnp.linspace(0.0, 1.0, 5),
         stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
-        reset=lambda t, y, a: jnp.array([y[0], 0.5 * y[1] + 1.0]), reset_ts=p[1] * jnp.arange(1, 6),
+        reset=lambda t, y, a: jnp.array([y[0], 0.5 * y[1] + 1.0]),
+        reset_ts=p[1] * jnp.arange(1, 6),
         adjoint=adjoint,
     )
     return jnp.sum(sol.ys**2)
 
 
 def test_gradients_match_central_differences():
-    # reverse mode (checkpointed loop) and forward mode against central differences, with respect to a gain,
-    # the reset period (the reset instants move) and an initial state; T = 0.31 keeps the reset instants off
-    # the save times (where the loss has a kink)
+    # reverse mode (checkpointed loop) and forward mode against central differences, with respect to
+    # a gain, the reset period (the reset instants move) and an initial state; T = 0.31 keeps the
+    # reset instants off the save times (where the loss has a kink)
     p = jnp.array([1.3, 0.31, 1.0])
     rev = jax.jit(jax.grad(_toy_loss))(p)
     fwd = jax.jit(jax.jacfwd(lambda q: _toy_loss(q, diffrax.ForwardMode())))(p)
@@ -134,8 +191,9 @@ def test_gradients_match_central_differences():
 
 @pytest.mark.slow
 def test_gradient_through_chen_yen_resets():
-    # d/dT of Chen & Yen's observer (reverse mode), against central differences (slow: compiling the reverse
-    # pass of the observer's loop takes a minute on two cores; the mechanism is tested above on a small system)
+    # d/dT of Chen & Yen's observer (reverse mode), against central differences (slow: compiling the
+    # reverse pass of the observer's loop takes a minute on two cores; the mechanism is tested above
+    # on a small system)
     ts = jnp.linspace(0.0, 1.0, 5)
 
     def loss(T):
@@ -148,17 +206,28 @@ def test_gradient_through_chen_yen_resets():
     np.testing.assert_allclose(g, fd, rtol=1e-6)
 
 
-# ---------------------------------------------------------------------------------------- jumps, per-member t
+# ------------------------------------------------------------------------------------------- jumps,
+# per-member t
 
 
 def test_jump_in_the_vector_field_against_the_closed_form():
-    # ẏ = −y + H(t − s): y = y0 e^{−t} before s, 1 + (y(s) − 1) e^{−(t − s)} after; s differs per member
+    # ẏ = −y + H(t − s): y = y0 e^{−t} before s, 1 + (y(s) − 1) e^{−(t − s)} after; s differs per
+    # member
     s = jnp.array([0.3, 0.5, 0.77])
     f = lambda t, y, a: -y + jnp.where(t >= a, 1.0, 0.0)
     ts = jnp.linspace(0.0, 1.5, 16)
     sol = jax.jit(
-        lambda y0: adaptive_rk_solve(f, y0, 0.0, 1.5, args=s, args_axes=0, ts=ts, jump_ts=s[:, None],
-                                     stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-12))
+        lambda y0: adaptive_rk_solve(
+            f,
+            y0,
+            0.0,
+            1.5,
+            args=s,
+            args_axes=0,
+            ts=ts,
+            jump_ts=s[:, None],
+            stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-12),
+        )
     )(jnp.full((3,), 2.0))
     y0, tt, ss = 2.0, np.asarray(ts)[None, :], np.asarray(s)[:, None]
     ys_ = y0 * np.exp(-ss)
@@ -171,23 +240,31 @@ def test_per_member_horizons():
     t1 = jnp.array([1.0, 2.5, 4.0])
     f = lambda t, y, a: jnp.array([y[1], -y[0]])
     ts = jnp.stack([jnp.linspace(0.0, t, 6) for t in t1])
-    sol = adaptive_rk_solve(f, jnp.tile(jnp.array([1.0, 0.0]), (3, 1)), 0.0, t1, ts=ts,
-                            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12))
+    sol = adaptive_rk_solve(
+        f,
+        jnp.tile(jnp.array([1.0, 0.0]), (3, 1)),
+        0.0,
+        t1,
+        ts=ts,
+        stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
+    )
     np.testing.assert_allclose(sol.ys[..., 0], np.cos(np.asarray(ts)), atol=1e-8)
     np.testing.assert_allclose(sol.t1, t1)
     assert np.asarray(sol.num_accepted_steps)[0] < np.asarray(sol.num_accepted_steps)[2]
 
 
-# ------------------------------------------------------------------------------------------------------- status
+# ------------------------------------------------------------------------------------------- status
 
 
 def test_status_per_member():
-    # member 0 fine; member 1 stiff (runs out of steps); member 2 starts non-finite; member 3 blows up (ẏ = y²)
+    # member 0 fine; member 1 stiff (runs out of steps); member 2 starts non-finite; member 3 blows
+    # up (ẏ = y²)
     rates = jnp.array([1.0, 1e6, 1.0, 0.0])
     f = lambda t, y, a: jnp.where(a > 0, -a * y, y * y)
     y0 = jnp.array([[1.0], [1.0], [jnp.nan], [2.0]])
-    sol = adaptive_rk_solve(f, y0, 0.0, 1.0, args=rates, args_axes=0, ts=jnp.linspace(0.0, 1.0, 5),
-                            max_steps=200)
+    sol = adaptive_rk_solve(
+        f, y0, 0.0, 1.0, args=rates, args_axes=0, ts=jnp.linspace(0.0, 1.0, 5), max_steps=200
+    )
     status = np.asarray(sol.status)
     assert status[0] == SUCCESS and status[2] == NONFINITE
     assert status[1] == SOLVER_FAILED and status[3] in (SOLVER_FAILED, NONFINITE)
@@ -200,13 +277,21 @@ def test_status_per_member():
 def test_a_reset_that_gives_non_finite_values():
     f = lambda t, y, a: -y
     reset = lambda t, y, a: jnp.where(a > 0, y / 2, jnp.log(-jnp.abs(y) - 1.0))
-    sol = adaptive_rk_solve(f, jnp.ones((2, 1)), 0.0, 1.0, args=jnp.array([1.0, -1.0]), args_axes=0,
-                            reset=reset, reset_ts=jnp.array([0.5]))
+    sol = adaptive_rk_solve(
+        f,
+        jnp.ones((2, 1)),
+        0.0,
+        1.0,
+        args=jnp.array([1.0, -1.0]),
+        args_axes=0,
+        reset=reset,
+        reset_ts=jnp.array([0.5]),
+    )
     np.testing.assert_array_equal(sol.status, [SUCCESS, NONFINITE])
     np.testing.assert_allclose(sol.y1[0, 0], np.exp(-1.0) / 2, rtol=1e-6)
 
 
-# --------------------------------------------------------------------------------------------------- bad input
+# ---------------------------------------------------------------------------------------- bad input
 
 
 def test_bad_input_fails_fast():

@@ -1,5 +1,6 @@
-"""JAX's persistent compilation cache: off on import, on by one call, filled by one process and read by the
-next, opted out by an environment variable, turned on by the command line and for the test run."""
+"""JAX's persistent compilation cache: off on import, on by one call, filled by one process and read
+by the next, opted out by an environment variable, turned on by the command line and for the test
+run."""
 
 import json
 import os
@@ -13,9 +14,15 @@ import obsjax
 from obsjax import _cache
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-_CLEAN = ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", _cache.OPT_OUT, _cache.DIR_ENV)
+_CLEAN = (
+    "JAX_COMPILATION_CACHE_DIR",
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+    _cache.OPT_OUT,
+    _cache.DIR_ENV,
+)
 
-# A small Monte-Carlo study: its kernel is traced without host callbacks, so JAX may write it to the cache.
+# A small Monte-Carlo study: its kernel is traced without host callbacks, so JAX may write it to the
+# cache.
 _STUDY = r"""
 import json, sys, time
 import jax, jax.numpy as jnp, numpy as np
@@ -27,9 +34,10 @@ path = obsjax.enable_compilation_cache(sys.argv[1], min_compile_time_secs=0.0)
 plant = obsjax.LTI([[-2., 1.], [0., -1.]], [[0.], [1.]], [[1., 0.]])
 obs = obsjax.Luenberger.from_poles(plant, [-3., -3.])
 t0 = time.perf_counter()
-res = obsjax.monte_carlo(plant, obs, jax.random.PRNGKey(0), 8, x0_sampler=lambda k: jax.random.normal(k, (2,)),
-                         xhat0_sampler=lambda k: jnp.zeros(2), ts=np.linspace(0., 1., 5), chunk_size=8,
-                         progress=False)
+res = obsjax.monte_carlo(plant, obs, jax.random.PRNGKey(0), 8, x0_sampler=lambda k:
+jax.random.normal(k, (2,)),
+                         xhat0_sampler=lambda k: jnp.zeros(2), ts=np.linspace(0., 1., 5),
+                         chunk_size=8, progress=False)
 print(json.dumps({"path": path, "seconds": time.perf_counter() - t0,
                   "hits": events.count("/jax/compilation_cache/cache_hits"),
                   "misses": events.count("/jax/compilation_cache/cache_misses"),
@@ -46,7 +54,12 @@ def _env(**extra):
 
 def _python(code, *args, **env):
     out = subprocess.run(
-        [sys.executable, "-c", code, *args], capture_output=True, text=True, env=_env(**env), timeout=600
+        [sys.executable, "-c", code, *args],
+        check=False,
+        capture_output=True,
+        text=True,
+        env=_env(**env),
+        timeout=600,
     )
     assert out.returncode == 0, out.stderr[-3000:]
     return out.stdout.strip().splitlines()[-1]
@@ -62,10 +75,14 @@ def test_a_second_process_reads_what_the_first_wrote(tmp_path):
     first = json.loads(_python(_STUDY, d))
     assert first["path"] == d and first["hits"] == 0 and first["misses"] >= 1
     entries = [f for f in os.listdir(d) if f.endswith("-cache")]
-    assert any("chunk_kernel" in f for f in entries), entries  # the study's kernel itself was written
+    assert any("chunk_kernel" in f for f in entries), (
+        entries
+    )  # the study's kernel itself was written
     second = json.loads(_python(_STUDY, d))
     assert second["hits"] >= 1 and second["misses"] < first["misses"], (first, second)
-    assert second["error_norm"] == first["error_norm"]  # the executable read back computes the same numbers
+    assert (
+        second["error_norm"] == first["error_norm"]
+    )  # the executable read back computes the same numbers
 
 
 def test_opt_out(tmp_path, monkeypatch):
@@ -114,6 +131,9 @@ def test_the_test_run_and_its_kernels_use_it():
     # a child process (a notebook kernel started by nbmake) inherits the directory
     child = subprocess.run(
         [sys.executable, "-c", "import jax; print(jax.config.jax_compilation_cache_dir)"],
-        capture_output=True, text=True, timeout=120,
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert child.stdout.strip() == d

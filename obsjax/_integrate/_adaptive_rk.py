@@ -4,53 +4,69 @@ One entry point, :func:`adaptive_rk_solve`, integrates B independent initial-val
 
     dy_b/dt = f(t, y_b, args_b),   y_b(t0_b) = y0_b,   b = 1, …, B,
 
-with an explicit Runge–Kutta pair of diffrax (``Tsit5``, ``Dopri5``, ``Bosh3``, ``Dopri8``, …: its Butcher
-tableau, embedded error estimate and dense interpolant are read from the solver) and the step-size control of
-``diffrax.PIDController``, in one loop whose every iteration advances every member by one step attempt of its
-own size.  Each member accepts or rejects its own step; finished members are masked.  Compared with
-``jax.vmap(diffeqsolve)`` the loop carries no solver objects and evaluates no dense output unless a save time
-falls inside a step; compared with a lock-step solve of the stacked batch (one step size for all, set by the
-worst member) no member takes steps it does not need.
+with an explicit Runge–Kutta pair of diffrax (``Tsit5``, ``Dopri5``, ``Bosh3``, ``Dopri8``, …: its
+Butcher tableau, embedded error estimate and dense interpolant are read from the solver) and the
+step-size control of ``diffrax.PIDController``, in one loop whose every iteration advances every
+member by one step attempt of its own size.  Each member accepts or rejects its own step; finished
+members are masked.  Compared with ``jax.vmap(diffeqsolve)`` the loop carries no solver objects and
+evaluates no dense output unless a save time falls inside a step; compared with a lock-step solve of
+the stacked batch (one step size for all, set by the worst member) no member takes steps it does not
+need.
 
-Semantics are diffrax's, member by member (``tests/test_adaptive_rk.py`` compares the solution and the
-per-member step counts with ``diffeqsolve``):
+Semantics are diffrax's, member by member (``tests/test_adaptive_rk.py`` compares the solution and
+the per-member step counts with ``diffeqsolve``):
 
-- error norm ``norm(err / (atol + rtol · max(|y0|, |y1|)))``, ``norm`` the controller's (RMS by default),
-  NaN in the error read as ∞; a step is kept when the norm is below 1;
+- error norm ``norm(err / (atol + rtol · max(|y0|, |y1|)))``, ``norm`` the controller's (RMS by
+  default), NaN in the error read as ∞; a step is kept when the norm is below 1;
 - the next step ``h · clip(safety · ε_n^{β1} ε_{n-1}^{β2} ε_{n-2}^{β3}, factormin, factormax)`` with
-  ``β1 = (pcoeff + icoeff + dcoeff)/q``, ``β2 = −(pcoeff + 2 dcoeff)/q``, ``β3 = dcoeff/q``, q the solver's
-  error order, and a factor below ``safety`` after a rejection; ``dtmin``/``dtmax``/``force_dtmin`` as there;
-- the first step of every segment from diffrax's initial step selection (two evaluations of f) unless
-  ``dt0`` is given; steps that would end within 100 ULP of a segment end are rounded onto it.
+  ``β1 = (pcoeff + icoeff + dcoeff)/q``, ``β2 = −(pcoeff + 2 dcoeff)/q``, ``β3 = dcoeff/q``, q the
+  solver's error order, and a factor below ``safety`` after a rejection;
+  ``dtmin``/``dtmax``/``force_dtmin`` as there;
+- the first step of every segment from the initial step selection of Hairer, Nørsett & Wanner
+  (Solving Ordinary Differential Equations I, 2nd ed., Springer 1993, §II.4; diffrax's
+  ``PIDController`` implements it too), two evaluations of f, unless ``dt0`` is given; steps that
+  would end within 100 ULP of a segment end are rounded onto it.  (diffrax 0.7's ``diffeqsolve``
+  wraps its terms before the controller sees them, so the selection is skipped there and every
+  solve given ``dt0=None`` starts with a step of 0.01; pass ``dt0=0.01`` to reproduce it step for
+  step.)
 
-**Segments, resets and jumps.**  ``reset_ts`` (e.g. t0 + kT, Chen & Yen's covariance resets) and ``jump_ts``
-(times where f is discontinuous) cut [t0, t1] into segments.  Each member steps exactly onto each reset time
-(onto the last float before a jump time, and restarts at it), applies ``reset(t, y, args)`` at a reset time,
-and starts the segment afresh: new initial step, new controller history, first-same-as-last stage recomputed,
-exactly as a separate ``diffeqsolve`` per segment would.  Gradients with respect to the reset times are
-therefore exact, as in the segmented diffrax solve.  All segments of all members run in the one loop, so a
-member that needs few steps in one segment does not wait for the others there.
+**Segments, resets and jumps.**  ``reset_ts`` (e.g. t0 + kT, Chen & Yen's covariance resets) and
+``jump_ts`` (times where f is discontinuous) cut [t0, t1] into segments.  Each member steps exactly
+onto each reset time (onto the last float before a jump time, and restarts at it), applies
+``reset(t, y, args)`` at a reset time, and starts the segment afresh: new initial step, new
+controller history, first-same-as-last stage recomputed, exactly as a separate ``diffeqsolve`` per
+segment would.  Gradients with respect to the reset times are therefore exact, as in the segmented
+diffrax solve.  All segments of all members run in the one loop, so a member that needs few steps in
+one segment does not wait for the others there.
 
-**Saving.**  A save time inside an accepted step is evaluated with the solver's dense interpolant (diffrax's
-interpolation class); a save time at a reset time records the state after the reset (right-continuous, like
-``obsjax.simulate``); save times at t1 record the final state.  Steps are never shortened for saving.
+**Layout.**  The members' states are flattened into one (B, n) array for the loop (one operation
+per step of the bookkeeping instead of one per leaf); `vector_field` and `reset` still see the
+pytree of one member.
 
-**Status** per member: 0 success; 1 not finished (``max_steps`` attempts, or the step size underflowed);
-2 non-finite state or vector field.  Values a failed member did not reach are NaN.
+**Saving.**  A save time inside an accepted step is evaluated with the solver's dense interpolant
+(diffrax's interpolation class); a save time at a reset time records the state after the reset
+(right-continuous, like ``obsjax.simulate``; a save time within a relative 1e-9 of a reset time
+counts as on it); save times at t1 record the final state.  Steps are
+never shortened for saving.
 
-**Differentiation** (``adjoint``): ``diffrax.RecursiveCheckpointAdjoint`` (default; reverse mode through
-equinox's checkpointed while loop with ``checkpoints`` checkpoints, as diffrax), ``diffrax.ForwardMode``
-(a ``lax.while_loop``: forward mode, ``jax.jvp``/``jax.jacfwd``), ``diffrax.DirectAdjoint`` (a bounded loop,
-both modes).  As in diffrax, the step-size decisions carry no derivative (``stop_gradient``); the solution's
-derivative is that of the discrete scheme on the chosen steps.
+**Status** per member: 0 success; 1 not finished (``max_steps`` attempts, or the step size
+underflowed); 2 non-finite state or vector field.  Values a failed member did not reach are NaN.
 
-**Contract for a back-end** (how ``simulate``/``simulate_batch``/``monte_carlo`` drive it): ``y`` is the joint
-plant–observer state ``(x, z)`` with a leading batch axis; ``vector_field`` is the per-member drift
-``f(t, (x, z), args)``; ``args`` the per-member (``args_axes=0``) or shared (``None``) plant, observer and
-noise path; ``reset = lambda t, y, args: (y[0], observer.reset(t, y[1]))`` with ``reset_ts = t0 + T·k``,
-k = 1 … max_segments − 1 (times at or beyond t1 are ignored, so a traced T needs only a static bound on the
-number of segments); ``jump_ts`` the plant's; ``ts`` the save times.  ``max_steps`` bounds the step attempts
-of a member over the whole horizon (all segments together).
+**Differentiation** (``adjoint``): ``diffrax.RecursiveCheckpointAdjoint`` (default; reverse mode
+through equinox's checkpointed while loop with ``checkpoints`` checkpoints, as diffrax),
+``diffrax.ForwardMode`` (a ``lax.while_loop``: forward mode, ``jax.jvp``/``jax.jacfwd``),
+``diffrax.DirectAdjoint`` (a bounded loop, both modes).  As in diffrax, the step-size decisions
+carry no derivative (``stop_gradient``); the solution's derivative is that of the discrete scheme on
+the chosen steps.
+
+**Contract for a back-end** (how ``simulate``/``simulate_batch``/``monte_carlo`` drive it): ``y`` is
+the joint plant–observer state ``(x, z)`` with a leading batch axis; ``vector_field`` is the
+per-member drift ``f(t, (x, z), args)``; ``args`` the per-member (``args_axes=0``) or shared
+(``None``) plant, observer and noise path; ``reset = lambda t, y, args: (y[0], observer.reset(t,
+y[1]))`` with ``reset_ts = t0 + T·k``, k = 1 … max_segments − 1 (times at or beyond t1 are ignored,
+so a traced T needs only a static bound on the number of segments); ``jump_ts`` the plant's; ``ts``
+the save times.  ``max_steps`` bounds the step attempts of a member over the whole horizon (all
+segments together).
 """
 
 from __future__ import annotations
@@ -64,6 +80,7 @@ import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+from jax.flatten_util import ravel_pytree
 import lineax.internal as lxi
 import numpy as np
 import optimistix as optx
@@ -80,11 +97,14 @@ class AdaptiveRKSolution(eqx.Module):
     """Result of :func:`adaptive_rk_solve` (B members, S save times).
 
     - `ts`: (B, S) save times.
-    - `ys`: the state at the save times, each leaf (B, S, ...); NaN where a failed member did not get.
+    - `ys`: the state at the save times, each leaf (B, S, ...); NaN where a failed member did not
+      get.
     - `t1`: (B,) end time; `y1`: the final state, each leaf (B, ...) (NaN for failed members).
-    - `status`: (B,) int32, 0 success, 1 not finished (max_steps or step-size underflow), 2 non-finite.
-    - `num_steps`, `num_accepted_steps`, `num_rejected_steps`: (B,) int32 step attempts of each member,
-      all segments together (initial step selections are not counted, as in diffrax's statistics).
+    - `status`: (B,) int32, 0 success, 1 not finished (max_steps or step-size underflow), 2
+      non-finite.
+    - `num_steps`, `num_accepted_steps`, `num_rejected_steps`: (B,) int32 step attempts of each
+      member, all segments together (initial step selections are not counted, as in diffrax's
+      statistics).
     """
 
     ts: jax.Array
@@ -97,7 +117,8 @@ class AdaptiveRKSolution(eqx.Module):
     num_rejected_steps: jax.Array
 
 
-# ------------------------------------------------------------------------------------------- the method
+# ------------------------------------------------------------------------------------------- the
+# method
 
 
 class _Method(NamedTuple):
@@ -119,8 +140,8 @@ def _method_of(solver, controller) -> _Method:
         or tab.implicit
     ):
         raise ValueError(
-            f"`solver` must be an explicit Runge–Kutta pair of diffrax with an embedded error estimate "
-            f"(Tsit5, Dopri5, Bosh3, Dopri8, ...), got {type(solver).__name__}."
+            "`solver` must be an explicit Runge–Kutta pair of diffrax with an embedded error "
+            f"estimate (Tsit5, Dopri5, Bosh3, Dopri8, ...), got {type(solver).__name__}."
         )
     s = tab.num_stages
     a = np.zeros((s, s))
@@ -151,8 +172,8 @@ def _loop_kind(adjoint):
     if type(adjoint) is diffrax.DirectAdjoint:
         return "bounded", None
     raise ValueError(
-        "`adjoint` must be diffrax.RecursiveCheckpointAdjoint (reverse mode), diffrax.ForwardMode (forward "
-        f"mode) or diffrax.DirectAdjoint (both), got {type(adjoint).__name__}."
+        "`adjoint` must be diffrax.RecursiveCheckpointAdjoint (reverse mode), diffrax.ForwardMode "
+        f"(forward mode) or diffrax.DirectAdjoint (both), got {type(adjoint).__name__}."
     )
 
 
@@ -165,7 +186,8 @@ def _check_controller(controller):
     return controller
 
 
-# ---------------------------------------------------------------------------------------------- helpers
+# ----------------------------------------------------------------------------------------------
+# helpers
 
 
 def _batch_size(y0) -> int:
@@ -180,7 +202,9 @@ def _batch_size(y0) -> int:
         )
     for x in leaves:
         if not jnp.issubdtype(jnp.result_type(x), jnp.inexact):
-            raise ValueError(f"`y0` must be floating point, got a leaf of dtype {jnp.result_type(x)}.")
+            raise ValueError(
+                f"`y0` must be floating point, got a leaf of dtype {jnp.result_type(x)}."
+            )
     return sizes.pop()
 
 
@@ -192,8 +216,9 @@ def _per_member(x, B, name, dtype, trailing=0):
     if x.ndim == trailing + 1 and x.shape[0] == B:
         return x
     raise ValueError(
-        f"`{name}` must have {trailing} axes (shared by the batch) or {trailing + 1} with a leading axis of "
-        f"{B} (one per member), got shape {tuple(x.shape)}."
+        f"`{name}` must have {trailing} axes (shared by the batch) or {trailing + 1} with a "
+        "leading "
+        f"axis of {B} (one per member), got shape {tuple(x.shape)}."
     )
 
 
@@ -207,7 +232,9 @@ def _axpy(y, coeffs, ks):
     terms = [(float(w), k) for w, k in zip(coeffs, ks) if w != 0.0]
     if not terms:
         return y
-    return tmap(lambda y0, *kk: y0 + sum(w * v for (w, _), v in zip(terms, kk)), y, *[k for _, k in terms])
+    return tmap(
+        lambda y0, *kk: y0 + sum(w * v for (w, _), v in zip(terms, kk)), y, *[k for _, k in terms]
+    )
 
 
 def _scale_member(pred, x):
@@ -222,15 +249,15 @@ def _all_finite(tree, B):
     return out
 
 
-def _batched_norm(norm):
-    """Member-wise `norm` of a pytree with a leading batch axis.
+def _batched_norm(norm, unravel):
+    """Member-wise `norm` of the (B, n) flattened states (`unravel`: one member's row to its pytree).
 
-    diffrax's default RMS norm (``optimistix.rms_norm``) is written here with sums of squares: its own
-    ``tree_dot`` becomes a batched ``dot_general`` per leaf under ``jax.vmap``, which XLA's CPU backend runs
-    as a small matrix product per member.  Other norms are ``jax.vmap``-ed.
+    diffrax's default RMS norm (``optimistix.rms_norm``) is written here with sums of squares: its
+    own ``tree_dot`` becomes a batched ``dot_general`` per leaf under ``jax.vmap``, which XLA's CPU
+    backend runs as a small matrix product per member.  Other norms are ``jax.vmap``-ed.
     """
     if norm is not optx.rms_norm and norm is not lxi.rms_norm:
-        return jax.vmap(norm)
+        return jax.vmap(lambda row: norm(unravel(row)))
 
     def rms(tree):
         leaves = jtu.tree_leaves(tree)
@@ -244,8 +271,9 @@ def _batched_norm(norm):
 
 
 def _sum_squares(x2d):
-    """Σ_j x[:, j]² of a (B, n) array; for small n as a sum of columns (elementwise operations across the
-    batch, which XLA's CPU backend vectorises; a reduction over a short minor axis it does not)."""
+    """Σ_j x[:, j]² of a (B, n) array; for small n as a sum of columns (elementwise operations
+    across the batch, which XLA's CPU backend vectorises; a reduction over a short minor axis it
+    does not)."""
     n = x2d.shape[1]
     if n > 32:
         return jnp.sum(x2d * x2d, axis=1)
@@ -253,17 +281,20 @@ def _sum_squares(x2d):
 
 
 def _prevbefore(x, n=1):
-    """The n-th float below x, without derivative (a loop, not n chained operations: the graph stays small)."""
+    """The n-th float below x, without derivative (a loop, not n chained operations: the graph stays
+    small)."""
     x = jax.lax.stop_gradient(x)
     down = lambda _, v: jnp.nextafter(v, jnp.array(-jnp.inf, v.dtype))
     return down(0, x) if n == 1 else jax.lax.fori_loop(0, n, down, x)
 
 
-# ---------------------------------------------------------------------------------------------- targets
+# ----------------------------------------------------------------------------------------------
+# targets
 
 
 class _Targets(NamedTuple):
-    """Segment ends per member, (B, M) each: the time, where the step lands, 100 ULP below that, flags."""
+    """Segment ends per member, (B, M) each: the time, where the step lands, 100 ULP below that,
+    flags."""
 
     value: jax.Array
     end: jax.Array
@@ -293,7 +324,8 @@ def _targets(t0, t1, reset_ts, jump_ts, B, dtype) -> tuple[_Targets, jax.Array]:
     value = jnp.where(final, t1[:, None], value)
     reset = reset & ~final
     jump = jump & ~final
-    # a jump: land on the float before it (the vector field there is the left one), derivative of the time
+    # a jump: land on the float before it (the vector field there is the left one), derivative of
+    # the time
     end = jnp.where(jump, value + (_prevbefore(value) - jax.lax.stop_gradient(value)), value)
     floor = _prevbefore(end, 100)
     first = jnp.sum(jax.lax.stop_gradient(value) <= (t0[:, None] + tol), axis=1).astype(jnp.int32)
@@ -305,7 +337,8 @@ def _pick(arr, k):
     return jnp.take_along_axis(arr, k[:, None], axis=1)[:, 0]
 
 
-# ------------------------------------------------------------------------------------------------- loop
+# -------------------------------------------------------------------------------------------------
+# loop
 
 
 class _Carry(NamedTuple):
@@ -343,22 +376,24 @@ def adaptive_rk_solve(
     max_steps: int = 4096,
     adjoint: diffrax.AbstractAdjoint | None = None,
 ) -> AdaptiveRKSolution:
-    """Integrate a batch of ODEs with an adaptive explicit Runge–Kutta pair, each member its own steps.
+    """Integrate a batch of ODEs with an adaptive explicit Runge–Kutta pair, each member its own
+    steps.
 
     See the module docstring for the method, the segments and the status codes.
 
     **Arguments:**
 
-    - `vector_field`: ``f(t, y, args) -> dy/dt`` for ONE member: ``t`` a scalar, ``y`` a pytree without the
-      batch axis, ``args`` one member's args; returns a pytree like ``y``.  It is ``jax.vmap``-ed over the
-      members.
+    - `vector_field`: ``f(t, y, args) -> dy/dt`` for ONE member: ``t`` a scalar, ``y`` a pytree
+      without the batch axis, ``args`` one member's args; returns a pytree like ``y``.  It is
+      ``jax.vmap``-ed over the members.
     - `y0`: initial states, a pytree whose leaves all carry a leading batch axis of size B.
     - `t0`, `t1`: start and end, scalars (shared) or (B,) (one per member), t1 ≥ t0.
-    - `args`: passed to `vector_field` and `reset`; `args_axes` its ``jax.vmap`` in_axes (``None``: shared,
-      ``0``: a leading batch axis on every leaf, or a pytree prefix of in_axes).
+    - `args`: passed to `vector_field` and `reset`; `args_axes` its ``jax.vmap`` in_axes (``None``:
+      shared, ``0``: a leading batch axis on every leaf, or a pytree prefix of in_axes).
     - `solver`: an explicit diffrax Runge–Kutta pair (default ``diffrax.Tsit5()``).
     - `stepsize_controller`: a ``diffrax.PIDController`` (default ``rtol=1e-6, atol=1e-8``).
-    - `dt0`: first step of every segment (scalar or (B,)); ``None``: diffrax's initial step selection.
+    - `dt0`: first step of every segment (scalar or (B,)); ``None``: diffrax's initial step
+      selection.
     - `ts`: save times, (S,) or (B, S), non-decreasing within [t0, t1]; ``None`` saves t1 only.
     - `reset`: ``reset(t, y, args) -> y`` for one member, applied at every time of `reset_ts`.
     - `reset_ts`: (K,) or (B, K) sorted reset times; those at or beyond t1 (or at t0) are ignored.
@@ -372,13 +407,15 @@ def adaptive_rk_solve(
     **Example:**::
 
         f = lambda t, y, args: -args * y
-        sol = adaptive_rk_solve(f, jnp.ones((8, 3)), 0.0, 1.0, args=jnp.linspace(1, 2, 8), args_axes=0,
-                                ts=jnp.linspace(0, 1, 11))
+        sol = adaptive_rk_solve(f, jnp.ones((8, 3)), 0.0, 1.0, args=jnp.linspace(1.0, 2.0, 8),
+                                args_axes=0, ts=jnp.linspace(0.0, 1.0, 11))
         sol.ys.shape, sol.num_accepted_steps  # (8, 11, 3), per-member step counts
     """
     solver = diffrax.Tsit5() if solver is None else solver
     ctrl = _check_controller(
-        diffrax.PIDController(rtol=1e-6, atol=1e-8) if stepsize_controller is None else stepsize_controller
+        diffrax.PIDController(rtol=1e-6, atol=1e-8)
+        if stepsize_controller is None
+        else stepsize_controller
     )
     method = _method_of(solver, ctrl)
     kind, checkpoints = _loop_kind(adjoint)
@@ -398,10 +435,16 @@ def adaptive_rk_solve(
     targets, seg0 = _targets(t0, t1, reset_ts, jump_ts, B, dtype)
     dt0 = None if dt0 is None else _per_member(dt0, B, "dt0", dtype)
 
-    F = jax.vmap(vector_field, in_axes=(0, 0, args_axes))
-    R = None if reset is None else jax.vmap(reset, in_axes=(0, 0, args_axes))
-    step = _make_body(F, R, args, method, ctrl, dt0, targets, ts, max_steps, kind, B, dtype, solver)
-    carry0 = _initial_carry(y0, t0, seg0, ts, B, dtype)
+    # The loop works on one (B, n) array (the members' states flattened): one operation per step of
+    # the bookkeeping instead of one per leaf.
+    flat0, ravel, unravel = _packing(y0)
+    F = jax.vmap(lambda t, u, a: ravel(vector_field(t, unravel(u), a)), in_axes=(0, 0, args_axes))
+    R = None
+    if reset is not None:
+        R = jax.vmap(lambda t, u, a: ravel(reset(t, unravel(u), a)), in_axes=(0, 0, args_axes))
+    norm = _batched_norm(ctrl.norm, unravel)
+    step = _make_body(F, R, args, method, ctrl, norm, dt0, targets, ts, max_steps, kind, B, solver)
+    carry0 = _initial_carry(flat0, t0, seg0, ts, B, dtype)
     n_targets = targets.value.shape[1]
     final = eqxi.while_loop(
         lambda c: jnp.any(c.status == _RUNNING),
@@ -412,7 +455,14 @@ def adaptive_rk_solve(
         kind=kind,
         checkpoints=checkpoints,
     )
-    return _finish(final, ts, t1)
+    return _finish(final, ts, t1, jax.vmap(jax.vmap(unravel)), jax.vmap(unravel))
+
+
+def _packing(y0):
+    """(B, n) flattened initial states, and ravel/unravel of one member's state pytree."""
+    _, unravel = ravel_pytree(tmap(lambda x: x[0], y0))
+    ravel = lambda tree: ravel_pytree(tree)[0]  # noqa: E731
+    return jax.vmap(ravel)(y0), ravel, unravel
 
 
 def _check_concrete(t0, t1, ts, max_steps):
@@ -422,7 +472,9 @@ def _check_concrete(t0, t1, ts, max_steps):
         return
     if np.any(b < a):
         raise ValueError("`t1` must be ≥ `t0` for every member.")
-    if s.shape[1] and (np.any(np.diff(s, axis=1) < 0) or np.any(s < a[:, None]) or np.any(s > b[:, None])):
+    if s.shape[1] and (
+        np.any(np.diff(s, axis=1) < 0) or np.any(s < a[:, None]) or np.any(s > b[:, None])
+    ):
         raise ValueError("`ts` must be non-decreasing and lie within [t0, t1].")
 
 
@@ -449,14 +501,13 @@ def _initial_carry(y0, t0, seg0, ts, B, dtype):
     )
 
 
-def _make_body(F, R, args, method, ctrl, dt0, targets, ts, max_steps, kind, B, dtype, solver):
+def _make_body(F, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, kind, B, solver):
     a, b, be, c, fsal = method.a, method.b, method.b_error, method.c, method.fsal
     s = len(b)
     first = 1 if fsal else 0
     rows = jnp.arange(B)
     S = ts.shape[1]
 
-    norm_b = _batched_norm(ctrl.norm)
 
     def scale_of(y):
         return tmap(lambda u: ctrl.atol + jnp.abs(u) * ctrl.rtol, y)
@@ -468,7 +519,8 @@ def _make_body(F, R, args, method, ctrl, dt0, targets, ts, max_steps, kind, B, d
         tprev, tnext, y = cr.tprev, cr.tnext, cr.y
         dt = tnext - tprev  # 0 for initialising and finished members
         end = _pick(targets.end, cr.seg)
-        # -- stages; an initialising member uses the first two evaluations for the initial step selection
+        # -- stages; an initialising member uses the first two evaluations for the initial step
+        # selection
         fs = [cr.f0] if fsal else []
         ks = [tmap(lambda v: _scale_member(dt, v), cr.f0)] if fsal else []
         h0 = g0 = None
@@ -477,17 +529,24 @@ def _make_body(F, R, args, method, ctrl, dt0, targets, ts, max_steps, kind, B, d
             ti = jnp.where(c[i] == 1.0, tnext, tprev + c[i] * dt)
             if i == first + 1 and dt0 is None:
                 ti = jnp.where(init, tprev + h0, ti)
-                yi = _where(init, tmap(lambda u, g: u + _scale_member(h0, g), y, g0), yi)
+                probe = tmap(lambda u, g, h=h0: u + _scale_member(h, g), y, g0)
+                yi = _where(init, probe, yi)
             fi = F(ti, yi, args)
             if i == first:
                 g0 = fi
                 h0, d1 = _probe_step(y, g0, scale_of(y), norm_b)
             fs.append(fi)
             ks.append(tmap(lambda v: _scale_member(dt, v), fi))
-        h_init = _initial_step(init, y, g0, fs[first + 1], h0, d1, dt0, scale_of, norm_b, method, ctrl)
+        h_init = _initial_step(
+            init, y, g0, fs[first + 1], h0, d1, dt0, scale_of, norm_b, method, ctrl
+        )
         y1 = _axpy(y, b, ks)
-        y_err = tmap(lambda e: jnp.where(jnp.isnan(e), jnp.inf, e), _axpy(tmap(jnp.zeros_like, y), be, ks))
-        keep, dt_next, inv_err, inv_err2, at_dtmin = _adapt(y, y1, y_err, dt, cr, ctrl, method, norm_b)
+        y_err = tmap(
+            lambda e: jnp.where(jnp.isnan(e), jnp.inf, e), _axpy(tmap(jnp.zeros_like, y), be, ks)
+        )
+        keep, dt_next, inv_err, inv_err2, at_dtmin = _adapt(
+            y, y1, y_err, dt, cr, ctrl, method, norm_b
+        )
         # -- bookkeeping of stepping members
         acc = stepping & keep
         arrive = acc & (tnext == end)
@@ -510,10 +569,11 @@ def _make_body(F, R, args, method, ctrl, dt0, targets, ts, max_steps, kind, B, d
         tprev_new = jnp.where(init, tprev, jnp.where(stepping, t_start, tprev))
         tnext_new = jnp.where(init, tn_init, jnp.where(stepping & ~arrive, tn_step, tprev_new))
         f0_new = _where(init, g0, f0_new) if fsal else f0_new
-        one = jnp.ones((B,), dtype)
+        one = jnp.ones((B,), tprev.dtype)
         restart = init | arrive
-        status = _new_status(cr, init, stepping, acc, arrive, is_final, y_new, g0, f0_new, nt0, nt1, max_steps,
-                             fsal)
+        status = _new_status(
+            cr, init, stepping, acc, arrive, is_final, y_new, g0, f0_new, nt0, nt1, max_steps, fsal
+        )
         ok = status != NONFINITE
         return _Carry(
             tprev=tprev_new,
@@ -545,7 +605,8 @@ def _probe_step(y, g0, scale, norm_b):
 
 
 def _initial_step(init, y, g0, g1, h0, d1, dt0, scale_of, norm_b, method, ctrl):
-    """First step of a segment: dt0, or diffrax's selection from f(t0, y0) and f(t0 + h0, y0 + h0 f0)."""
+    """First step of a segment: dt0, or diffrax's selection from f(t0, y0) and f(t0 + h0, y0 + h0
+    f0)."""
     if dt0 is None:
         scale = scale_of(y)
         d2 = norm_b(tmap(lambda u, v, s_: (u - v) / s_, g1, g0, scale)) / h0
@@ -612,7 +673,9 @@ def _clip_to_end(tprev, tnext, end, floor, keep):
     return jnp.where(clip, jnp.where(keep, end, tprev + 0.5 * (end - tprev)), tnext)
 
 
-def _new_status(cr, init, stepping, acc, arrive, is_final, y_new, g0, f0_new, nt0, nt1, max_steps, fsal):
+def _new_status(
+    cr, init, stepping, acc, arrive, is_final, y_new, g0, f0_new, nt0, nt1, max_steps, fsal
+):
     B = cr.status.shape[0]
     status = cr.status
     status = jnp.where(arrive & is_final, SUCCESS, status)
@@ -628,6 +691,7 @@ def _new_status(cr, init, stepping, acc, arrive, is_final, y_new, g0, f0_new, nt
 
 def _save(cr, acc, limit, tprev, tnext, y, y1, ks, ts, rows, S, solver, kind):
     """Write the dense interpolant at the save times in [tprev, limit) of every accepted step."""
+
     def pending(idx):
         s_ = _pick(ts, jnp.minimum(idx, S - 1))
         return acc & (idx < S) & (s_ < limit), s_
@@ -638,20 +702,26 @@ def _save(cr, acc, limit, tprev, tnext, y, y1, ks, ts, rows, S, solver, kind):
     def body(sc):
         idx, ys = sc
         pend, s_ = pending(idx)
-        w = jax.vmap(lambda a_, b_, t_: _interpolation_weights(solver, len(ks), a_, b_, t_))(tprev, tnext, s_)
+        w = jax.vmap(lambda a_, b_, t_: _interpolation_weights(solver, len(ks), a_, b_, t_))(
+            tprev, tnext, s_
+        )
         val = _axpy_member(w, [y, y1, *ks])
         col = jnp.where(pend, idx, S)  # column S: a scratch column, discarded
-        ys = tmap(lambda v, buf: buf.at[rows, col].set(v), val, ys)  # values first: buffers are nodes
+        ys = tmap(
+            lambda v, buf: buf.at[rows, col].set(v), val, ys
+        )  # values first: buffers are nodes
         return idx + pend.astype(jnp.int32), ys
 
-    idx, ys = eqxi.while_loop(cond, body, (cr.save_idx, cr.ys), max_steps=S, buffers=lambda sc: sc[1], kind=kind)
+    idx, ys = eqxi.while_loop(
+        cond, body, (cr.save_idx, cr.ys), max_steps=S, buffers=lambda sc: sc[1], kind=kind
+    )
     return ys, idx
 
 
 def _interpolation_weights(solver, n_stages, t0, t1, t):
-    """The solver's dense interpolant on [t0, t1] at t is linear in (y0, y1, k_1, …, k_s): its coefficients,
-    read off by interpolating the unit vectors.  (Combining the members' states with them needs no stacked
-    copy of the stages, which XLA would otherwise build at every step.)"""
+    """The solver's dense interpolant on [t0, t1] at t is linear in (y0, y1, k_1, …, k_s): its
+    coefficients, read off by interpolating the unit vectors.  (Combining the members' states with
+    them needs no stacked copy of the stages, which XLA would otherwise build at every step.)"""
     eye = jnp.eye(2 + n_stages, dtype=jnp.result_type(t0, t1, t))
     return solver.interpolation_cls(t0=t0, t1=t1, y0=eye[0], y1=eye[1], k=eye[2:]).evaluate(t)
 
@@ -661,7 +731,7 @@ def _axpy_member(w, trees):
     return tmap(lambda *xs: sum(_scale_member(w[:, i], x) for i, x in enumerate(xs)), *trees)
 
 
-def _finish(cr: _Carry, ts, t1) -> AdaptiveRKSolution:
+def _finish(cr: _Carry, ts, t1, unravel_saved, unravel_final) -> AdaptiveRKSolution:
     B, S = ts.shape
     status = jnp.where(cr.status == _RUNNING, SOLVER_FAILED, cr.status).astype(jnp.int32)
     ok = status == SUCCESS
@@ -678,9 +748,9 @@ def _finish(cr: _Carry, ts, t1) -> AdaptiveRKSolution:
     num_acc = cr.num_accepted
     return AdaptiveRKSolution(
         ts=ts,
-        ys=ys,
+        ys=unravel_saved(ys),
         t1=t1,
-        y1=y1,
+        y1=unravel_final(y1),
         status=status,
         num_steps=cr.num_steps,
         num_accepted_steps=num_acc,
