@@ -166,63 +166,60 @@ _WHAT = {
 }
 
 
+_NOTES = """
+What the cache can and cannot save: JAX writes a compiled program to the cache only if it carries
+no host callback. `eqx.error_if` (the `throw=True` checks of `simulate`, and the checks inside
+diffrax) is a host callback, so jitted `simulate` calls are compiled in every process; Monte-Carlo
+kernels are traced with the checks as NaN (no callbacks) and are cached. Tracing and lowering are
+never cached. In this version `tune`'s kernel carries such checks (`JAX_EXPLAIN_CACHE_MISSES=1`
+prints: Not writing persistent cache entry for 'jit__value_and_grad' because it uses host
+callbacks), so its first step gains nothing from the cache.
+
+On a shared machine the process CPU time (all threads, compilation included) is the steadier
+figure; the wall times above include waiting for the cores.
+
+Targets (issue: time to first result, on a quiet 2-core machine): `obsjax demo` ≤ 30 s on its
+first run and ≤ 12 s on its second, the first `tune` step ≤ 5 s, the first Monte-Carlo chunk
+≤ 4 s.
+
+**Preliminary**: measured on a shared machine (see the load below); to be re-measured on a quiet
+one.
+"""
+
+
 def _report(rows, demo_n):
+    intro = (
+        "Each row is a fresh process. *off*: `OBSJAX_NO_COMPILATION_CACHE=1`; *cold*: cache on, "
+        "directory just emptied (first run after installation); *warm*: cache on, filled by the "
+        f"cold run (second run). The demo runs with `-n {demo_n}`."
+    )
+    header = (
+        "| workload | cache | process wall | process CPU | section wall | cache entries | target |"
+    )
     lines = [
-        (
-            "Each row is a fresh process. *off*: `OBSJAX_NO_COMPILATION_CACHE=1`; *cold*: cache "
-            "on, "
-            "directory just emptied (first run after installation); *warm*: cache on, filled by "
-            "the cold "
-            f"run (second run). The demo runs with `-n {demo_n}`."
-        ),
+        intro,
         "",
-        (
-            "| workload | cache | process wall | process CPU | section wall | cache entries (MiB) "
-            "| target |"
-        ),
+        header,
         "|---|---|---|---|---|---|---|",
     ]
     for name, mode, wall, cpu, info, n, mib in rows:
         target = _TARGETS.get((name, mode))
         sec = info.get("section", float("nan"))
         measured = wall if name == "demo" else sec
-        verdict = (
-            "" if target is None else f"≤ {target:g} s: " + C.verdict(measured, target, "lower")
-        )
+        verdict = ""
+        if target is not None:
+            verdict = f"≤ {target:g} s: " + C.verdict(measured, target, "lower")
         lines.append(
             f"| {_WHAT[name]} | {mode} | {wall:.1f} s | {cpu:.1f} s | {sec:.1f} s | "
-            f"{n} ({mib:.1f}) | {verdict} |"
+            f"{n} ({mib:.1f} MiB) | {verdict} |"
         )
     demo = [r for r in rows if r[0] == "demo" and "demo_line" in r[4]]
     if demo:
         lines += ["", "The demo's own summary lines:", ""]
         lines += [f"- {r[1]}: `{r[4]['demo_line']}`" for r in demo]
-    lines += [
-        "",
-        (
-            "What the cache can and cannot save: JAX writes a compiled program to the cache only "
-            "if it "
-            "carries no host callback. `eqx.error_if` (the `throw=True` checks of `simulate`, and "
-            "the "
-            "checks inside diffrax) is a host callback, so jitted `simulate` calls are compiled in "
-            "every "
-            "process; Monte-Carlo kernels are traced with the checks as NaN (no callbacks) and are "
-            "cached. Tracing and lowering are never cached."
-        ),
-        "",
-        (
-            "Targets (issue: time to first result, on a quiet 2-core machine): `obsjax demo` ≤ 30 "
-            "s on "
-            "its first run and ≤ 12 s on its second, the first `tune` step ≤ 5 s, the first "
-            "Monte-Carlo chunk ≤ 4 s."
-        ),
-        "",
-        (
-            "**Preliminary**: measured on a shared machine (see the load below); to be re-measured "
-            "on a "
-            "quiet one."
-        ),
-    ]
+    paragraphs = [" ".join(p.split("\n")) for p in _NOTES.strip().split("\n\n")]
+    for p in paragraphs:
+        lines += ["", p]
     return "\n".join(lines)
 
 
