@@ -512,6 +512,10 @@ def main(argv=None) -> int:
     )
     p_bench.add_argument("--dir", default=None, help="the benchmarks directory")
     args = parser.parse_args(argv)
+    # JAX's persistent compilation cache for this process (OBSJAX_NO_COMPILATION_CACHE=1 opts out).
+    from ._cache import enable_compilation_cache
+
+    enable_compilation_cache()
 
     if args.command == "demo":
         demo(args.out, n=args.n, steps=args.steps, batch=args.batch, seed=args.seed)
