@@ -53,9 +53,15 @@ def _plant_solution(theta):
     E = jnp.array([0.0, 1.0, 0.0])
     return diffrax.diffeqsolve(
         diffrax.ODETerm(lambda t, x, a: A3(t) @ x + B3(t) @ u3(t) + a * E),
-        diffrax.Dopri8(), T0, T1, None, X0, args=theta,
+        diffrax.Dopri8(),
+        T0,
+        T1,
+        None,
+        X0,
+        args=theta,
         saveat=diffrax.SaveAt(dense=True, t1=True),
-        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-14), max_steps=100_000,
+        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-14),
+        max_steps=100_000,
     )
 
 
@@ -67,11 +73,13 @@ def plant_solution(theta=0.0):
 
 def transition(ts):
     """Φ(t_k, t0) on a grid by SciPy."""
+
     def rhs(t, v):
         return (np.asarray(A3(t)) @ v.reshape(3, 3)).ravel()
 
-    sol = si.solve_ivp(rhs, (ts[0], ts[-1]), np.eye(3).ravel(), t_eval=ts, rtol=1e-12, atol=1e-13,
-                       method="DOP853")
+    sol = si.solve_ivp(
+        rhs, (ts[0], ts[-1]), np.eye(3).ravel(), t_eval=ts, rtol=1e-12, atol=1e-13, method="DOP853"
+    )
     return sol.y.T.reshape(-1, 3, 3)
 
 
@@ -79,11 +87,18 @@ def test_exact_reconstruction_of_x_t1_from_noise_free_data():
     sol = plant_solution()
     xT = np.asarray(sol.ys[-1])
     y = lambda t: C3(t) @ sol.evaluate(t)
-    for fw in (obsjax.FiniteWindowLTV(PLANT3, T0, T1), obsjax.FiniteWindowLTV(PLANT3, T0, T1, ALPHA, BETA)):
-        np.testing.assert_allclose(fw.estimate(y, u3), xT, atol=1e-9)  # (14) integrated in the solve
+    for fw in (
+        obsjax.FiniteWindowLTV(PLANT3, T0, T1),
+        obsjax.FiniteWindowLTV(PLANT3, T0, T1, ALPHA, BETA),
+    ):
+        np.testing.assert_allclose(
+            fw.estimate(y, u3), xT, atol=1e-9
+        )  # (14) integrated in the solve
         ts = jnp.linspace(T0, T1, 201)
         ys, us = jax.vmap(y)(ts), jax.vmap(u3)(ts)
-        np.testing.assert_allclose(fw.estimate_window(ts, ys, us), xT, atol=1e-7)  # Simpson, h = 0.01
+        np.testing.assert_allclose(
+            fw.estimate_window(ts, ys, us), xT, atol=1e-7
+        )  # Simpson, h = 0.01
 
 
 def test_beta_zero_gives_the_gramian_kernel():
@@ -172,7 +187,9 @@ def test_parameter_identification_of_a_constant_force():
     np.testing.assert_allclose(est[:3], sol.ys[-1], atol=1e-9)
     assert float(est[3]) == pytest.approx(theta, abs=1e-8)
     # a sensor offset y = x + θ indistinguishable from the state (ẋ = 0): Lemma 1 refuses
-    still = obsjax.LTV(lambda t: jnp.zeros((1, 1)), lambda t: jnp.ones((1, 1)), lambda t: jnp.ones((1, 1)))
+    still = obsjax.LTV(
+        lambda t: jnp.zeros((1, 1)), lambda t: jnp.ones((1, 1)), lambda t: jnp.ones((1, 1))
+    )
     with pytest.raises(ValueError, match="Lemma 1"):
         obsjax.FiniteWindowLTV(still, 0.0, 1.0, D=lambda t: jnp.ones((1, 1)))
 
@@ -192,8 +209,12 @@ def test_norm_gradient_wrt_window_and_weights():
     assert float(g[0]) < 0  # a longer window gives a smaller norm
     for i in range(3):
         e = jnp.zeros(3).at[i].set(h)
-        np.testing.assert_allclose(g[1][i], (nrm(T1, a + e, b) - nrm(T1, a - e, b)) / (2 * h), rtol=1e-6)
-        np.testing.assert_allclose(g[2][i], (nrm(T1, a, b + e) - nrm(T1, a, b - e)) / (2 * h), rtol=1e-6)
+        np.testing.assert_allclose(
+            g[1][i], (nrm(T1, a + e, b) - nrm(T1, a - e, b)) / (2 * h), rtol=1e-6
+        )
+        np.testing.assert_allclose(
+            g[2][i], (nrm(T1, a, b + e) - nrm(T1, a, b - e)) / (2 * h), rtol=1e-6
+        )
 
 
 def test_bad_inputs():
@@ -204,7 +225,9 @@ def test_bad_inputs():
     with pytest.raises(ValueError, match=r"`E\(t\)` must return a \(3, q\) matrix"):
         obsjax.FiniteWindowLTV(PLANT3, 0.0, 1.0, E=lambda t: jnp.ones((2, 1)))
     with pytest.raises(ValueError, match="must be an obsjax.LTV"):
-        obsjax.FiniteWindowLTV(obsjax.Nonlinear(lambda t, x, u: x, lambda t, x, u: x, 1, 1), 0.0, 1.0)
+        obsjax.FiniteWindowLTV(
+            obsjax.Nonlinear(lambda t, x, u: x, lambda t, x, u: x, 1, 1), 0.0, 1.0
+        )
     fw = obsjax.FiniteWindowLTV(PLANT3, T0, T1)
     with pytest.raises(ValueError, match="`ts` must run from t0"):
         fw.estimate_window(jnp.linspace(0.0, 2.5, 5), jnp.zeros((5, 1)))
@@ -221,7 +244,9 @@ XA, XHA = jnp.array([1.0, -0.5]), jnp.array([0.3, 0.2])
 
 @functools.cache
 def delay_run(consistent, N):
-    return obsjax.delay_closed_loop(FW29, P29, XA, XA if consistent else XHA, 4.0, steps_per_window=N)
+    return obsjax.delay_closed_loop(
+        FW29, P29, XA, XA if consistent else XHA, 4.0, steps_per_window=N
+    )
 
 
 def test_delay_loop_is_second_order_and_equals_sample_and_propagate_on_consistent_data():
@@ -229,7 +254,9 @@ def test_delay_loop_is_second_order_and_equals_sample_and_propagate_on_consisten
     forms give x(t) = e^{(A+BP)t} x0: the sample-and-propagate form to the ODE tolerance, the delay loop
     to O(h²) (the error falls 4× when h halves)."""
     ts = jnp.linspace(0.0, 4.0, 41)
-    tr = obsjax.simulate(MODEL29, FW29, XA, XA, ts, controller=lambda t, xh: P29 @ xh, rtol=1e-10, atol=1e-12)
+    tr = obsjax.simulate(
+        MODEL29, FW29, XA, XA, ts, controller=lambda t, xh: P29 @ xh, rtol=1e-10, atol=1e-12
+    )
     Acl = np.asarray(MODEL29.A + MODEL29.B @ P29)
     exact = np.stack([sl.expm(Acl * float(t)) @ np.asarray(XA) for t in ts])
     np.testing.assert_allclose(tr.x, exact, atol=1e-8)
@@ -266,11 +293,15 @@ def test_delay_loop_satisfies_the_differentiated_form_39():
     w = np.full(N + 1, h)
     w[0] = w[-1] = h / 2
     for t in (1.5, 2.3, 3.1):  # t > T: the window holds plant data only
-        k = int(round(t / h))
+        k = round(t / h)
         xw, uw = x[k - N : k + 1], u[k - N : k + 1]
         rhs = (
-            -P @ np.einsum("j,jim,mn,jn->i", w, dG1, C, xw) - P @ np.einsum("j,jip,jp->i", w, dG2, uw)
-            + P @ G1[-1] @ C @ x[k] - P @ G1[0] @ C @ x[k - N] + P @ G2[-1] @ u[k] - P @ G2[0] @ u[k - N]
+            -P @ np.einsum("j,jim,mn,jn->i", w, dG1, C, xw)
+            - P @ np.einsum("j,jip,jp->i", w, dG2, uw)
+            + P @ G1[-1] @ C @ x[k]
+            - P @ G1[0] @ C @ x[k - N]
+            + P @ G2[-1] @ u[k]
+            - P @ G2[0] @ u[k - N]
         )
         udot = (u[k + 1] - u[k - 1]) / (2 * h)
         np.testing.assert_allclose(udot, rhs, atol=1e-3 * max(1.0, np.abs(udot).max()))
@@ -285,6 +316,8 @@ def test_sample_and_propagate_converges_to_the_delay_loop_as_chunks_shrink():
     devs = []
     for nc in (10, 20, 40):
         fw = obsjax.FiniteWindow(MODEL29, 1.0, n_chunks=nc)
-        tr = obsjax.simulate(MODEL29, fw, XA, XHA, ts, controller=lambda t, xh: P29 @ xh, rtol=1e-10, atol=1e-12)
+        tr = obsjax.simulate(
+            MODEL29, fw, XA, XHA, ts, controller=lambda t, xh: P29 @ xh, rtol=1e-10, atol=1e-12
+        )
         devs.append(np.abs(np.asarray(tr.x) - xr).max())
     assert devs[0] / devs[1] > 1.7 and devs[1] / devs[2] > 1.7

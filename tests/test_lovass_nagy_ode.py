@@ -66,7 +66,9 @@ def test_input_solvability_uses_B_B1_not_B1_B():
     # zero-ness does not depend on the {1}-inverse (B X is a projector onto range B for every X)
     for _ in range(3):
         X = np.asarray(one_inverse(B, Y=rng.normal(size=(3, 1)).T, Z=rng.normal(size=(1, 3))))
-        np.testing.assert_allclose(np.asarray(input_solvability_residual(B, v_in, X)), 0.0, atol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(input_solvability_residual(B, v_in, X)), 0.0, atol=1e-12
+        )
         assert np.linalg.norm(np.asarray(input_solvability_residual(B, v_out, X))) > 1e-3
     # the printed (I − B^{1}B) v: (1 × 1) times a 3-vector is undefined ...
     with pytest.raises(ValueError):
@@ -102,7 +104,9 @@ def B3(t):
     return jnp.array([[0.0], [0.0], [1.0]])
 
 
-F3 = jnp.array([[-3.0, 1.0, 0.0], [0.0, -4.0, 1.0], [0.0, 0.0, -5.0]])  # upper triangular, free entries 1
+F3 = jnp.array(
+    [[-3.0, 1.0, 0.0], [0.0, -4.0, 1.0], [0.0, 0.0, -5.0]]
+)  # upper triangular, free entries 1
 G3 = jnp.ones((3, 1))
 
 
@@ -146,8 +150,15 @@ def scipy_T(A, C, F, G, T0, ts):
         T = v.reshape(n, n)
         return (F_ @ T - T @ A_(t) + G_ @ C_(t)).ravel()
 
-    return si.solve_ivp(rhs, (ts[0], ts[-1]), np.asarray(T0).ravel(), rtol=1e-12, atol=1e-13,
-                        method="DOP853", dense_output=True)
+    return si.solve_ivp(
+        rhs,
+        (ts[0], ts[-1]),
+        np.asarray(T0).ravel(),
+        rtol=1e-12,
+        atol=1e-13,
+        method="DOP853",
+        dense_output=True,
+    )
 
 
 def test_algebraic_completion_fails_for_3_states_1_output():
@@ -182,7 +193,7 @@ def test_T_ode_matches_scipy_and_satisfies_the_solvability_condition(n):
 
 @functools.cache
 def _runner(n):
-    A, C, B, F, G = PLANTS[n]
+    A, C, B, _F, _G = PLANTS[n]
     plant = obsjax.LTV(A, C, B)
 
     @eqx.filter_jit
@@ -195,7 +206,7 @@ def _runner(n):
 @pytest.mark.parametrize("n", [3, 4])
 def test_error_law_z_minus_Tx_is_exp_Ft(n):
     """The defining property (7): z − T x = e^{F(t−t0)}(z0 − T0 x0), to 1e-8, and x̂ → x."""
-    A, C, B, F, G = PLANTS[n]
+    A, C, _B, F, G = PLANTS[n]
     plant, run = _runner(n)
     obs = obsjax.GeneralizedInverseODE(plant, F, G, horizon=(0.0, 6.0))
     x0 = jnp.linspace(1.0, -1.0, n)
@@ -219,7 +230,9 @@ def test_singular_T_is_refused_and_named():
     with pytest.raises(ValueError, match=r"changes sign between t = 0\.69 and t = 0\.7"):
         obsjax.GeneralizedInverseODE(plant, [[-1.0]], [[1.0]], T0=[[-1.0]], horizon=(0.0, 2.0))
     with pytest.raises(ValueError, match=r"σ_min\(T\)/σ_max\(T\) = 0.000e\+00 .* at t = 0\b"):
-        lovass_nagy_T_ode(A3, C3, F3, G3, np.linspace(0, 1, 5), T0=jnp.zeros((3, 3)).at[0, 0].set(1.0))
+        lovass_nagy_T_ode(
+            A3, C3, F3, G3, np.linspace(0, 1, 5), T0=jnp.zeros((3, 3)).at[0, 0].set(1.0)
+        )
     # the same with T0 = +1 stays invertible
     obsjax.GeneralizedInverseODE(plant, [[-1.0]], [[1.0]], T0=[[1.0]], horizon=(0.0, 2.0))
 
@@ -242,14 +255,25 @@ def test_gradient_wrt_G_and_F_matches_finite_differences():
     ts = jnp.linspace(0.0, 2.0, 21)
     x0 = jnp.array([1.0, -0.5, 0.3])
 
-    T0 = obsjax.design.frozen_T0(A3(0.0), C3(0.0), F3, G3)  # fixed: x̂ = T⁻¹z is invariant to scaling G
+    T0 = obsjax.design.frozen_T0(
+        A3(0.0), C3(0.0), F3, G3
+    )  # fixed: x̂ = T⁻¹z is invariant to scaling G
 
     @jax.jit
     def loss(g, f01):
         obs = obsjax.GeneralizedInverseODE(plant, F3.at[0, 1].set(f01), g, T0=T0)
-        tr = obsjax.simulate(plant, obs, x0, jnp.zeros(3), ts, u=u_in, solver=diffrax.Heun(),
-                             dt0=0.01, adaptive=False)
-        return jnp.sum(tr.error ** 2)
+        tr = obsjax.simulate(
+            plant,
+            obs,
+            x0,
+            jnp.zeros(3),
+            ts,
+            u=u_in,
+            solver=diffrax.Heun(),
+            dt0=0.01,
+            adaptive=False,
+        )
+        return jnp.sum(tr.error**2)
 
     g0, f0 = jnp.array([[1.3], [0.6], [-0.4]]), 1.0
     dg, df = jax.grad(loss, argnums=(0, 1))(g0, f0)

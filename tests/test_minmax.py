@@ -267,7 +267,7 @@ def test_cost1_single_output_is_least_absolute_deviations_by_enumeration():
 
 def test_cost1_eps_adds_N_plus_1_eps_and_keeps_the_estimate():
     As, us, _xs, ys = data(10, noise=0.05, seed=2)
-    x0, c0 = obsjax.minmax_sum_initial_state(As, B_mm, C_mm, ys, us, eps=0.0)
+    _x0, c0 = obsjax.minmax_sum_initial_state(As, B_mm, C_mm, ys, us, eps=0.0)
     x1, c1 = obsjax.minmax_sum_initial_state(As, B_mm, C_mm, ys, us, eps=0.02)
     assert c1 == pytest.approx(c0 + 11 * 0.02, abs=1e-8)
     ybar, psi = window_regression(As, B_mm, C_mm, ys, us)

@@ -57,7 +57,9 @@ def A4(t):
 
 
 def B4(t):
-    return jnp.array([[0.0, 0.0], [1.0 + 0.2 * jnp.sin(t), 0.3], [0.0, 0.0], [0.1 * jnp.cos(t), 1.0]])
+    return jnp.array(
+        [[0.0, 0.0], [1.0 + 0.2 * jnp.sin(t), 0.3], [0.0, 0.0], [0.1 * jnp.cos(t), 1.0]]
+    )
 
 
 RHO4 = jnp.array([-1.0, -2.0, -1.5, -3.0])
@@ -79,8 +81,11 @@ def test_closed_loop_canonical_form_is_the_assigned_companion_mimo():
     @jax.jit
     def closed(s):
         K = pd_controller_gain(A4, B4, RHO4, omega_tv, s, indices=(2, 2)).K
-        M, Md = jax.jvp(lambda r: pd_controller_gain(A4, B4, RHO4, omega_tv, r, indices=(2, 2)).M,
-                        (s,), (jnp.ones_like(s),))
+        M, Md = jax.jvp(
+            lambda r: pd_controller_gain(A4, B4, RHO4, omega_tv, r, indices=(2, 2)).M,
+            (s,),
+            (jnp.ones_like(s),),
+        )
         Mi = jnp.linalg.inv(M)
         return Mi @ (A4(s) + B4(s) @ K) @ M - Mi @ Md
 
@@ -96,19 +101,24 @@ def test_closed_loop_canonical_form_is_the_assigned_companion_mimo():
 def test_constant_bandwidth_gives_frozen_lti_canonical_loop():
     """With constant ω the canonical closed loop is LTI with eigenvalues ρ̄ ω, although A + BK itself has
     time-varying frozen eigenvalues."""
+
     @jax.jit
     def closed(s):
         K = pd_controller_gain(A3, B3, RHO3, 1.5, s, indices=(3,)).K
-        M, Md = jax.jvp(lambda r: pd_controller_gain(A3, B3, RHO3, 1.5, r, indices=(3,)).M,
-                        (s,), (jnp.ones_like(s),))
+        M, Md = jax.jvp(
+            lambda r: pd_controller_gain(A3, B3, RHO3, 1.5, r, indices=(3,)).M,
+            (s,),
+            (jnp.ones_like(s),),
+        )
         Mi = jnp.linalg.inv(M)
         return Mi @ (A3(s) + B3(s) @ K) @ M - Mi @ Md, K
 
     ev = []
     for t in (0.3, 1.9):
         Acl, K = (np.asarray(v) for v in closed(jnp.asarray(t)))
-        np.testing.assert_allclose(np.sort(np.linalg.eigvals(Acl).real), np.sort(1.5 * np.asarray(RHO3)),
-                                   rtol=1e-9)
+        np.testing.assert_allclose(
+            np.sort(np.linalg.eigvals(Acl).real), np.sort(1.5 * np.asarray(RHO3)), rtol=1e-9
+        )
         ev.append(np.sort(np.linalg.eigvals(np.asarray(A3(t) + B3(t) @ K)).real))
     assert np.abs(ev[0] - ev[1]).max() > 1e-3  # frozen eigenvalues move: PD ≠ frozen
 
@@ -125,8 +135,14 @@ def _siso_loop():
             return (A3(t) + B3(t) @ K) @ x
 
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(rhs), diffrax.Tsit5(), 0.0, 3.0, None, x0,
-            saveat=diffrax.SaveAt(ts=ts), stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-13),
+            diffrax.ODETerm(rhs),
+            diffrax.Tsit5(),
+            0.0,
+            3.0,
+            None,
+            x0,
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-13),
         )
         return sol.ys
 
@@ -162,8 +178,12 @@ def test_gain_gradient_matches_finite_differences():
     h = 1e-6
     for i in range(3):
         e = jnp.zeros(3).at[i].set(h)
-        np.testing.assert_allclose(Jr[:, i], (k(RHO3 + e, w0) - k(RHO3 - e, w0)) / (2 * h), rtol=1e-6, atol=1e-8)
-        np.testing.assert_allclose(Jw[:, i], (k(RHO3, w0 + e) - k(RHO3, w0 - e)) / (2 * h), rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(
+            Jr[:, i], (k(RHO3 + e, w0) - k(RHO3 - e, w0)) / (2 * h), rtol=1e-6, atol=1e-8
+        )
+        np.testing.assert_allclose(
+            Jw[:, i], (k(RHO3, w0 + e) - k(RHO3, w0 - e)) / (2 * h), rtol=1e-6, atol=1e-8
+        )
     assert np.abs(np.asarray(Jw)).max() > 1e-2
 
 
@@ -200,13 +220,14 @@ def test_dynamic_inversion_reproduces_the_plant_and_the_output():
     np.testing.assert_allclose(xd, jax.vmap(arm)(ts, xb, ub), atol=1e-12)
     np.testing.assert_allclose(xb, 0.8 * np.stack([np.sin(ts), np.cos(ts)], 1), atol=1e-12)
     # MIMO, relative degrees (1, 2), a state-dependent input matrix and a Newton solve
-    f = lambda t, x, u: jnp.array([x[1] + 0.3 * jnp.sin(x[2]) + u[0], -x[0] + x[2], u[1] + 0.2 * x[0] ** 2])
+    f = lambda t, x, u: jnp.array(
+        [x[1] + 0.3 * jnp.sin(x[2]) + u[0], -x[0] + x[2], u[1] + 0.2 * x[0] ** 2]
+    )
     h = lambda t, x, u: jnp.array([x[0] + 0.1 * x[1] ** 2, x[1]])
     mdl = obsjax.Nonlinear(f, h, 3, 2, 2)
     yr = lambda t: jnp.array([0.5 * jnp.cos(t), 0.4 * jnp.sin(1.3 * t)])
     nom2 = obsjax.dynamic_inversion(mdl, yr)
     assert nom2.degrees == (1, 2)
-
 
     @jax.jit
     def check(t):
@@ -225,7 +246,9 @@ def test_dynamic_inversion_reproduces_the_plant_and_the_output():
 
 
 def test_dynamic_inversion_refusals():
-    nonaffine = obsjax.Nonlinear(lambda t, x, u: jnp.array([x[1], u[0] ** 3]), lambda t, x, u: x[:1], 2, 1, 1)
+    nonaffine = obsjax.Nonlinear(
+        lambda t, x, u: jnp.array([x[1], u[0] ** 3]), lambda t, x, u: x[:1], 2, 1, 1
+    )
     with pytest.raises(ValueError, match="input-affine"):
         obsjax.dynamic_inversion(nonaffine, y_arm)
     internal = obsjax.Nonlinear(
@@ -234,13 +257,21 @@ def test_dynamic_inversion_refusals():
     with pytest.raises(ValueError, match="internal state.*from_state"):
         obsjax.dynamic_inversion(internal, y_arm)
     with pytest.raises(ValueError, match="as many inputs as outputs"):
-        obsjax.dynamic_inversion(obsjax.Nonlinear(arm, lambda t, x, u: x, 2, 2, 1), lambda t: jnp.zeros(2))
+        obsjax.dynamic_inversion(
+            obsjax.Nonlinear(arm, lambda t, x, u: x, 2, 2, 1), lambda t: jnp.zeros(2)
+        )
     # a nominal state that no input can produce (ẋ1 ≠ x2)
     with pytest.raises(ValueError, match="not a trajectory of the plant"):
-        NominalTrajectory.from_state(ARM, lambda t: jnp.array([jnp.sin(t), 0.0 * t]), check_ts=[0.5])
-    ok = NominalTrajectory.from_state(ARM, lambda t: jnp.array([jnp.sin(t), jnp.cos(t)]), check_ts=[0.5, 1.5])
+        NominalTrajectory.from_state(
+            ARM, lambda t: jnp.array([jnp.sin(t), 0.0 * t]), check_ts=[0.5]
+        )
+    ok = NominalTrajectory.from_state(
+        ARM, lambda t: jnp.array([jnp.sin(t), jnp.cos(t)]), check_ts=[0.5, 1.5]
+    )
     xb, ub = ok(0.5)
-    np.testing.assert_allclose(jnp.array([jnp.cos(0.5), -jnp.sin(0.5)]), arm(0.5, xb, ub), atol=1e-12)
+    np.testing.assert_allclose(
+        jnp.array([jnp.cos(0.5), -jnp.sin(0.5)]), arm(0.5, xb, ub), atol=1e-12
+    )
 
 
 # ---- the output-feedback loop with the TLO, peaking and saturation (Remark 2) ---------------------------
@@ -260,24 +291,42 @@ def _peaking_setup():
     @jax.jit
     def state_feedback():
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(lambda t, x, a: arm(t, x, tlc(t, x))), diffrax.Tsit5(), 0.0, 6.0, None, x0,
-            saveat=diffrax.SaveAt(ts=TS_PK), stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10),
+            diffrax.ODETerm(lambda t, x, a: arm(t, x, tlc(t, x))),
+            diffrax.Tsit5(),
+            0.0,
+            6.0,
+            None,
+            x0,
+            saveat=diffrax.SaveAt(ts=TS_PK),
+            stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10),
         )
         return sol.ys
 
     @eqx.filter_jit
     def output_feedback(eps, u_max):
         o = eqx.tree_at(lambda o: o.eps, tlo, eps)
-        c = eqx.tree_at(lambda c: (c.u_max, c.u_min), tlc, (jnp.full(1, u_max), jnp.full(1, -u_max)))
-        tr = obsjax.simulate(ARM, o, x0, nom.state(0.0), TS_PK, controller=c, solver=diffrax.Tsit5(),
-                             rtol=1e-7, atol=1e-9, max_steps=100_000)
+        c = eqx.tree_at(
+            lambda c: (c.u_max, c.u_min), tlc, (jnp.full(1, u_max), jnp.full(1, -u_max))
+        )
+        tr = obsjax.simulate(
+            ARM,
+            o,
+            x0,
+            nom.state(0.0),
+            TS_PK,
+            controller=c,
+            solver=diffrax.Tsit5(),
+            rtol=1e-7,
+            atol=1e-9,
+            max_steps=100_000,
+        )
         return tr, jax.vmap(c)(TS_PK, tr.xhat)
 
     return nom, tlc, state_feedback, output_feedback
 
 
 def test_state_feedback_tracks_the_nominal():
-    nom, tlc, state_feedback, _ = _peaking_setup()
+    nom, _tlc, state_feedback, _ = _peaking_setup()
     xs = state_feedback()
     xb = jax.vmap(nom.state)(TS_PK)
     e = np.linalg.norm(np.asarray(xs - xb), axis=1)

@@ -290,7 +290,8 @@ def lovass_nagy_T(A, C, F, S, *, N=None, t0: float = 0.0) -> LovassNagyT:
             raise ValueError(
                 f"K = (I − NNᵀ)·A·N must have full column rank {k} at t = {t0} for the algebraic "
                 f"completion of T, found singular values {sv.tolist()}; choose other free entries "
-                f"(another N) or solve the condition as a differential equation."
+                f"(another N) or solve the condition as a differential equation "
+                f"(obsjax.design.lovass_nagy_T_ode, obsjax.GeneralizedInverseODE)."
             )
     return T
 

@@ -167,7 +167,9 @@ def pd_controller_gain(
     tc = concrete_value(t)
     if indices is None:
         if tc is None:
-            raise ValueError("`indices` must be given when `t` is traced (controllability indices are static).")
+            raise ValueError(
+                "`indices` must be given when `t` is traced (controllability indices are static)."
+            )
         indices = ltv_controllability_indices(A, B, tc)
     n = jax.eval_shape(A, t).shape[0]
     l = jax.eval_shape(B, t).shape[1]
@@ -190,7 +192,9 @@ def pd_controller_gain(
         )
     rho_bar = check_rho_bar(rho_bar, distinct=False)
     if rho_bar.shape[0] != n:
-        raise ValueError(f"`rho_bar` must have n = {n} entries (split as {idx}), got {rho_bar.shape[0]}.")
+        raise ValueError(
+            f"`rho_bar` must have n = {n} entries (split as {idx}), got {rho_bar.shape[0]}."
+        )
     w = omega_function(omega)
     M = form.T.T  # x = M z_c
     Minv = form.Tinv.T
@@ -311,11 +315,15 @@ class NominalTrajectory(eqx.Module):
         """Stacked [φ_0,i, …, φ_{r_i−1,i}]_i (n,)."""
         phis = _lie_ladder(self.model, max(self.degrees))
         vals = [phis[k](t, x) for k in range(max(self.degrees))]
-        return jnp.concatenate([jnp.stack([vals[k][i] for k in range(r)]) for i, r in enumerate(self.degrees)])
+        return jnp.concatenate(
+            [jnp.stack([vals[k][i] for k in range(r)]) for i, r in enumerate(self.degrees)]
+        )
 
     def _Y(self, t):
         """Stacked [ȳ_i, ȳ_i', …, ȳ_i^{(r_i−1)}] (n,) and the top derivatives ȳ_i^{(r_i)} (m,)."""
-        ders = time_derivatives(lambda s: jnp.asarray(self.y_ref(s)), t, max(self.degrees))  # (R+1, m)
+        ders = time_derivatives(
+            lambda s: jnp.asarray(self.y_ref(s)), t, max(self.degrees)
+        )  # (R+1, m)
         Y = jnp.concatenate([ders[:r, i] for i, r in enumerate(self.degrees)])
         top = jnp.stack([ders[r, i] for i, r in enumerate(self.degrees)])
         return Y, top
@@ -355,7 +363,9 @@ class NominalTrajectory(eqx.Module):
         return xd - self.model.f(t, x, self.input(t))
 
     @classmethod
-    def from_state(cls, model, x_ref: Callable, *, check_ts=None, rtol: float = 1e-8) -> NominalTrajectory:
+    def from_state(
+        cls, model, x_ref: Callable, *, check_ts=None, rtol: float = 1e-8
+    ) -> NominalTrajectory:
         """The nominal input of a given nominal state: μ̄ = g(t, ξ̄)⁺ (ξ̄˙ − f0(t, ξ̄)) (least squares, g of full
         column rank).
 
@@ -366,9 +376,9 @@ class NominalTrajectory(eqx.Module):
         """
         require_x64("NominalTrajectory.from_state")
         if not isinstance(model, AbstractSystem):
-            raise ValueError(f"`model` must be an obsjax plant, got {type(model).__name__}.")
+            raise ValueError(f"`model` must be an obsjax plant, got {type(model).__name__}.")  # noqa: TRY004 (project rule: ValueError)
         if not callable(x_ref):
-            raise ValueError("`x_ref` must be a callable t -> (n,) nominal state.")
+            raise ValueError("`x_ref` must be a callable t -> (n,) nominal state.")  # noqa: TRY004 (project rule: ValueError)
         t0 = _as_time(0.0 if check_ts is None else np.atleast_1d(check_ts)[0])
         _check_input_affine(model, t0, jnp.asarray(x_ref(t0)), "NominalTrajectory.from_state")
         nom = cls(model, None, x_ref, lambda t: jnp.zeros(model.n), (), 0, 0.0)
@@ -435,8 +445,14 @@ def _inverse_state_jvp(primals, tangents):
 
 
 def dynamic_inversion(
-    model, y_ref: Callable, *, guess=None, relative_degree=None, t_check: float = 0.0,
-    iterations: int = 20, tol: float = 1e-9,
+    model,
+    y_ref: Callable,
+    *,
+    guess=None,
+    relative_degree=None,
+    t_check: float = 0.0,
+    iterations: int = 20,
+    tol: float = 1e-9,
 ) -> NominalTrajectory:
     """Nominal state and control for a nominal output, by dynamic inversion of an input-affine plant.
 
@@ -474,9 +490,9 @@ def dynamic_inversion(
     """
     require_x64("dynamic_inversion")
     if not isinstance(model, AbstractSystem):
-        raise ValueError(f"`model` must be an obsjax plant, got {type(model).__name__}.")
+        raise ValueError(f"`model` must be an obsjax plant, got {type(model).__name__}.")  # noqa: TRY004 (project rule: ValueError)
     if not callable(y_ref):
-        raise ValueError("`y_ref` must be a callable t -> (m,) nominal output.")
+        raise ValueError("`y_ref` must be a callable t -> (m,) nominal output.")  # noqa: TRY004 (project rule: ValueError)
     n, m, p = model.n, model.m, model.p
     if p != m:
         raise ValueError(
@@ -487,12 +503,12 @@ def dynamic_inversion(
     if shp != (m,):
         raise ValueError(f"`y_ref(t)` must return shape ({m},), got {shp}.")
     if guess is None:
-        guess_fn = lambda t: jnp.zeros(n)  # noqa: E731
+        guess_fn = lambda t: jnp.zeros(n)
     elif callable(guess):
         guess_fn = guess
     else:
         g0 = vector(guess, "guess", n)
-        guess_fn = lambda t: g0  # noqa: E731
+        guess_fn = lambda t: g0
     tc = _as_time(t_check)
     x_c = jnp.asarray(guess_fn(tc), dtype=float)
     _check_input_affine(model, tc, x_c, "dynamic_inversion")
@@ -507,7 +523,9 @@ def dynamic_inversion(
     else:
         r = [int(v) for v in np.atleast_1d(relative_degree)]
         if len(r) != m or any(v < 1 for v in r):
-            raise ValueError(f"`relative_degree` must be {m} integers >= 1, got {relative_degree!r}.")
+            raise ValueError(
+                f"`relative_degree` must be {m} integers >= 1, got {relative_degree!r}."
+            )
     if sum(r) != n:
         raise ValueError(
             f"dynamic_inversion needs full relative degree Σ r_i = n = {n}, found r = {tuple(r)} (sum "
@@ -522,7 +540,9 @@ def dynamic_inversion(
     @jax.jit
     def decoupling(t):
         x1 = nom.state(t)
-        return jnp.stack([jax.jacfwd(phis[ri - 1], argnums=1)(t, x1)[i] @ g(t, x1) for i, ri in enumerate(r)])
+        return jnp.stack(
+            [jax.jacfwd(phis[ri - 1], argnums=1)(t, x1)[i] @ g(t, x1) for i, ri in enumerate(r)]
+        )
 
     rc = float(_row_normalised_rcond(decoupling(tc)))
     if not rc > 1e-10:
@@ -598,32 +618,51 @@ class TrajectoryLinearizationController(eqx.Module):
     rcond_min: float = eqx.field(static=True, default=1e-10)
 
     def __init__(
-        self, model, nominal, rho_bar, omega, *, u_max=None, u_min=None, indices=None, check_ts=None,
+        self,
+        model,
+        nominal,
+        rho_bar,
+        omega,
+        *,
+        u_max=None,
+        u_min=None,
+        indices=None,
+        check_ts=None,
         rcond_min: float = 1e-10,
     ):
         require_x64("TrajectoryLinearizationController")
         if not isinstance(model, AbstractSystem):
-            raise ValueError(f"`model` must be an obsjax plant, got {type(model).__name__}.")
+            raise ValueError(f"`model` must be an obsjax plant, got {type(model).__name__}.")  # noqa: TRY004 (project rule: ValueError)
         if not callable(nominal):
-            raise ValueError("`nominal` must be a callable t -> (xbar, ubar) (e.g. obsjax.dynamic_inversion).")
+            raise ValueError(  # noqa: TRY004 (project rule: ValueError)
+                "`nominal` must be a callable t -> (xbar, ubar) (e.g. obsjax.dynamic_inversion)."
+            )
         if model.p < 1:
             raise ValueError("`model` has no input (p = 0): nothing to control.")
         self.model = model
         self.nominal = nominal
         self.rho_bar = check_rho_bar(rho_bar, "rho_bar", negative=True, distinct=False)
         if self.rho_bar.shape[0] != model.n:
-            raise ValueError(f"`rho_bar` must hold n = {model.n} nominal PD-eigenvalues, got {self.rho_bar.shape[0]}.")
+            raise ValueError(
+                f"`rho_bar` must hold n = {model.n} nominal PD-eigenvalues, got {self.rho_bar.shape[0]}."
+            )
         self.omega = omega if callable(omega) else as_float_array(omega, "omega")
         omega_function(self.omega)
         l = model.p
         if u_max is None and u_min is not None:
             raise ValueError("`u_min` needs `u_max` (give both bounds, or only u_max for ±u_max).")
         # always arrays (±inf: no saturation), so that saturated and unsaturated controllers share one trace
-        self.u_max = jnp.broadcast_to(as_float_array(jnp.inf if u_max is None else u_max, "u_max"), (l,))
-        self.u_min = -self.u_max if u_min is None else jnp.broadcast_to(as_float_array(u_min, "u_min"), (l,))
+        self.u_max = jnp.broadcast_to(
+            as_float_array(jnp.inf if u_max is None else u_max, "u_max"), (l,)
+        )
+        self.u_min = (
+            -self.u_max if u_min is None else jnp.broadcast_to(as_float_array(u_min, "u_min"), (l,))
+        )
         lo, hi = concrete_value(self.u_min), concrete_value(self.u_max)
         if lo is not None and hi is not None and not np.all(lo < hi):
-            raise ValueError(f"`u_min` must be < `u_max` elementwise, got {lo.tolist()} and {hi.tolist()}.")
+            raise ValueError(
+                f"`u_min` must be < `u_max` elementwise, got {lo.tolist()} and {hi.tolist()}."
+            )
         self.rcond_min = float(rcond_min)
         A, B = self.jacobians()
         if indices is None:
@@ -635,8 +674,15 @@ class TrajectoryLinearizationController(eqx.Module):
             start += p
         if check_ts is not None:
             for tk in np.atleast_1d(np.asarray(check_ts, dtype=float)):
-                pd_controller_gain(A, B, self.rho_bar, self.omega, float(tk), indices=self.indices,
-                                   rcond_min=self.rcond_min)
+                pd_controller_gain(
+                    A,
+                    B,
+                    self.rho_bar,
+                    self.omega,
+                    float(tk),
+                    indices=self.indices,
+                    rcond_min=self.rcond_min,
+                )
 
     def jacobians(self):
         """t ↦ A_c(t) = ∂f/∂ξ, t ↦ B_c(t) = ∂f/∂μ along the nominal (4)."""
@@ -659,7 +705,9 @@ class TrajectoryLinearizationController(eqx.Module):
     def design(self, t) -> PDControllerGain:
         """The full PD-eigenstructure design at time t."""
         A, B = self.jacobians()
-        return pd_controller_gain(A, B, self.rho_bar, self.omega, t, indices=self.indices, rcond_min=0.0)
+        return pd_controller_gain(
+            A, B, self.rho_bar, self.omega, t, indices=self.indices, rcond_min=0.0
+        )
 
     def gain(self, t) -> jax.Array:
         """K(t), shape (l, n) (μ̃ = K ξ̃)."""

@@ -647,7 +647,7 @@ class FiniteWindowLTV(eqx.Module):
                 if fn is None:
                     continue
                 if not callable(fn):
-                    raise ValueError(f"`{name}` must be a callable of t returning a ({rows}, q) matrix.")
+                    raise ValueError(f"`{name}` must be a callable of t returning a ({rows}, q) matrix.")  # noqa: TRY004 (project rule: ValueError)
                 shp = tuple(jax.eval_shape(fn, jnp.asarray(0.0)).shape)
                 if len(shp) != 2 or shp[0] != rows or (q is not None and shp[1] != q):
                     raise ValueError(
@@ -778,6 +778,15 @@ class FiniteWindowLTV(eqx.Module):
     def kernels(self, ts):
         """The optimal kernels G1(t) (K, N, m) and G2(t) (K, N, p) at the times `ts` ⊂ [t0, t1]."""
         ts = vector(ts, "ts", None)
+        tsc, t0, t1 = concrete_value(ts), concrete_value(self.t0), concrete_value(self.t1)
+        if tsc is not None and t0 is not None and t1 is not None:
+            tol = 1e-9 * max(1.0, abs(float(t0)), abs(float(t1)))
+            if tsc.min() < t0 - tol or tsc.max() > t1 + tol:
+                raise ValueError(
+                    f"`ts` must lie in the window [t0, t1] = [{float(t0)}, {float(t1)}], got "
+                    f"[{tsc.min()}, {tsc.max()}]."
+                )
+        ts = jnp.clip(ts, self.t0, self.t1)  # rounding at the window's ends (e.g. t0 + T vs a sample)
         ys = self._solve(save_ts=ts)
         sel = jax.tree_util.tree_map(lambda a: a[:-1], ys)
         c = self._design_from(jax.tree_util.tree_map(lambda a: a[-1], ys))
@@ -905,7 +914,7 @@ def delay_closed_loop(observer, P, x0, xhat0, t1, *, steps_per_window=200, phi_x
         loop = obsjax.delay_closed_loop(obsjax.FiniteWindow(model, 1.0), P, x0, xhat0, 8.0)
     """
     if not isinstance(observer, FiniteWindow):
-        raise ValueError(f"`observer` must be an obsjax.FiniteWindow, got {type(observer).__name__}.")
+        raise ValueError(f"`observer` must be an obsjax.FiniteWindow, got {type(observer).__name__}.")  # noqa: TRY004 (project rule: ValueError)
     mdl = observer.model
     A, B, C = mdl.A, mdl.B, mdl.C
     n, m, p = mdl.n, mdl.m, mdl.p
@@ -928,9 +937,9 @@ def delay_closed_loop(observer, P, x0, xhat0, t1, *, steps_per_window=200, phi_x
     if v.shape != (K + 1, m):
         raise ValueError(f"`v` must have shape ({K + 1}, {m}) (one sample per grid time), got {tuple(v.shape)}.")
     if phi_x is None:
-        phi_x = lambda t: expm(A * t) @ xhat0  # noqa: E731
+        phi_x = lambda t: expm(A * t) @ xhat0
     if phi_u is None:
-        phi_u = lambda t: jnp.zeros(p)  # noqa: E731
+        phi_u = lambda t: jnp.zeros(p)
     s = jnp.arange(N + 1) * h
     G1, G2 = observer.kernels(s)  # (N+1, n, m), (N+1, n, p): s_j, j = 0..N
     # history cells j = 0..N−1 cover [−T + jh, −T + (j+1)h]: left and right end values
