@@ -640,6 +640,12 @@ class FiniteWindowLTV(eqx.Module):
                     f"`model` must be an obsjax.LTV or obsjax.LTI (with A_of, B_of, C_of), got "
                     f"{type(model).__name__}."
                 )
+        Dc = concrete_value(getattr(model, "D", jnp.zeros(())))
+        if Dc is not None and np.any(Dc != 0):
+            raise ValueError(
+                "`model` has a feedthrough D ≠ 0; FiniteWindowLTV uses y = C x: pass the data y − D u "
+                "and a model without D."
+            )
         if E is not None or D is not None:
             n, m = int(model.n), int(model.m)
             q = None
@@ -889,7 +895,10 @@ def delay_closed_loop(observer, P, x0, xhat0, t1, *, steps_per_window=200, phi_x
     the history meets the plant's initial state, costs no accuracy), and the G2(T) u(t) term of the
     newest cell solved implicitly with the plant step (one (n + p) linear system per step).  Second-order
     accurate in h.  (39)-(40) is the derivative of (37) in t and has the same solution from u(t0) given by
-    (37); the tests check (39) along the solution.
+    (37); the tests check (39) along the solution.  The integral form is integrated rather than (40)
+    because it needs no derivative of the data (measurement noise enters as it is measured) and no Ġ1,
+    Ġ2, and because the history of (36) generally jumps into the plant's data at t0.  (As printed, (40)
+    has u(t) for u̇(t) on its left-hand side and Ġ2(tT + s) for Ġ2(T + s).)
 
     This is the loop that :func:`obsjax.simulate` with ``controller = P x̂`` approximates by the
     sample-and-propagate observer (x̂ recomputed by (14) at the ``n_chunks`` instants per window and
