@@ -360,22 +360,25 @@ def reproduce(outdir: str) -> list[str]:
     st = ode_observer_study()
     fig, ax = plt.subplots(1, 3, figsize=(15, 3.8))
     for i, (name, r) in enumerate(st.items()):
-        ax[0].semilogy(r["ts"], r["law"], f"C{i}-", lw=2, alpha=0.5, label=f"‖z − Tx‖, {name}")
+        ax[0].semilogy(r["ts"], r["law"], f"C{i}-", lw=2, alpha=0.5, label=rf"$\|z - Tx\|$, {name}")
         ax[0].semilogy(r["ts"], np.maximum(r["law_residual"], 1e-17), f"C{i}:",
-                       label=f"‖z − Tx − e^{{Ft}}(z0 − T0x0)‖, {name}")
+                       label=rf"$\|z - Tx - e^{{Ft}}(z_0 - T_0x_0)\|$, {name}")
         ax[1].semilogy(r["ts"], r["error_norm"], f"C{i}-", label=name)
         ax[2].plot(r["ts"], r["rcond"], f"C{i}-", label=name)
-    ax[0].set_title("error law (7): z − Tx = e^{Ft}(z0 − T0x0)")
+    ax[0].set_title(r"error law (7): $z - Tx = e^{Ft}(z_0 - T_0x_0)$")
     ax[0].legend(fontsize=7)
-    ax[1].set_title("‖x̂ − x‖, x̂ = T⁻¹z")
+    ax[1].set_title(r"$\|\hat x - x\|$, $\hat x = T^{-1}z$")
     ax[1].legend(fontsize=8)
-    ax[2].set_title("σ_min(T)/σ_max(T): det T ≠ 0 (step 4)")
+    ax[2].set_title(r"$\sigma_{min}(T)/\sigma_{max}(T)$: det T ≠ 0 (step 4)")
     ax[2].set_ylim(bottom=0)
     ax[2].legend(fontsize=8)
     for a in ax:
         a.set_xlabel("t")
         a.grid(True, which="both", alpha=0.3)
-    fig.suptitle("Lovass-Nagy full-state observers, Ṫ = FT − TA + GC integrated with the observer", fontsize=10)
+    fig.suptitle(
+        r"Lovass-Nagy full-state observers, $\dot T = FT - TA + GC$ integrated with the observer",
+        fontsize=10,
+    )
     fig.tight_layout()
     paths.append(os.path.join(outdir, "lovass_nagy_ode.png"))
     fig.savefig(paths[-1], dpi=110)
