@@ -61,3 +61,9 @@ from .montecarlo import MonteCarloResult as MonteCarloResult
 from .montecarlo import monte_carlo as monte_carlo
 
 __version__ = "0.1.0"
+from .observers._generalized_inverse import GeneralizedInverseODE as GeneralizedInverseODE
+from .observers._minmax import minmax_sum_initial_state as minmax_sum_initial_state
+from .observers._finite_window import FiniteWindowLTV as FiniteWindowLTV
+from .observers._finite_window import delay_closed_loop as delay_closed_loop
+from .design._tlc import TrajectoryLinearizationController as TrajectoryLinearizationController
+from .design._tlc import dynamic_inversion as dynamic_inversion

@@ -47,6 +47,15 @@ from ._ginverse import moore_penrose as moore_penrose
 from ._ginverse import null_space_basis as null_space_basis
 from ._ginverse import one_inverse as one_inverse
 from ._ginverse import solvability_residual as solvability_residual
+from ._ginverse import LovassNagyTFlow as LovassNagyTFlow
+from ._ginverse import frozen_T0 as frozen_T0
+from ._ginverse import input_solvability_residual as input_solvability_residual
+from ._ginverse import lovass_nagy_T_ode as lovass_nagy_T_ode
+from ._tlc import NominalTrajectory as NominalTrajectory
+from ._tlc import PDControllerGain as PDControllerGain
+from ._tlc import dynamic_inversion as dynamic_inversion
+from ._tlc import ltv_controllability_indices as ltv_controllability_indices
+from ._tlc import pd_controller_gain as pd_controller_gain
 
 # Every public name imported above (keep this line last: names added above it are exported too).
 __all__ = [
