@@ -445,6 +445,7 @@ def tune(
     spec_kwargs = tuple(sorted(simulate_kwargs.items()))
     ts_key = tuple(float(v) for v in ts_np)
     seg_bucket = [None]  # only ever grows: a shrinking T would otherwise trigger a recompilation
+    first_call = [True]
 
     def evaluate(theta):
         """(observer, J, ∇J, None) at an acceptable point, or (None, J or NaN, None, reason)."""
@@ -461,9 +462,14 @@ def tune(
         try:
             val, grads = _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec)
             val = float(val)
-        except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            return None, math.nan, None, f"a run-time check failed: {first}"
+        except (ValueError, RuntimeError) as e:
+            # an eqx.error_if that fired at run time (JAX raises it as a RuntimeError, or as a ValueError
+            # from a cached kernel), or a retrace refused for this point; at the initial point: re-raised
+            if first_call[0]:
+                raise
+            return None, math.nan, None, f"a check failed while simulating: {_checked_message(e)}"
+        finally:
+            first_call[0] = False
         if not math.isfinite(val):
             return None, val, None, "the loss is not finite (a trajectory failed or diverged)"
         if not all(bool(jnp.all(jnp.isfinite(g))) for g in grads):
@@ -474,6 +480,17 @@ def tune(
         evaluate, build, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
         progress,
     )  # fmt: skip
+
+
+def _checked_message(e: Exception) -> str:
+    """The message of a check that fired inside a compiled kernel, without JAX's callback traceback."""
+    text = str(e)
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith(("equinox._errors._EquinoxRuntimeError:", "_EquinoxRuntimeError:", "EquinoxRuntimeError:")):
+            return line.split(":", 1)[1].strip()
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return lines[0] if lines else type(e).__name__
 
 
 def _descend(evaluate, build, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts, progress):
