@@ -2,12 +2,14 @@
 finite differences: Kalman–Bucy Qw, Rv, P0; extended Kalman Q, R, P0; TLO ρ̄; Kreisselmeier poles;
 finite-window α, β.
 
-Each loss is a scalar of a short simulation at tight tolerances (or fixed steps, where the loss is then a
-smooth function of the parameters); matrix leaves are perturbed along symmetric directions (their checks
+Each loss is a scalar of a short simulation with fixed Heun steps (the loss is then a smooth function of the
+parameters, and autodiff and differences see the same discrete map); matrix leaves are perturbed along symmetric directions (their checks
 require symmetry), and the autodiff gradient contracted with the same direction is compared.
 """
 
 from __future__ import annotations
+
+import functools
 
 import diffrax
 import equinox as eqx
@@ -19,7 +21,9 @@ import pytest
 import obsjax
 from obsjax._reproduce.adaptive import KREISSELMEIER_2
 
-TIGHT = dict(rtol=1e-10, atol=1e-12)
+# Fixed Heun steps (simulate's direct fixed-step path): the loss is then a smooth function of the gains (no
+# step-size decisions), so central differences are clean, and a 2-stage solver compiles fast.
+FIXED = dict(solver=diffrax.Heun(), dt0=0.01, adaptive=False)
 
 
 def _symmetric_directions(n):
@@ -32,10 +36,15 @@ def _symmetric_directions(n):
     return dirs
 
 
-def _check(J, params, name, directions, h=1e-5, rtol=2e-6):
+def _compiled(J):
+    """J and ∇J compiled once per problem (the tests of one family share them)."""
+    return jax.jit(J), jax.jit(jax.grad(J))
+
+
+def _check(compiled, params, name, directions, h=1e-5, rtol=2e-6):
     """<∇J, V> against (J(p + hV) − J(p − hV)) / 2h for each direction V of the leaf `name`."""
-    g = jax.jit(jax.grad(J))(params)[name]
-    Jj = jax.jit(J)
+    Jj, gradj = compiled
+    g = gradj(params)[name]
     for V in directions:
         V = jnp.asarray(V)
         up = dict(params, **{name: params[name] + h * V})
@@ -54,22 +63,23 @@ U = obsjax.signals.multisine([1.0], [1.3])
 TS = jnp.linspace(0.0, 3.0, 31)
 
 
+@functools.cache
 def _kb_problem():
     kb = obsjax.KalmanBucy(MODEL, Qw=0.2 * jnp.eye(2), Rv=0.05 * jnp.eye(1), P0=jnp.array([[1.0, 0.3], [0.3, 2.0]]))
     params = {"Qw": kb.Qw, "Rv": kb.Rv, "P0": kb.P0}
 
     def J(p):
         obs = eqx.tree_at(lambda o: (o.Qw, o.Rv, o.P0), kb, (p["Qw"], p["Rv"], p["P0"]))
-        tr = obsjax.simulate(PLANT, obs, jnp.array([1.0, -1.0]), jnp.zeros(2), TS, u=U, **TIGHT)
+        tr = obsjax.simulate(PLANT, obs, jnp.array([1.0, -1.0]), jnp.zeros(2), TS, u=U, **FIXED)
         return obsjax.losses.ise(tr)
 
-    return J, params
+    return _compiled(J), params
 
 
 @pytest.mark.parametrize("name", ["Qw", "Rv", "P0"])
 def test_kalman_bucy_gradients(name):
-    J, params = _kb_problem()
-    _check(J, params, name, _symmetric_directions(params[name].shape[0]))
+    compiled, params = _kb_problem()
+    _check(compiled, params, name, _symmetric_directions(params[name].shape[0]))
 
 
 # ---- extended Kalman filter: Q, R, P0 --------------------------------------------------------------------------
@@ -83,30 +93,30 @@ DUFFING = obsjax.Nonlinear(
 )
 
 
+@functools.cache
 def _ekf_problem():
     ekf = obsjax.ExtendedKalman(DUFFING, Q=jnp.array([[0.1, 0.02], [0.02, 0.2]]), R=0.02, P0=jnp.eye(2))
     params = {"Q": ekf.Q, "R": ekf.R, "P0": ekf.P0}
 
     def J(p):
         obs = eqx.tree_at(lambda o: (o.Q, o.R, o.P0), ekf, (p["Q"], p["R"], p["P0"]))
-        tr = obsjax.simulate(DUFFING, obs, jnp.array([1.0, 0.5]), jnp.zeros(2), TS, u=U, **TIGHT)
+        tr = obsjax.simulate(DUFFING, obs, jnp.array([1.0, 0.5]), jnp.zeros(2), TS, u=U, **FIXED)
         return obsjax.losses.ise(tr)
 
-    return J, params
+    return _compiled(J), params
 
 
 @pytest.mark.parametrize("name", ["Q", "R", "P0"])
 def test_extended_kalman_gradients(name):
-    J, params = _ekf_problem()
-    _check(J, params, name, _symmetric_directions(params[name].shape[0]))
+    compiled, params = _ekf_problem()
+    _check(compiled, params, name, _symmetric_directions(params[name].shape[0]))
 
 
 # ---- TLO: nominal PD-eigenvalues ρ̄ ----------------------------------------------------------------------------
 
 
 def test_tlo_rho_bar_gradient():
-    """Van der Pol with an unmodelled disturbance; the gain designed along ξ̄ = 0 with PD-spectrum ρ̄ ω/ε.
-    Fixed Heun steps: the loss is a smooth function of ρ̄ (no adaptive step-size decisions)."""
+    """Van der Pol with an unmodelled disturbance; the gain designed along ξ̄ = 0 with PD-spectrum ρ̄ ω/ε."""
     f = lambda d: lambda t, x, u: jnp.array([x[1], (1 - x[0] ** 2) * x[1] - x[0] + d * jnp.sin(2 * t)])  # noqa: E731
     h = lambda t, x, u: x[:1]  # noqa: E731
     plant, model = obsjax.Nonlinear(f(0.5), h, 2, 1), obsjax.Nonlinear(f(0.0), h, 2, 1)
@@ -115,11 +125,10 @@ def test_tlo_rho_bar_gradient():
 
     def J(p):
         obs = eqx.tree_at(lambda o: o.rho_bar, tlo, p["rho_bar"])
-        tr = obsjax.simulate(plant, obs, jnp.array([2.0, 0.0]), jnp.zeros(2), ts, solver=diffrax.Heun(),
-                             dt0=0.01, adaptive=False)  # fmt: skip
+        tr = obsjax.simulate(plant, obs, jnp.array([2.0, 0.0]), jnp.zeros(2), ts, **FIXED)
         return obsjax.losses.ise(tr)
 
-    _check(J, {"rho_bar": tlo.rho_bar}, "rho_bar", np.eye(2))
+    _check(_compiled(J), {"rho_bar": tlo.rho_bar}, "rho_bar", np.eye(2))
 
 
 # ---- Kreisselmeier: the poles of F ----------------------------------------------------------------------------
@@ -136,11 +145,11 @@ def test_kreisselmeier_poles_gradient():
     def J(p):
         obs = eqx.tree_at(lambda o: o.poles, obs0, p["poles"])
         pstar = obs.matching_point(jnp.asarray(ex["a"]), jnp.asarray(ex["b"]))
-        tr = obsjax.simulate(plant, obs, jnp.ones(2), jnp.zeros(2), ts, u=u, max_steps=100_000, **TIGHT)
+        tr = obsjax.simulate(plant, obs, jnp.ones(2), jnp.zeros(2), ts, u=u, **FIXED)
         e2 = jnp.sum((tr.z.p - pstar) ** 2, axis=-1)
         return jnp.sum(0.5 * (e2[1:] + e2[:-1]) * jnp.diff(ts))
 
-    _check(J, {"poles": obs0.poles}, "poles", np.eye(2))
+    _check(_compiled(J), {"poles": obs0.poles}, "poles", np.eye(2))
 
 
 # ---- finite window: the weights α, β of (15), through the simulated observer -----------------------------------
@@ -148,18 +157,19 @@ def test_kreisselmeier_poles_gradient():
 
 def test_finite_window_alpha_beta_gradients():
     """Formula (25) (general γᵢ = βᵢ/αᵢ), a plant that differs from the model and an input, so the window
-    estimate depends on the weights; T = 1.03 and 5 pieces keep the reset instants (kT/5) off the 0.1 grid."""
+    estimate depends on the weights; T = 1.03 and 3 pieces keep the reset instants (kT/3) off the 0.1 grid."""
     model = obsjax.LTI([[0.0, 1.0], [0.0, 0.0]], [[0.0], [1.0]], [[2.0, 0.0]])
     plant = obsjax.LTI([[0.0, 1.0], [-0.4, -0.1]], [[0.0], [1.0]], [[2.0, 0.0]])
-    fw = obsjax.FiniteWindow(model, 1.03, alpha=[1.0, 2.0], beta=[0.5, 1.5], n_chunks=5)
+    fw = obsjax.FiniteWindow(model, 1.03, alpha=[1.0, 2.0], beta=[0.5, 1.5], n_chunks=3)
     assert fw.formula == "(25)"
-    ts = jnp.linspace(0.0, 3.0, 31)
+    ts = jnp.linspace(0.0, 2.0, 21)
 
     def J(p):
         obs = eqx.tree_at(lambda o: (o.alpha, o.beta), fw, (p["alpha"], p["beta"]))
-        tr = obsjax.simulate(plant, obs, jnp.array([1.0, -0.5]), jnp.array([0.3, 0.2]), ts, u=U, **TIGHT)
+        tr = obsjax.simulate(plant, obs, jnp.array([1.0, -0.5]), jnp.array([0.3, 0.2]), ts, u=U, **FIXED)
         return obsjax.losses.ise(tr)
 
     params = {"alpha": fw.alpha, "beta": fw.beta}
-    _check(J, params, "alpha", np.eye(2), rtol=1e-5)
-    _check(J, params, "beta", np.eye(2), rtol=1e-5)
+    compiled = _compiled(J)
+    _check(compiled, params, "alpha", np.eye(2), rtol=1e-5)
+    _check(compiled, params, "beta", np.eye(2), rtol=1e-5)
