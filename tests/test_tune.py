@@ -334,7 +334,7 @@ def _tune_k(k0, loss, **kw):
 def test_a_step_across_a_validity_boundary_is_rejected_and_backtracked():
     """sgd with a large rate steps k below −1 (check() fails): the step is halved until the point is
     valid; the run goes on, warns, never evaluates a point twice and returns the best observer."""
-    with pytest.warns(obsjax.TuneWarning, match=r"rejected \(the updated observer is invalid: `k` must be > -1"):
+    with pytest.warns(obsjax.TuneWarning, match=r"rejected \(the observer is invalid: `k` must be > -1"):
         r = _tune_k(1.0, LOSS_09, optimizer=optax.sgd(20.0), steps=12)
     h = r.history
     assert h["skipped"] >= 2 and len(h["rejections"]) == h["skipped"]
