@@ -264,3 +264,58 @@ def test_files_are_written_atomically(reference):
     with np.load(os.path.join(ck, "chunk_000000.npz")) as d:
         assert str(d["fingerprint"]) == meta["fingerprint"] and int(d["chunk"]) == 0
         assert len(str(d["checksum"])) == 64
+
+
+# ---- the fingerprint itself --------------------------------------------------------------------------------
+
+
+def _fp_parts():
+    import functools
+
+    import equinox as eqx
+    import jax
+
+    return {
+        "jit": jax.jit(x0_global_scale),
+        "filter_jit": eqx.filter_jit(xhat0_zero),
+        "vmap": jax.vmap(xhat0_zero),
+        "partial": functools.partial(jr.normal, shape=(2,)),
+        "plant": PLANT_A,
+        "noise": NOISE_A,
+        "x0": X0_A,
+        "set": frozenset({"a", "b", 3}),
+    }
+
+
+def test_fingerprint_covers_wrapped_functions_by_content():
+    import jax
+
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    fp, opaque = fingerprint(_fp_parts())
+    assert opaque == []
+    assert fingerprint(_fp_parts())[0] == fp
+    assert fingerprint({"f": jax.jit(scaled_normal(1.0))})[0] == fingerprint({"f": jax.jit(scaled_normal(1.0))})[0]
+    assert fingerprint({"f": jax.jit(scaled_normal(1.0))})[0] != fingerprint({"f": jax.jit(scaled_normal(2.0))})[0]
+
+
+def test_fingerprint_is_the_same_in_another_process():
+    """No ids, addresses or hash-randomised orderings enter the fingerprint (resuming happens in a new
+    process, with another PYTHONHASHSEED)."""
+    import subprocess
+    import sys
+
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    code = (
+        f"import sys; sys.path.insert(0, {root!r})\n"
+        "from tests.test_integrity_studies import _fp_parts\n"
+        "from obsjax.montecarlo._fingerprint import fingerprint\n"
+        "print('FP', fingerprint(_fp_parts())[0])\n"
+    )
+    env = dict(os.environ, PYTHONHASHSEED="12345", JAX_PLATFORMS="cpu")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300, cwd=root)
+    assert out.returncode == 0, out.stderr[-2000:]
+    line = next(ln for ln in out.stdout.splitlines() if ln.startswith("FP "))
+    assert line.split()[1] == fingerprint(_fp_parts())[0]

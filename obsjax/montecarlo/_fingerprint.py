@@ -42,6 +42,7 @@ _LIBRARIES = frozenset(
         "jax", "jaxlib", "numpy", "scipy", "diffrax", "equinox", "lineax", "optax", "optimistix",
         "jaxtyping", "obsjax", "builtins", "math", "cmath", "operator", "functools", "itertools",
         "typing", "collections", "abc", "dataclasses", "enum", "numbers", "_operator", "_functools",
+        "inspect",
     }
 )  # fmt: skip
 _VERSIONED = ("jax", "jaxlib", "numpy", "scipy", "diffrax", "equinox", "lineax", "optax", "obsjax")
@@ -121,8 +122,14 @@ class _Hasher:
             for i, v in enumerate(obj):
                 self.visit(v, f"{path}[{i}]")
             return
-        if isinstance(obj, dict):
-            self._dict(obj, path)
+        if isinstance(obj, (dict, types.MappingProxyType)):
+            self._dict(dict(obj), path)
+            return
+        if isinstance(obj, jax.tree_util.PyTreeDef):
+            self._treedef(obj, path)
+            return
+        if type(obj) is object:  # a sentinel
+            self.put("object")
             return
         if isinstance(obj, (set, frozenset)):
             self._set(obj, path)
@@ -196,6 +203,18 @@ class _Hasher:
         for k, v in items:
             self.visit(k, f"{path}.<key>")
             self.visit(v, f"{path}[{k!r}]")
+
+    def _treedef(self, td, path: str) -> None:
+        """A pytree structure node by node: its node types and auxiliary data (static fields) by content."""
+        self.put("treedef", str(td.num_leaves))
+        node = td.node_data()
+        if node is None:
+            self.put("leaf")
+            return
+        self.visit(node[0], f"{path}.<node type>")
+        self.visit(node[1], f"{path}.<node data>")
+        for i, child in enumerate(td.children()):
+            self.visit(child, f"{path}.<child {i}>")
 
     def _set(self, s, path: str) -> None:
         digests = []
