@@ -308,9 +308,11 @@ def test_fingerprint_is_the_same_in_another_process():
     from obsjax.montecarlo._fingerprint import fingerprint
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    here = os.path.dirname(os.path.abspath(__file__))
+    module = _fp_parts.__module__  # import this file under the name pytest gave it (functions carry it)
     code = (
-        f"import sys; sys.path.insert(0, {root!r})\n"
-        "from tests.test_integrity_studies import _fp_parts\n"
+        f"import sys; sys.path[:0] = [{root!r}, {here!r}]\n"
+        f"from {module} import _fp_parts\n"
         "from obsjax.montecarlo._fingerprint import fingerprint\n"
         "print('FP', fingerprint(_fp_parts())[0])\n"
     )

@@ -37,15 +37,15 @@ def _under_jit(fn, *args):
 def test_least_squares_nonfinite_gain(name, bad):
     kw = dict(gamma=20.0, p0=0.1, T=0.25)
     kw[name] = bad
-    with pytest.raises(ValueError, match=rf"`{name}` must be finite and > 0.*got \[?{bad}"):
+    with pytest.raises(ValueError, match=rf"`{name}` must be > 0 and finite.*got \[?{bad}"):
         obsjax.LeastSquaresReset(CY, **kw)
 
 
 def test_least_squares_tree_at_update_is_rechecked():
     obs = obsjax.LeastSquaresReset(CY, 20.0, 0.1, 0.25)
-    with pytest.raises(ValueError, match="`gamma` must be finite and > 0"):
+    with pytest.raises(ValueError, match="`gamma` must be > 0 and finite"):
         eqx.tree_at(lambda o: o.gamma, obs, jnp.asarray(INF)).check()
-    with pytest.raises(RuntimeCheck, match=r"`T` must be finite and > 0 \(the reset period\)"):
+    with pytest.raises(RuntimeCheck, match=r"`T` must be > 0 and finite \(the reset period\)"):
         _under_jit(lambda T: eqx.tree_at(lambda o: o.T, obs, T).check().T, jnp.asarray(NAN))
 
 
@@ -121,8 +121,8 @@ TLO_MODEL = obsjax.Nonlinear(lambda t, x, u: jnp.array([x[1], -x[0]]), lambda t,
 @pytest.mark.parametrize(
     "kw,match",
     [
-        (dict(eps=INF), r"`eps` must be finite and > 0 \(the high-gain factor"),
-        (dict(eps=NAN), r"`eps` must be finite and > 0"),
+        (dict(eps=INF), r"`eps` must be > 0 and finite \(the high-gain factor"),
+        (dict(eps=NAN), r"`eps` must be > 0 and finite"),
         (dict(eps=-0.1), r"`eps` must be > 0 \(the high-gain factor, ω_H = ω/ε\), got -0.1"),
         (dict(rho_bar=[-1.0, -INF]), r"`rho_bar` must be finite"),
         (dict(omega=INF), r"`omega` must be finite"),
@@ -138,12 +138,12 @@ def test_tlo_bad_gains(kw, match):
 def test_tlo_traced_eps_and_rho_bar_checks_survive_jit():
     tlo = obsjax.TrajectoryLinearization(TLO_MODEL, [-1.0, -2.0], 2.0, 0.2)
     for bad in (0.0, -0.2, NAN, INF):
-        with pytest.raises(RuntimeCheck, match=r"`eps` must be finite and > 0 \(the high-gain factor"):
+        with pytest.raises(RuntimeCheck, match=r"`eps` must be > 0 and finite \(the high-gain factor"):
             _under_jit(lambda e: eqx.tree_at(lambda o: o.eps, tlo, e).prepare().eps, jnp.asarray(bad))
-    with pytest.raises(RuntimeCheck, match="`rho_bar` .*must be finite and < 0"):
+    with pytest.raises(RuntimeCheck, match="`rho_bar` .*must be < 0 and finite"):
         _under_jit(lambda r: eqx.tree_at(lambda o: o.rho_bar, tlo, r).prepare().rho_bar, jnp.array([-1.0, 0.5]))
     assert float(_under_jit(lambda e: eqx.tree_at(lambda o: o.eps, tlo, e).prepare().eps, jnp.asarray(0.3))) == 0.3
-    with pytest.raises(ValueError, match="`eps` must be finite and > 0"):
+    with pytest.raises(ValueError, match="`eps` must be > 0 and finite"):
         eqx.tree_at(lambda o: o.eps, tlo, jnp.asarray(INF)).check()
 
 
@@ -193,8 +193,8 @@ def test_generalized_inverse_singular_T_is_checked_under_jit():
 @pytest.mark.parametrize(
     "kw,match",
     [
-        (dict(filter_pole=INF), r"`filter_pole` must be finite and > 0"),
-        (dict(scheme="integral", q=NAN), r"`q` must be finite and > 0"),
+        (dict(filter_pole=INF), r"`filter_pole` must be > 0 and finite"),
+        (dict(scheme="integral", q=NAN), r"`q` must be > 0 and finite"),
         (dict(a0=[NAN, 0.0]), r"`a0` must be finite"),
         (dict(G=INF), r"`G` must be finite"),
         (dict(poles=[-1.0, -INF]), r"`poles` must be finite"),
@@ -213,19 +213,19 @@ def test_kreisselmeier_traced_checks():
         _under_jit(lambda p: eqx.tree_at(lambda o: o.poles, obs, p).prepare().poles, jnp.array([-1.0, 0.5]))
     with pytest.raises(RuntimeCheck, match="`G` must be finite"):
         _under_jit(lambda g: eqx.tree_at(lambda o: o.G, obs, g).prepare().G, jnp.asarray(INF))
-    with pytest.raises(RuntimeCheck, match="`q` must be finite and > 0"):
+    with pytest.raises(RuntimeCheck, match="`q` must be > 0 and finite"):
         _under_jit(lambda q: eqx.tree_at(lambda o: o.q, obs, q).prepare().q, jnp.asarray(NAN))
     with pytest.raises(ValueError, match="`poles` must lie in the open left half-plane"):
         eqx.tree_at(lambda o: o.poles, obs, jnp.array([-1.0, 0.5])).check()
 
 
 def test_luders_narendra_bad_gains():
-    with pytest.raises(ValueError, match=r"`lambdas` must be finite and > 0"):
+    with pytest.raises(ValueError, match=r"`lambdas` must be > 0 and finite"):
         obsjax.LudersNarendra(2, [1.0, INF], 1.0, 1.0)
     with pytest.raises(ValueError, match=r"`b0` must be finite"):
         obsjax.LudersNarendra(2, [1.0, 2.0], 1.0, 1.0, b0=[0.0, NAN])
     obs = obsjax.LudersNarendra(2, [1.0, 2.0], 1.0, 1.0)
-    with pytest.raises(RuntimeCheck, match="`c` must be finite and > 0"):
+    with pytest.raises(RuntimeCheck, match="`c` must be > 0 and finite"):
         _under_jit(lambda c: eqx.tree_at(lambda o: o.c, obs, c).prepare().c, jnp.array([1.0, INF]))
 
 
@@ -260,12 +260,12 @@ def test_finite_window_nonfinite(kw, match):
 
 def test_finite_window_traced_T_must_be_finite():
     obs = obsjax.FiniteWindow(MODEL29, 1.0)
-    with pytest.raises(RuntimeCheck, match=r"`T` \(the window length\) must be finite and > 0"):
+    with pytest.raises(RuntimeCheck, match=r"`T` \(the window length\) must be > 0 and finite"):
         _under_jit(lambda T: eqx.tree_at(lambda o: o.T, obs, T).norm(), jnp.asarray(INF))
 
 
 def test_minmax_luenberger_nonfinite_eps():
     A = np.diag([0.5, 0.2])
     for bad in (NAN, INF, -1.0):
-        with pytest.raises(ValueError, match=r"`eps` must be finite and >= 0"):
+        with pytest.raises(ValueError, match=r"`eps` must be >= 0 and finite"):
             obsjax.MinMaxLuenberger(A, None, np.eye(2), F=0.1 * np.eye(2), window=2, eps=bad)

@@ -402,17 +402,17 @@ class FiniteWindow(AbstractObserver):
 
 def _checked(T, alpha, beta, formula):
     T = eqx.error_if(
-        T, ~(T > 0) | ~jnp.isfinite(T), "FiniteWindow: `T` (the window length) must be finite and > 0."
+        T, ~(T > 0) | ~jnp.isfinite(T), "FiniteWindow: `T` (the window length) must be > 0 and finite."
     )
     alpha = eqx.error_if(
         alpha,
         jnp.any(~(alpha > 0) | ~jnp.isfinite(alpha)),
-        "FiniteWindow: `alpha` must be finite and > 0 elementwise.",
+        "FiniteWindow: `alpha` must be > 0 and finite elementwise.",
     )
     beta = eqx.error_if(
         beta,
         jnp.any(~(beta >= 0) | ~jnp.isfinite(beta)),
-        "FiniteWindow: `beta` must be finite and >= 0 elementwise.",
+        "FiniteWindow: `beta` must be >= 0 and finite elementwise.",
     )
     if formula == "(28)":
         alpha = eqx.error_if(

@@ -328,7 +328,7 @@ class MinMaxLuenberger(eqx.Module):
             raise ValueError(f"`window` must be >= 1, got {window}.")
         self.window = int(window)
         if not (float(eps) >= 0 and np.isfinite(float(eps))):
-            raise ValueError(f"`eps` must be finite and >= 0 (a bound on |δy|), got {eps}.")
+            raise ValueError(f"`eps` must be >= 0 and finite (a bound on |δy|), got {eps}.")
         self.eps = float(eps)
         self.rtol = float(rtol)
 

@@ -227,7 +227,7 @@ class TrajectoryLinearization(AbstractObserver):
             rho = eqx.error_if(
                 rho,
                 jnp.any(~(rho < 0) | ~jnp.isfinite(rho)),
-                "`rho_bar` (the nominal PD-eigenvalues) must be finite and < 0.",
+                "`rho_bar` (the nominal PD-eigenvalues) must be < 0 and finite.",
             )
         new = eqx.tree_at(lambda o: (o.eps, o.rho_bar), self, (eps, rho))
         if not callable(self.omega):

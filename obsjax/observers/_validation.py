@@ -30,12 +30,12 @@ def positive_scalar(x, name: str, what: str = ""):
     v = concrete_value(x)
     if v is not None:
         if not np.all(np.isfinite(v)):
-            raise ValueError(f"`{name}` must be finite and > 0{what}, got {np.asarray(v).tolist()}.")
+            raise ValueError(f"`{name}` must be > 0 and finite{what}, got {np.asarray(v).tolist()}.")
         if not np.all(v > 0):
             raise ValueError(f"`{name}` must be > 0{what}, got {np.asarray(v).tolist()}.")
         return x
     x = jnp.asarray(x)
-    return eqx.error_if(x, jnp.any(~(x > 0) | ~jnp.isfinite(x)), f"`{name}` must be finite and > 0{what}.")
+    return eqx.error_if(x, jnp.any(~(x > 0) | ~jnp.isfinite(x)), f"`{name}` must be > 0 and finite{what}.")
 
 
 def _scale(M):
