@@ -548,3 +548,30 @@ def test_kink_in_T_at_a_save_time_is_one_sided_and_tune_warns():
         warnings.simplefilter("error", obsjax.TuneWarning)
         obsjax.tune(RESETTING, PLANT_R, where=WHERE_K0, **kw)  # T fixed: the loss is smooth in k0
         obsjax.tune(eqx.tree_at(WHERE_T, RESETTING, jnp.array(0.53)), PLANT_R, where=WHERE_T, **kw)
+
+
+@pytest.mark.slow
+def test_least_squares_reset_kink_on_chen_yen_example():
+    """The numbers quoted in LeastSquaresReset's and tune's docstrings: Chen & Yen's example, γ = 20,
+    p0 = 0.1, x̂(0) = (5, −5), the ISE on a 0.1 s grid over [0, 10], T = 2.3 (four save times on reset
+    instants): autodiff −11.84 = the left derivative, −13.97 from the right; tune warns."""
+    plant = obsjax.chen_yen_example()
+    obs = obsjax.LeastSquaresReset(plant, 20.0, 0.1, 2.3)
+    ts = jnp.linspace(0.0, 10.0, 101)
+
+    def J(T):
+        o = eqx.tree_at(WHERE_T, obs, T)
+        tr = obsjax.simulate(plant, o, jnp.zeros(2), jnp.array([5.0, -5.0]), ts, rtol=1e-10, atol=1e-12,
+                             max_segments=8)  # fmt: skip
+        return obsjax.losses.ise(tr)
+
+    g = float(jax.jit(jax.grad(J))(2.3))
+    Jj = jax.jit(J)
+    h = 1e-4
+    f0, fl1, fl2, fr1, fr2 = (float(Jj(2.3 + d)) for d in (0.0, -h, -2 * h, h, 2 * h))
+    left, right = (3 * f0 - 4 * fl1 + fl2) / (2 * h), (-3 * f0 + 4 * fr1 - fr2) / (2 * h)
+    assert g == pytest.approx(left, rel=1e-4) and g == pytest.approx(-11.84, abs=0.01)
+    assert right == pytest.approx(-13.97, abs=0.01)
+    with pytest.warns(obsjax.TuneWarning, match=r"save times 2\.3, 4\.6, 6\.9, 9\.2 coincide"):
+        obsjax.tune(obs, plant, where=WHERE_T, loss=obsjax.losses.ise, x0s=jnp.zeros((1, 2)),
+                    xhat0s=jnp.array([[5.0, -5.0]]), ts=ts, steps=1, progress=False)  # fmt: skip
