@@ -1,10 +1,11 @@
-"""Gradients of the tunable leaves not covered elsewhere, through ``obsjax.simulate``, against central
-finite differences: Kalman–Bucy Qw, Rv, P0; extended Kalman Q, R, P0; TLO ρ̄; Kreisselmeier poles;
-finite-window α, β.
+"""Gradients of the tunable leaves not covered elsewhere, through ``obsjax.simulate``, against
+central finite differences: Kalman–Bucy Qw, Rv, P0; extended Kalman Q, R, P0; TLO ρ̄;
+Kreisselmeier poles; finite-window α, β.
 
-Each loss is a scalar of a short simulation with fixed Heun steps (the loss is then a smooth function of the
-parameters, and autodiff and differences see the same discrete map); matrix leaves are perturbed along symmetric directions (their checks
-require symmetry), and the autodiff gradient contracted with the same direction is compared.
+Each loss is a scalar of a short simulation with fixed Heun steps (the loss is then a smooth
+function of the parameters, and autodiff and differences see the same discrete map); matrix leaves
+are perturbed along symmetric directions (their checks require symmetry), and the autodiff gradient
+contracted with the same direction is compared.
 """
 
 from __future__ import annotations
@@ -21,8 +22,9 @@ import pytest
 import obsjax
 from obsjax._reproduce.adaptive import KREISSELMEIER_2
 
-# Fixed Heun steps (simulate's direct fixed-step path): the loss is then a smooth function of the gains (no
-# step-size decisions), so central differences are clean, and a 2-stage solver compiles fast.
+# Fixed Heun steps (simulate's direct fixed-step path): the loss is then a smooth function of the
+# gains (no step-size decisions), so central differences are clean, and a 2-stage solver compiles
+# fast.
 FIXED = dict(solver=diffrax.Heun(), dt0=0.01, adaptive=False)
 
 
@@ -55,7 +57,8 @@ def _check(compiled, params, name, directions, h=1e-5, rtol=2e-6):
         assert ad == pytest.approx(fd, rel=rtol, abs=1e-10), (name, V.tolist(), ad, fd)
 
 
-# ---- Kalman-Bucy: Qw, Rv, P0 ---------------------------------------------------------------------------------
+# ---- Kalman-Bucy: Qw, Rv, P0
+# ---------------------------------------------------------------------------------
 
 PLANT = obsjax.LTI([[-0.5, 1.0], [-1.0, 0.2]], [[0.0], [1.0]], [[1.0, 0.0]])
 MODEL = obsjax.LTI([[-0.5, 1.0], [-1.2, 0.1]], [[0.0], [1.0]], [[1.0, 0.0]])  # a mismatched model
@@ -65,7 +68,9 @@ TS = jnp.linspace(0.0, 3.0, 31)
 
 @functools.cache
 def _kb_problem():
-    kb = obsjax.KalmanBucy(MODEL, Qw=0.2 * jnp.eye(2), Rv=0.05 * jnp.eye(1), P0=jnp.array([[1.0, 0.3], [0.3, 2.0]]))
+    kb = obsjax.KalmanBucy(
+        MODEL, Qw=0.2 * jnp.eye(2), Rv=0.05 * jnp.eye(1), P0=jnp.array([[1.0, 0.3], [0.3, 2.0]])
+    )
     params = {"Qw": kb.Qw, "Rv": kb.Rv, "P0": kb.P0}
 
     def J(p):
@@ -82,7 +87,8 @@ def test_kalman_bucy_gradients(name):
     _check(compiled, params, name, _symmetric_directions(params[name].shape[0]))
 
 
-# ---- extended Kalman filter: Q, R, P0 --------------------------------------------------------------------------
+# ---- extended Kalman filter: Q, R, P0
+# --------------------------------------------------------------------------
 
 DUFFING = obsjax.Nonlinear(
     lambda t, x, u: jnp.array([x[1], -x[0] - 0.3 * x[1] - 0.5 * x[0] ** 3 + u[0]]),
@@ -95,7 +101,9 @@ DUFFING = obsjax.Nonlinear(
 
 @functools.cache
 def _ekf_problem():
-    ekf = obsjax.ExtendedKalman(DUFFING, Q=jnp.array([[0.1, 0.02], [0.02, 0.2]]), R=0.02, P0=jnp.eye(2))
+    ekf = obsjax.ExtendedKalman(
+        DUFFING, Q=jnp.array([[0.1, 0.02], [0.02, 0.2]]), R=0.02, P0=jnp.eye(2)
+    )
     params = {"Q": ekf.Q, "R": ekf.R, "P0": ekf.P0}
 
     def J(p):
@@ -112,15 +120,22 @@ def test_extended_kalman_gradients(name):
     _check(compiled, params, name, _symmetric_directions(params[name].shape[0]))
 
 
-# ---- TLO: nominal PD-eigenvalues ρ̄ ----------------------------------------------------------------------------
+# ---- TLO: nominal PD-eigenvalues ρ̄
+# ----------------------------------------------------------------------------
 
 
 def test_tlo_rho_bar_gradient():
-    """Van der Pol with an unmodelled disturbance; the gain designed along ξ̄ = 0 with PD-spectrum ρ̄ ω/ε."""
-    f = lambda d: lambda t, x, u: jnp.array([x[1], (1 - x[0] ** 2) * x[1] - x[0] + d * jnp.sin(2 * t)])  # noqa: E731
+    """Van der Pol with an unmodelled disturbance; the gain designed along ξ̄ = 0 with the
+    PD-spectrum ρ̄ ω/ε."""
+
+    def f(d):
+        return lambda t, x, u: jnp.array([x[1], (1 - x[0] ** 2) * x[1] - x[0] + d * jnp.sin(2 * t)])
+
     h = lambda t, x, u: x[:1]  # noqa: E731
     plant, model = obsjax.Nonlinear(f(0.5), h, 2, 1), obsjax.Nonlinear(f(0.0), h, 2, 1)
-    tlo = obsjax.TrajectoryLinearization(model, [-1.0, -2.0], 2.0, 0.5, nominal=lambda t: (jnp.zeros(2), jnp.zeros(0)))
+    tlo = obsjax.TrajectoryLinearization(
+        model, [-1.0, -2.0], 2.0, 0.5, nominal=lambda t: (jnp.zeros(2), jnp.zeros(0))
+    )
     ts = jnp.linspace(0.0, 2.0, 41)
 
     def J(p):
@@ -131,11 +146,13 @@ def test_tlo_rho_bar_gradient():
     _check(_compiled(J), {"rho_bar": tlo.rho_bar}, "rho_bar", np.eye(2))
 
 
-# ---- Kreisselmeier: the poles of F ----------------------------------------------------------------------------
+# ---- Kreisselmeier: the poles of F
+# ----------------------------------------------------------------------------
 
 
 def test_kreisselmeier_poles_gradient():
-    """d/d(poles) of the parameter-error integral ∫‖p − p*‖² (p* = [f − a; b] moves with the poles too)."""
+    """d/d(poles) of the parameter-error integral ∫‖p − p*‖² (p* = [f − a; b] moves with the
+    poles too)."""
     ex = KREISSELMEIER_2
     plant = obsjax.kreisselmeier_form(ex["a"], ex["b"])
     u = obsjax.signals.multisine(ex["amplitudes"], ex["frequencies"])
@@ -152,12 +169,14 @@ def test_kreisselmeier_poles_gradient():
     _check(_compiled(J), {"poles": obs0.poles}, "poles", np.eye(2))
 
 
-# ---- finite window: the weights α, β of (15), through the simulated observer -----------------------------------
+# ---- finite window: the weights α, β of (15), through the simulated observer
+# -----------------------------------
 
 
 def test_finite_window_alpha_beta_gradients():
-    """Formula (25) (general γᵢ = βᵢ/αᵢ), a plant that differs from the model and an input, so the window
-    estimate depends on the weights; T = 1.03 and 3 pieces keep the reset instants (kT/3) off the 0.1 grid."""
+    """Formula (25) (general γᵢ = βᵢ/αᵢ), a plant that differs from the model and an input, so the
+    window estimate depends on the weights; T = 1.03 and 3 pieces keep the reset instants (kT/3) off
+    the 0.1 grid."""
     model = obsjax.LTI([[0.0, 1.0], [0.0, 0.0]], [[0.0], [1.0]], [[2.0, 0.0]])
     plant = obsjax.LTI([[0.0, 1.0], [-0.4, -0.1]], [[0.0], [1.0]], [[2.0, 0.0]])
     fw = obsjax.FiniteWindow(model, 1.03, alpha=[1.0, 2.0], beta=[0.5, 1.5], n_chunks=3)
@@ -166,7 +185,9 @@ def test_finite_window_alpha_beta_gradients():
 
     def J(p):
         obs = eqx.tree_at(lambda o: (o.alpha, o.beta), fw, (p["alpha"], p["beta"]))
-        tr = obsjax.simulate(plant, obs, jnp.array([1.0, -0.5]), jnp.array([0.3, 0.2]), ts, u=U, **FIXED)
+        tr = obsjax.simulate(
+            plant, obs, jnp.array([1.0, -0.5]), jnp.array([0.3, 0.2]), ts, u=U, **FIXED
+        )
         return obsjax.losses.ise(tr)
 
     params = {"alpha": fw.alpha, "beta": fw.beta}

@@ -1,8 +1,9 @@
-"""Study integrity: a checkpoint is never mixed with another study, and damaged files are named and rebuilt.
+"""Study integrity: a checkpoint is never mixed with another study; damaged files are rebuilt.
 
-The audit's three silent reuses (another x0 scale in a sampler's closure, another LTV plant, another noise
-grid) must be refused; truncated, altered or renamed chunks and a damaged ``meta.json`` must be named (file
-path) and recomputed, never surface as a raw ``BadZipFile``/``EOFError``/``JSONDecodeError``.
+The audit's three silent reuses (another x0 scale in a sampler's closure, another LTV plant, another
+noise grid) must be refused; truncated, altered or renamed chunks and a damaged ``meta.json`` must
+be named (file path) and recomputed, never surface as a raw
+``BadZipFile``/``EOFError``/``JSONDecodeError``.
 """
 
 from __future__ import annotations
@@ -46,11 +47,14 @@ def xhat0_zero(k):
 
 
 def study(plant, noise, x0_sampler, ckpt, **kw):
-    return obsjax.monte_carlo(plant, OBS, KEY, N, x0_sampler=x0_sampler, xhat0_sampler=xhat0_zero, ts=TS,
-                              noise=noise, chunk_size=CHUNK, checkpoint=ckpt, progress=False, **kw)  # fmt: skip
+    kw = dict(x0_sampler=x0_sampler, xhat0_sampler=xhat0_zero, ts=TS, noise=noise, **kw)
+    return obsjax.monte_carlo(
+        plant, OBS, KEY, N, chunk_size=CHUNK, checkpoint=ckpt, progress=False, **kw
+    )
 
 
-# One study, computed once: its plant, noise and sampler objects are reused so the kernel compiles once.
+# One study, computed once: its plant, noise and sampler objects are reused so the kernel compiles
+# once.
 PLANT_A = ltv_plant(0.3)
 NOISE_A = obsjax.noise.BandLimitedNoise(0.05, dt=0.05)
 X0_A = scaled_normal(1.0)
@@ -73,14 +77,23 @@ def _copy(reference, tmp_path):
 def test_an_equal_study_built_anew_resumes(reference, tmp_path):
     """Fingerprints are by content, not identity: freshly built equal objects load every chunk."""
     ck = _copy(reference, tmp_path)
-    res = study(ltv_plant(0.3), obsjax.noise.BandLimitedNoise(0.05, dt=0.05), scaled_normal(1.0), ck)
+    res = study(
+        ltv_plant(0.3), obsjax.noise.BandLimitedNoise(0.05, dt=0.05), scaled_normal(1.0), ck
+    )
     assert res.n_computed == 0
     np.testing.assert_array_equal(res.error_norm, reference[0].error_norm)
 
 
 @pytest.mark.parametrize(
     "what",
-    ["x0 scale in a closure", "LTV plant", "noise grid", "noise sigma", "simulate_kwargs", "study_id"],
+    [
+        "x0 scale in a closure",
+        "LTV plant",
+        "noise grid",
+        "noise sigma",
+        "simulate_kwargs",
+        "study_id",
+    ],
 )
 def test_a_changed_study_never_reuses_old_chunks(reference, tmp_path, what):
     ck = _copy(reference, tmp_path)
@@ -111,7 +124,9 @@ def x0_global_scale(k):
 def test_globals_read_by_a_sampler_enter_the_fingerprint(tmp_path):
     global SCALE
     ck = tmp_path / "ck"
-    study(PLANT_A, NOISE_A, x0_global_scale, ck, max_chunks=0)  # starts the directory, computes nothing
+    study(
+        PLANT_A, NOISE_A, x0_global_scale, ck, max_chunks=0
+    )  # starts the directory, computes nothing
     try:
         SCALE = 2.0
         with pytest.raises(ValueError, match="holds a different study"):
@@ -151,7 +166,9 @@ def test_what_cannot_be_fingerprinted_is_refused_unless_the_study_is_named(tmp_p
 
     with pytest.raises(ValueError, match=r"x0_sampler\.<closure rng>.*Generator.*study_id"):
         study(PLANT_A, NOISE_A, x0_from_generator, tmp_path / "ck", max_chunks=0)
-    res = study(PLANT_A, NOISE_A, x0_from_generator, tmp_path / "ck", max_chunks=0, study_id="gen-0")
+    res = study(
+        PLANT_A, NOISE_A, x0_from_generator, tmp_path / "ck", max_chunks=0, study_id="gen-0"
+    )
     assert res.n_done == 0
     with open(tmp_path / "ck" / "meta.json") as fh:
         assert json.load(fh)["study_id"] == "gen-0"
@@ -159,7 +176,8 @@ def test_what_cannot_be_fingerprinted_is_refused_unless_the_study_is_named(tmp_p
         study(PLANT_A, NOISE_A, X0_A, tmp_path / "other", study_id="")
 
 
-# ---- damaged files: named, recomputed ---------------------------------------------------------------------
+# ---- damaged files: named, recomputed
+# ---------------------------------------------------------------------
 
 
 def _resume_with_warning(reference, ck, match):
@@ -249,7 +267,9 @@ def test_checkpoint_of_an_earlier_format_is_refused(tmp_path):
     ck = tmp_path / "ck"
     os.makedirs(ck)
     with open(ck / "meta.json", "w") as fh:
-        json.dump({"fingerprint": "0" * 64, "n": N, "chunk_size": CHUNK, "n_chunks": 2, "version": 1}, fh)
+        json.dump(
+            {"fingerprint": "0" * 64, "n": N, "chunk_size": CHUNK, "n_chunks": 2, "version": 1}, fh
+        )
     with pytest.raises(ValueError, match="earlier obsjax"):
         study(PLANT_A, NOISE_A, X0_A, ck, max_chunks=0)
 
@@ -266,7 +286,8 @@ def test_files_are_written_atomically(reference):
         assert len(str(d["checksum"])) == 64
 
 
-# ---- the fingerprint itself --------------------------------------------------------------------------------
+# ---- the fingerprint itself
+# --------------------------------------------------------------------------------
 
 
 def _fp_parts():
@@ -295,13 +316,19 @@ def test_fingerprint_covers_wrapped_functions_by_content():
     fp, opaque = fingerprint(_fp_parts())
     assert opaque == []
     assert fingerprint(_fp_parts())[0] == fp
-    assert fingerprint({"f": jax.jit(scaled_normal(1.0))})[0] == fingerprint({"f": jax.jit(scaled_normal(1.0))})[0]
-    assert fingerprint({"f": jax.jit(scaled_normal(1.0))})[0] != fingerprint({"f": jax.jit(scaled_normal(2.0))})[0]
+    assert (
+        fingerprint({"f": jax.jit(scaled_normal(1.0))})[0]
+        == fingerprint({"f": jax.jit(scaled_normal(1.0))})[0]
+    )
+    assert (
+        fingerprint({"f": jax.jit(scaled_normal(1.0))})[0]
+        != fingerprint({"f": jax.jit(scaled_normal(2.0))})[0]
+    )
 
 
 def test_fingerprint_is_the_same_in_another_process():
-    """No ids, addresses or hash-randomised orderings enter the fingerprint (resuming happens in a new
-    process, with another PYTHONHASHSEED)."""
+    """No ids, addresses or hash-randomised orderings enter the fingerprint (resuming happens in a
+    new process, with another PYTHONHASHSEED)."""
     import subprocess
     import sys
 
@@ -309,7 +336,9 @@ def test_fingerprint_is_the_same_in_another_process():
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     here = os.path.dirname(os.path.abspath(__file__))
-    module = _fp_parts.__module__  # import this file under the name pytest gave it (functions carry it)
+    module = (
+        _fp_parts.__module__
+    )  # import this file under the name pytest gave it (functions carry it)
     code = (
         f"import sys; sys.path[:0] = [{root!r}, {here!r}]\n"
         f"from {module} import _fp_parts\n"
@@ -317,7 +346,9 @@ def test_fingerprint_is_the_same_in_another_process():
         "print('FP', fingerprint(_fp_parts())[0])\n"
     )
     env = dict(os.environ, PYTHONHASHSEED="12345", JAX_PLATFORMS="cpu")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300, cwd=root)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300, cwd=root
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     line = next(ln for ln in out.stdout.splitlines() if ln.startswith("FP "))
     assert line.split()[1] == fingerprint(_fp_parts())[0]

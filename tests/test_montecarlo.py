@@ -84,8 +84,8 @@ def test_chunk_size_does_not_change_result(base):
 
 def test_convergence_time_closed_form():
     # ‖x̃(t)‖ = ‖x̃0‖ e^{−λ t}: it stays below 5 % of ‖x̃0‖ from t* = ln(20)/λ on.  The crossing is
-    # interpolated log-linearly between save times, which is exact for an exponential: t* on any grid, not
-    # the next save time; a decay too slow for the horizon never converges (inf).
+    # interpolated log-linearly between save times, which is exact for an exponential: t* on any
+    # grid, not the next save time; a decay too slow for the horizon never converges (inf).
     lam = np.array([1.0, 2.0, 0.5])
     for num in (81, 9, 5):  # fine and coarse grids give the same t*
         ts = np.linspace(0.0, 4.0, num)
@@ -102,8 +102,8 @@ def test_convergence_time_closed_form():
 
 
 def test_convergence_time_is_the_last_crossing():
-    """A norm that dips below the threshold and rises again converges at its last crossing; one never
-    above the threshold converges at 0; a row still above at the end never converges."""
+    """A norm that dips below the threshold and rises again converges at its last crossing; one
+    never above the threshold converges at 0; a row still above at the end never converges."""
     ts = np.array([0.0, 1.0, 2.0, 3.0, 4.0])
     norms = np.array(
         [
@@ -120,13 +120,14 @@ def test_convergence_time_is_the_last_crossing():
 
 
 def test_overflowing_error_counts_as_failed_even_with_status_zero():
-    """Defence in depth: a row whose ‖x̃‖ overflows (inf, NaN, or an ISE beyond float64) is a failure
-    (status 2) in the result, whatever the solver reported; every statistic stays finite."""
+    """Defence in depth: a row whose ‖x̃‖ overflows (inf, NaN, or an ISE beyond float64) is a
+    failure (status 2) in the result, whatever the solver reported; every statistic stays finite."""
     ts = np.linspace(0.0, 2.0, 5)
     good = np.exp(-np.outer([1.0, 2.0, 3.0], ts))
-    rows = np.vstack(
-        [good, [1.0, 1e10, 1e300, np.inf, np.inf], [1.0, np.nan, 1.0, 1.0, 1.0], [1.0, 1e200] + [1e200] * 3]
-    )
+    blowup = [1.0, 1e10, 1e300, np.inf, np.inf]
+    nan = [1.0, np.nan, 1.0, 1.0, 1.0]
+    ise_overflow = [1.0, 1e200, 1e200, 1e200, 1e200]  # finite norms, ∫‖x̃‖² beyond float64
+    rows = np.vstack([good, blowup, nan, ise_overflow])
     status = np.array([0, 0, 1, 0, 0, 0])
     res = summarise(ts, rows, status)
     np.testing.assert_array_equal(res.status, [0, 0, 1, 2, 2, 2])

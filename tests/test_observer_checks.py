@@ -1,8 +1,9 @@
 """Observers' own checks: every gain finite at construction, value checks that survive ``jit``.
 
-One test per bad-input class: NaN/inf gains and matrices (a ``ValueError`` naming the gain, what was expected
-and what was found, at construction and from ``check()`` after an ``eqx.tree_at`` update, as in
-:func:`obsjax.tune`), and traced values that fail (``eqx.error_if``: the message names the gain).
+One test per bad-input class: NaN/inf gains and matrices (a ``ValueError`` naming the gain, what was
+expected and what was found, at construction and from ``check()`` after an ``eqx.tree_at`` update,
+as in :func:`obsjax.tune`), and traced values that fail (``eqx.error_if``: the message names the
+gain).
 """
 
 from __future__ import annotations
@@ -19,8 +20,8 @@ from obsjax.design import lovass_nagy_T
 LTI2 = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
 CY = obsjax.chen_yen_example()
 NAN, INF = float("nan"), float("inf")
-# a check that fires in a compiled kernel: JAX raises it as a RuntimeError, or as a ValueError when the kernel
-# came from its cache; the message (matched below) names the gain either way
+# a check that fires in a compiled kernel: JAX raises it as a RuntimeError, or as a ValueError when
+# the kernel came from its cache; the message (matched below) names the gain either way
 RuntimeCheck = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError, ValueError)
 
 
@@ -29,7 +30,8 @@ def _under_jit(fn, *args):
     return jax.block_until_ready(jax.jit(fn)(*args))
 
 
-# ---- LeastSquaresReset -------------------------------------------------------------------------------------
+# ---- LeastSquaresReset
+# -------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("name", ["gamma", "p0", "T"])
@@ -49,7 +51,8 @@ def test_least_squares_tree_at_update_is_rechecked():
         _under_jit(lambda T: eqx.tree_at(lambda o: o.T, obs, T).check().T, jnp.asarray(NAN))
 
 
-# ---- Kalman-Bucy and the extended Kalman filter ------------------------------------------------------------
+# ---- Kalman-Bucy and the extended Kalman filter
+# ------------------------------------------------------------
 
 
 @pytest.mark.parametrize("name", ["Qw", "Rv", "P0"])
@@ -57,7 +60,9 @@ def test_kalman_bucy_nonfinite_matrix(name):
     kw = dict(Qw=0.1 * np.eye(2), Rv=0.01 * np.eye(1), P0=np.eye(2))
     kw[name] = kw[name].copy()
     kw[name][0, 0] = NAN
-    with pytest.raises(ValueError, match=rf"`{name}` must be finite \(no NaN or inf\), got \[\[nan"):
+    with pytest.raises(
+        ValueError, match=rf"`{name}` must be finite \(no NaN or inf\), got \[\[nan"
+    ):
         obsjax.KalmanBucy(CY, **kw)
 
 
@@ -77,10 +82,14 @@ def test_kalman_bucy_traced_checks_survive_jit(name, value, kind):
         eqx.tree_at(where, kb, jnp.asarray(value)).check()
     with pytest.raises(RuntimeCheck, match=f"`{name}` .*must be a finite symmetric {kind} matrix"):
         _under_jit(lambda v: where(eqx.tree_at(where, kb, v).prepare()), jnp.asarray(value))
-    _under_jit(lambda v: where(eqx.tree_at(where, kb, v).prepare()), where(kb))  # a valid value passes
+    _under_jit(
+        lambda v: where(eqx.tree_at(where, kb, v).prepare()), where(kb)
+    )  # a valid value passes
 
 
-EKF_MODEL = obsjax.Nonlinear(lambda t, x, u: jnp.array([x[1], -x[0] - 0.3 * x[1]]), lambda t, x, u: x[:1], 2, 1)
+EKF_MODEL = obsjax.Nonlinear(
+    lambda t, x, u: jnp.array([x[1], -x[0] - 0.3 * x[1]]), lambda t, x, u: x[:1], 2, 1
+)
 
 
 @pytest.mark.parametrize("name", ["Q", "R", "P0"])
@@ -93,7 +102,7 @@ def test_ekf_nonfinite_covariance(name, bad):
 
 
 def test_ekf_traced_checks_survive_jit_inside_simulate():
-    """R not positive definite, Q or P0 indefinite: under jit the solve stops with the gain named."""
+    """R not positive definite, Q or P0 indefinite: under jit the solve stops, naming the gain."""
     ekf = obsjax.ExtendedKalman(EKF_MODEL, Q=0.1, R=0.01, P0=1.0)
     ts = jnp.linspace(0.0, 0.2, 3)
 
@@ -103,7 +112,9 @@ def test_ekf_traced_checks_survive_jit_inside_simulate():
 
     good = (ekf.R, ekf.Q, ekf.P0)
     assert np.all(np.isfinite(_under_jit(run, *good)))
-    with pytest.raises(RuntimeCheck, match=r"`R` \(ExtendedKalman's measurement-noise intensity\) must be"):
+    with pytest.raises(
+        RuntimeCheck, match=r"`R` \(ExtendedKalman's measurement-noise intensity\) must be"
+    ):
         _under_jit(run, -ekf.R, ekf.Q, ekf.P0)
     with pytest.raises(RuntimeCheck, match=r"`Q` .*positive semidefinite"):
         _under_jit(run, ekf.R, -ekf.Q, ekf.P0)
@@ -113,7 +124,8 @@ def test_ekf_traced_checks_survive_jit_inside_simulate():
         eqx.tree_at(lambda o: o.R, ekf, -ekf.R).check()
 
 
-# ---- trajectory linearization observer ---------------------------------------------------------------------
+# ---- trajectory linearization observer
+# ---------------------------------------------------------------------
 
 TLO_MODEL = obsjax.Nonlinear(lambda t, x, u: jnp.array([x[1], -x[0]]), lambda t, x, u: x[:1], 2, 1)
 
@@ -138,16 +150,31 @@ def test_tlo_bad_gains(kw, match):
 def test_tlo_traced_eps_and_rho_bar_checks_survive_jit():
     tlo = obsjax.TrajectoryLinearization(TLO_MODEL, [-1.0, -2.0], 2.0, 0.2)
     for bad in (0.0, -0.2, NAN, INF):
-        with pytest.raises(RuntimeCheck, match=r"`eps` must be > 0 and finite \(the high-gain factor"):
-            _under_jit(lambda e: eqx.tree_at(lambda o: o.eps, tlo, e).prepare().eps, jnp.asarray(bad))
+        with pytest.raises(
+            RuntimeCheck, match=r"`eps` must be > 0 and finite \(the high-gain factor"
+        ):
+            _under_jit(
+                lambda e: eqx.tree_at(lambda o: o.eps, tlo, e).prepare().eps, jnp.asarray(bad)
+            )
     with pytest.raises(RuntimeCheck, match="`rho_bar` .*must be < 0 and finite"):
-        _under_jit(lambda r: eqx.tree_at(lambda o: o.rho_bar, tlo, r).prepare().rho_bar, jnp.array([-1.0, 0.5]))
-    assert float(_under_jit(lambda e: eqx.tree_at(lambda o: o.eps, tlo, e).prepare().eps, jnp.asarray(0.3))) == 0.3
+        _under_jit(
+            lambda r: eqx.tree_at(lambda o: o.rho_bar, tlo, r).prepare().rho_bar,
+            jnp.array([-1.0, 0.5]),
+        )
+    assert (
+        float(
+            _under_jit(
+                lambda e: eqx.tree_at(lambda o: o.eps, tlo, e).prepare().eps, jnp.asarray(0.3)
+            )
+        )
+        == 0.3
+    )
     with pytest.raises(ValueError, match="`eps` must be > 0 and finite"):
         eqx.tree_at(lambda o: o.eps, tlo, jnp.asarray(INF)).check()
 
 
-# ---- generalized-inverse observers -------------------------------------------------------------------------
+# ---- generalized-inverse observers
+# -------------------------------------------------------------------------
 
 F_GI = jnp.array([[-3.0, 1.0], [0.0, -4.0]])
 T_GI = lovass_nagy_T(LTI2.A, LTI2.C, F_GI, lambda t: jnp.array([0.3, 1.0]))
@@ -161,25 +188,34 @@ def test_generalized_inverse_nonfinite_F_and_C1():
 
 
 def test_generalized_inverse_solvability_is_checked_under_jit():
-    """The condition (Ṫ + TA − FT)(I − C^{1}C) = 0 holds for F_GI and its T; another F breaks it.  Eagerly
-    a ValueError (construction, check()), under jit an eqx.error_if (construction and prepare())."""
+    """The condition (Ṫ + TA − FT)(I − C^{1}C) = 0 holds for F_GI and its T; another F breaks it.
+    Eagerly a ValueError (construction, check()), under jit an eqx.error_if (construction and
+    prepare())."""
     obs = obsjax.GeneralizedInverse(LTI2, F_GI, T_GI, horizon=(0.0, 1.0), num_checks=5)
     F_bad = F_GI.at[0, 1].set(3.0)
     with pytest.raises(ValueError, match="solvability condition fails"):
         obsjax.GeneralizedInverse(LTI2, F_bad, T_GI)
     with pytest.raises(ValueError, match="solvability condition fails"):
         eqx.tree_at(lambda o: o.F, obs, F_bad).check()
-    with pytest.raises(RuntimeCheck, match="GeneralizedInverse: the Lovass-Nagy solvability condition"):
+    with pytest.raises(
+        RuntimeCheck, match="GeneralizedInverse: the Lovass-Nagy solvability condition"
+    ):
         _under_jit(lambda F: eqx.tree_at(lambda o: o.F, obs, F).prepare().F, F_bad)
-    with pytest.raises(RuntimeCheck, match="GeneralizedInverse: the Lovass-Nagy solvability condition"):
+    with pytest.raises(
+        RuntimeCheck, match="GeneralizedInverse: the Lovass-Nagy solvability condition"
+    ):
         _under_jit(lambda F: obsjax.GeneralizedInverse(LTI2, F, T_GI).F, F_bad)
-    np.testing.assert_array_equal(_under_jit(lambda F: eqx.tree_at(lambda o: o.F, obs, F).prepare().F, F_GI), F_GI)
+    np.testing.assert_array_equal(
+        _under_jit(lambda F: eqx.tree_at(lambda o: o.F, obs, F).prepare().F, F_GI), F_GI
+    )
 
 
 def test_generalized_inverse_singular_T_is_checked_under_jit():
     obs = obsjax.GeneralizedInverse(LTI2, F_GI, T_GI)
 
-    def with_scaled_T(c):  # T scaled by a traced factor: singular for c = 0, the condition still holds
+    def with_scaled_T(
+        c,
+    ):  # T scaled by a traced factor: singular for c = 0, the condition still holds
         return eqx.tree_at(lambda o: o.T, obs, lambda t: c * T_GI(t)).prepare().F
 
     _under_jit(with_scaled_T, jnp.asarray(2.0))
@@ -187,7 +223,8 @@ def test_generalized_inverse_singular_T_is_checked_under_jit():
         _under_jit(with_scaled_T, jnp.asarray(0.0))
 
 
-# ---- adaptive observers ------------------------------------------------------------------------------------
+# ---- adaptive observers
+# ------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
@@ -210,7 +247,9 @@ def test_kreisselmeier_bad_gains(kw, match):
 def test_kreisselmeier_traced_checks():
     obs = obsjax.Kreisselmeier(2, [-1.0, -2.0], 1.0, scheme="integral", q=0.5)
     with pytest.raises(RuntimeCheck, match="`poles` must be finite and satisfy Re < 0"):
-        _under_jit(lambda p: eqx.tree_at(lambda o: o.poles, obs, p).prepare().poles, jnp.array([-1.0, 0.5]))
+        _under_jit(
+            lambda p: eqx.tree_at(lambda o: o.poles, obs, p).prepare().poles, jnp.array([-1.0, 0.5])
+        )
     with pytest.raises(RuntimeCheck, match="`G` must be finite"):
         _under_jit(lambda g: eqx.tree_at(lambda o: o.G, obs, g).prepare().G, jnp.asarray(INF))
     with pytest.raises(RuntimeCheck, match="`q` must be > 0 and finite"):
@@ -234,13 +273,18 @@ def test_kudva_narendra_bad_matrices():
     with pytest.raises(ValueError, match=r"`K` must be finite"):
         obsjax.KudvaNarendra(2, 1, K=[[NAN, 0.0], [0.0, -1.0]], Gamma1=1.0, Gamma2=1.0, Q=np.eye(2))
     with pytest.raises(ValueError, match=r"`A0` must be finite"):
-        obsjax.KudvaNarendra(2, 1, K=-np.eye(2), Gamma1=1.0, Gamma2=1.0, Q=np.eye(2), A0=np.full((2, 2), INF))
+        obsjax.KudvaNarendra(
+            2, 1, K=-np.eye(2), Gamma1=1.0, Gamma2=1.0, Q=np.eye(2), A0=np.full((2, 2), INF)
+        )
     obs = obsjax.KudvaNarendra(2, 1, K=-np.eye(2), Gamma1=1.0, Gamma2=1.0, Q=np.eye(2))
     with pytest.raises(RuntimeCheck, match="`Gamma1` must be finite"):
-        _under_jit(lambda g: eqx.tree_at(lambda o: o.Gamma1, obs, g).prepare().Gamma1, jnp.asarray(INF))
+        _under_jit(
+            lambda g: eqx.tree_at(lambda o: o.Gamma1, obs, g).prepare().Gamma1, jnp.asarray(INF)
+        )
 
 
-# ---- finite-window and min-max observers -------------------------------------------------------------------
+# ---- finite-window and min-max observers
+# -------------------------------------------------------------------
 
 MODEL29 = obsjax.LTI(A=[[0.0, 1.0], [0.0, 0.0]], B=[[0.0], [1.0]], C=[[2.0, 0.0]])
 

@@ -276,7 +276,7 @@ def test_tune_eps_robustly_matches_a_grid_search():
     assert tuned["worst"][0] > 1.1 * tuned["mean"][0]
 
 
-# -- tune's guarantees: validated arguments, backtracking across validity boundaries, a stopping rule --------
+# -- tune's guarantees: validated arguments, backtracking across validity boundaries, a stopping rul
 
 from obsjax._checks import concrete_value  # noqa: E402
 
@@ -317,34 +317,36 @@ def _terminal_target(target):
     return loss
 
 
-LOSS_09 = _terminal_target(0.9)  # optimum 1 + k = −ln 0.9: k* = −0.8946, next to the boundary k = −1
+LOSS_09 = _terminal_target(0.9)  # optimum 1 + k = −ln 0.9: k* = −0.8946, near the boundary k = −1
 
 
-def LOSS_05(traj):  # optimum k* = ln 2 − 1, minimum value 0.1 (a loss whose relative changes are meaningful)
+def LOSS_05(traj):  # optimum k* = ln 2 − 1, minimum 0.1 (so that relative changes mean something)
     return _terminal_target(0.5)(traj) + 0.1
 
 
 
 def _tune_k(k0, loss, **kw):
     kw.setdefault("progress", False)
-    return obsjax.tune(_Gain(jnp.asarray(k0)), SCALAR, where=WHERE_K, loss=loss, x0s=X0_1, xhat0s=XH0_1,
-                       ts=TS1, positive=False, **kw)  # fmt: skip
+    kw.update(x0s=X0_1, xhat0s=XH0_1, ts=TS1, positive=False)
+    return obsjax.tune(_Gain(jnp.asarray(k0)), SCALAR, where=WHERE_K, loss=loss, **kw)
 
 
 def test_a_step_across_a_validity_boundary_is_rejected_and_backtracked():
     """sgd with a large rate steps k below −1 (check() fails): the step is halved until the point is
     valid; the run goes on, warns, never evaluates a point twice and returns the best observer."""
-    with pytest.warns(obsjax.TuneWarning, match=r"rejected \(the observer is invalid: `k` must be > -1"):
+    match = r"rejected \(the observer is invalid: `k` must be > -1"
+    with pytest.warns(obsjax.TuneWarning, match=match):
         r = _tune_k(1.0, LOSS_09, optimizer=optax.sgd(20.0), steps=12)
     h = r.history
     assert h["skipped"] >= 2 and len(h["rejections"]) == h["skipped"]
-    assert list(h["step_scale"][:4]) == [1.0, 1.0, 0.5, 0.25]  # two rejections, then accepted at 1/4
+    assert list(h["step_scale"][:4]) == [1.0, 1.0, 0.5, 0.25]  # two rejections, accepted at 1/4
     assert list(h["accepted"][:4]) == [True, False, False, True]
     assert all("`k` must be > -1" in why for _, why in h["rejections"])
     k = h["params"][0]
     assert len(np.unique(k)) == len(k)  # no point evaluated twice
     assert np.all(k[h["accepted"]] > -1.0) and np.any(k[~h["accepted"]] <= -1.0)
-    assert np.all(np.isnan(h["loss"][~h["accepted"]])) and np.all(np.isfinite(h["loss"][h["accepted"]]))
+    assert np.all(np.isnan(h["loss"][~h["accepted"]]))
+    assert np.all(np.isfinite(h["loss"][h["accepted"]]))
     assert float(r.observer.k) > -1.0 and float(r.observer.k) == k[h["best_step"]]
     assert h["loss"][h["best_step"]] == np.nanmin(h["loss"]) < h["loss"][0]
     assert r.steps_taken == 12 and r.stop_reason == "steps" and not r.converged
@@ -367,15 +369,15 @@ def test_an_invalid_initial_point_raises():
     def loss(traj):
         return jnp.nan * LOSS_09(traj)
 
-    with pytest.raises(ValueError, match="initial observer cannot be tuned from: the loss is not finite"):
+    with pytest.raises(ValueError, match="cannot be tuned from: the loss is not finite"):
         _tune_k(1.0, loss, steps=3)
     with pytest.raises(ValueError, match="`k` must be > -1"):
         _tune_k(-2.0, LOSS_09, steps=3)
 
 
 def test_stopping_rule_converges_to_the_closed_form_optimum():
-    """‖x̃(1)‖ = e^{−(1+k)}: (‖x̃(1)‖ − 1/2)² is minimal at k* = ln 2 − 1.  With rtol the run stops once the
-    loss stalls, well before the budget; without it, the whole budget runs."""
+    """‖x̃(1)‖ = e^{−(1+k)}: (‖x̃(1)‖ − 1/2)² is minimal at k* = ln 2 − 1.  With rtol the run stops
+    once the loss stalls, well before the budget; without it, the whole budget runs."""
     rtol, patience = 1e-10, 3
     r = _tune_k(0.0, LOSS_05, optimizer=optax.sgd(1.0), steps=400, rtol=rtol, patience=patience)
     assert r.converged and r.stop_reason == "converged" and r.steps_taken < 100
@@ -403,7 +405,7 @@ def test_rejected_steps_do_not_retrace():
     assert r.history["skipped"] >= 2 and len(traces) == 1
 
 
-# -- bad arguments: each named, before anything is traced ---------------------------------------------------
+# -- bad arguments: each named, before anything is traced ------------------------------------------
 
 
 def _bad_call(**overrides):
@@ -454,7 +456,7 @@ def _bad_call(**overrides):
         (dict(where=lambda o: o.gain), "derived property such as `gain`"),
         (dict(where=lambda o: (o.poles, o.observer_matrix)), "`where` entry 1 selects"),
         (dict(where=lambda o: o.gamma), "`where` failed on the observer: AttributeError"),
-        (dict(observer=obsjax.Luenberger(PLANT, L=[[0.0], [4.0]]), where=lambda o: o.L), "zero entries"),
+        (dict(observer=obsjax.Luenberger(PLANT, L=[[0.0], [4.0]]), where=lambda o: o.L), "zero"),
     ],
 )
 def test_bad_argument_is_named_before_tracing(overrides, match):
@@ -469,15 +471,15 @@ def test_where_selecting_a_method_is_refused():
 
 
 def test_vector_valued_loss_is_refused_at_trace_time():
-    with pytest.raises(ValueError, match=r"`loss` must map a trajectory to a real scalar.*shape \(11,\)"):
+    with pytest.raises(ValueError, match=r"`loss` must map a trajectory to a real scalar.*\(11,\)"):
         _tune_k(1.0, lambda traj: traj.error_norm, steps=2)
 
 
-# -- kinks: save times at reset instants ---------------------------------------------------------------------
+# -- kinks: save times at reset instants -----------------------------------------------------------
 
 
 class _ResettingGain(obsjax.AbstractObserver):
-    """x̂' = a x̂ + k(t)(y − x̂), k' = −k, k(jT⁺) = k0: x̂ continuous, its slope jumps at every reset."""
+    """x̂' = a x̂ + k(t)(y − x̂), k' = −k, k(jT⁺) = k0: x̂ continuous, its slope jumping at resets."""
 
     a: jax.Array
     k0: jax.Array
@@ -511,16 +513,18 @@ WHERE_K0 = lambda o: o.k0  # noqa: E731
 def test_reset_coincidences():
     from obsjax.tuning._tune import reset_coincidences
 
-    np.testing.assert_allclose(reset_coincidences(2.3, np.linspace(0.0, 10.0, 101)), [2.3, 4.6, 6.9, 9.2])
+    hits = reset_coincidences(2.3, np.linspace(0.0, 10.0, 101))
+    np.testing.assert_allclose(hits, [2.3, 4.6, 6.9, 9.2])
     assert reset_coincidences(2.31, np.linspace(0.0, 10.0, 101)) == []
     assert reset_coincidences(0.5, TS_R) == pytest.approx([0.5, 1.0, 1.5])
     assert reset_coincidences(0.5, np.linspace(0.0, 2.0, 21)) == pytest.approx([0.5, 1.0, 1.5, 2.0])
 
 
 def test_kink_in_T_at_a_save_time_is_one_sided_and_tune_warns():
-    """With save times on the reset instants the ISE has a kink in T: autodiff returns the derivative from
-    one side (here the left: a slightly shorter period puts the reset before the save time), which differs
-    from the other side's.  tune warns when T is tuned, and is silent when only k0 is."""
+    """With save times on the reset instants the ISE has a kink in T: autodiff returns the
+    derivative from one side (here the left: a slightly shorter period puts the reset before the
+    save time), which differs from the other side's.  tune warns when T is tuned, and is silent
+    when only k0 is."""
 
     def J(T):
         obs = eqx.tree_at(WHERE_T, RESETTING, T)
@@ -540,9 +544,10 @@ def test_kink_in_T_at_a_save_time_is_one_sided_and_tune_warns():
     g2 = float(jax.jit(jax.grad(J))(0.53))
     assert g2 == pytest.approx((float(Jj(0.53 + h)) - float(Jj(0.53 - h))) / (2 * h), rel=1e-5)
 
-    kw = dict(loss=obsjax.losses.ise, x0s=jnp.ones((1, 1)), xhat0s=jnp.zeros((1, 1)), ts=TS_R, steps=1,
-              progress=False)  # fmt: skip
-    with pytest.warns(obsjax.TuneWarning, match=r"save times 0\.5, 1, 1\.5 coincide with reset instants"):
+    kw = dict(loss=obsjax.losses.ise, x0s=jnp.ones((1, 1)), xhat0s=jnp.zeros((1, 1)), ts=TS_R)
+    kw.update(steps=1, progress=False)
+    match = r"save times 0\.5, 1, 1\.5 coincide with reset instants"
+    with pytest.warns(obsjax.TuneWarning, match=match):
         obsjax.tune(RESETTING, PLANT_R, where=WHERE_T, **kw)
     with warnings.catch_warnings():
         warnings.simplefilter("error", obsjax.TuneWarning)
@@ -552,17 +557,19 @@ def test_kink_in_T_at_a_save_time_is_one_sided_and_tune_warns():
 
 @pytest.mark.slow
 def test_least_squares_reset_kink_on_chen_yen_example():
-    """The numbers quoted in LeastSquaresReset's and tune's docstrings: Chen & Yen's example, γ = 20,
-    p0 = 0.1, x̂(0) = (5, −5), the ISE on a 0.1 s grid over [0, 10], T = 2.3 (four save times on reset
-    instants): autodiff −11.84 = the left derivative, −13.97 from the right; tune warns."""
+    """The numbers quoted in LeastSquaresReset's and tune's docstrings: Chen & Yen's example,
+    γ = 20, p0 = 0.1, x̂(0) = (5, −5), the ISE on a 0.1 s grid over [0, 10], T = 2.3 (four save
+    times on reset instants): autodiff −11.84 = the left derivative, −13.97 from the right; tune
+    warns."""
     plant = obsjax.chen_yen_example()
     obs = obsjax.LeastSquaresReset(plant, 20.0, 0.1, 2.3)
     ts = jnp.linspace(0.0, 10.0, 101)
 
     def J(T):
         o = eqx.tree_at(WHERE_T, obs, T)
-        tr = obsjax.simulate(plant, o, jnp.zeros(2), jnp.array([5.0, -5.0]), ts, rtol=1e-10, atol=1e-12,
-                             max_segments=8)  # fmt: skip
+        xh0 = jnp.array([5.0, -5.0])
+        kw = dict(rtol=1e-10, atol=1e-12, max_segments=8)
+        tr = obsjax.simulate(plant, o, jnp.zeros(2), xh0, ts, **kw)
         return obsjax.losses.ise(tr)
 
     g = float(jax.jit(jax.grad(J))(2.3))

@@ -2,14 +2,15 @@
 
 Layout of a checkpoint directory::
 
-    meta.json           {"format", "fingerprint", "study_id", "n", "chunk_size", "n_chunks", "checksum"}
-    chunk_000000.npz    error_norm (rows, T), status (rows,), fingerprint, chunk, checksum
+    meta.json         format, fingerprint, study_id, n, chunk_size, n_chunks, checksum
+    chunk_000000.npz  error_norm (rows, T), status (rows,), fingerprint, chunk, checksum
     ...
 
-Every file is written to a temporary name in the same directory, flushed to disk and renamed over its final
-name (``os.replace``), so a reader sees either the old file or the complete new one.  Each file carries a
-SHA-256 checksum of its content, and each chunk also the fingerprint of the study that computed it and its
-own index, so that a chunk is loaded only into the study and the slot it belongs to.
+Every file is written to a temporary name in the same directory, flushed to disk and renamed over
+its final name (``os.replace``), so a reader sees either the old file or the complete new one.  Each
+file carries a SHA-256 checksum of its content, and each chunk also the fingerprint of the study
+that computed it and its own index, so that a chunk is loaded only into the study and the slot it
+belongs to.
 """
 
 from __future__ import annotations
@@ -62,7 +63,8 @@ def _atomic_write(path: str, write) -> None:
 
 def _chunk_checksum(fp: str, c: int, error_norm: np.ndarray, status: np.ndarray) -> str:
     h = hashlib.sha256()
-    h.update(f"{fp}|chunk={c}|{error_norm.dtype.str}{error_norm.shape}|{status.dtype.str}{status.shape}|".encode())
+    shapes = f"{error_norm.dtype.str}{error_norm.shape}|{status.dtype.str}{status.shape}"
+    h.update(f"{fp}|chunk={c}|{shapes}|".encode())
     h.update(np.ascontiguousarray(error_norm).tobytes())
     h.update(np.ascontiguousarray(status).tobytes())
     return h.hexdigest()
@@ -82,7 +84,8 @@ def write_chunk(ckpt: str, c: int, fp: str, error_norm, status) -> None:
 
 
 def _read_chunk(path: str, fp: str, c: int, rows: int, T: int):
-    """(error_norm, status, problem): problem is None, ``"other study"`` or why the file is damaged."""
+    """(error_norm, status, problem): problem is None, ``"other study"`` or why the file is
+    damaged."""
     try:
         with np.load(path, allow_pickle=False) as data:
             en = np.asarray(data["error_norm"])
@@ -92,11 +95,13 @@ def _read_chunk(path: str, fp: str, c: int, rows: int, T: int):
             checksum = str(data["checksum"])
     except Exception as e:  # noqa: BLE001  (a truncated zip, a missing entry, a corrupt stream, ...)
         return None, None, f"unreadable: {type(e).__name__}: {e}"
-    if en.dtype != np.float64 or st.dtype != np.int32 or en.shape != (rows, T) or st.shape != (rows,):
-        return None, None, (
+    expected = (np.dtype(np.float64), np.dtype(np.int32), (rows, T), (rows,))
+    if (en.dtype, st.dtype, en.shape, st.shape) != expected:
+        why = (
             f"unexpected content: error_norm {en.dtype}{en.shape}, status {st.dtype}{st.shape}, "
             f"expected float64({rows}, {T}) and int32({rows},)"
         )
+        return None, None, why
     if checksum != _chunk_checksum(file_fp, file_c, en, st):
         return None, None, "checksum mismatch (the file was altered or partly written)"
     if file_fp != fp:
@@ -112,7 +117,8 @@ def _meta_checksum(meta: dict) -> str:
 
 
 def _read_meta(path: str):
-    """(meta, problem): meta is None when the file is missing (problem None) or damaged (problem says why)."""
+    """(meta, problem): meta is None when the file is missing (problem None) or damaged (problem
+    says why)."""
     if not os.path.exists(path):
         return None, None
     try:
@@ -125,16 +131,17 @@ def _read_meta(path: str):
     if "format" not in meta and "version" in meta:
         raise ValueError(
             f"checkpoint directory {os.path.dirname(path)!r} was written by an earlier obsjax "
-            f"(checkpoint format {meta.get('version')}), whose fingerprint did not cover the samplers' "
-            "code and closures, the plant's callables or static fields: its chunks cannot be trusted to "
-            "belong to this study. Delete it or choose another path."
+            f"(checkpoint format {meta.get('version')}), whose fingerprint did not cover the "
+            "samplers' code and closures, the plant's callables or static fields: its chunks "
+            "cannot be trusted to belong to this study. Delete it or choose another path."
         )
     if meta.get("checksum") != _meta_checksum(meta):
         return None, "checksum mismatch (the file was altered or partly written)"
     if meta.get("format") != FORMAT:
         raise ValueError(
-            f"checkpoint directory {os.path.dirname(path)!r} has checkpoint format {meta.get('format')!r}, "
-            f"this obsjax writes format {FORMAT}: delete it or choose another path."
+            f"checkpoint directory {os.path.dirname(path)!r} has checkpoint format "
+            f"{meta.get('format')!r}, this obsjax writes format {FORMAT}: delete it or choose "
+            "another path."
         )
     return meta, None
 
@@ -154,13 +161,14 @@ def _write_meta(path: str, fp: str, study_id, n: int, chunk: int, n_chunks: int)
 
 
 def read_checkpoint(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done) -> bool:
-    """Load the finished chunks of directory `ckpt` into `norms`, `status`, `done` (in place), or start
-    it.  Returns True when it holds a different study (the caller raises).
+    """Load the finished chunks of directory `ckpt` into `norms`, `status`, `done` (in place), or
+    start it.  Returns True when it holds a different study (the caller raises).
 
     A damaged chunk (unreadable, wrong content, checksum mismatch, renamed) is named in a
     :class:`CheckpointWarning` and left to be recomputed (and atomically replaced).  A damaged
-    ``meta.json`` is named likewise and rewritten once every chunk present has been verified to belong to
-    this study (each chunk carries the study's fingerprint); a chunk of another study is refused.
+    ``meta.json`` is named likewise and rewritten once every chunk present has been verified to
+    belong to this study (each chunk carries the study's fingerprint); a chunk of another study is
+    refused.
     """
     os.makedirs(ckpt, exist_ok=True)
     meta_path = os.path.join(ckpt, "meta.json")
@@ -176,13 +184,14 @@ def read_checkpoint(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
         en, st, why = _read_chunk(path, fp, c, hi - lo, T)
         if why == "other study":
             raise ValueError(
-                f"checkpoint file {path!r} was computed by a different study (its fingerprint differs; "
-                "gains, plant, samplers, noise, ts, key, n, chunk size or versions changed): delete the "
-                "directory or choose another path."
+                f"checkpoint file {path!r} was computed by a different study (its fingerprint "
+                "differs: gains, plant, samplers, noise, ts, key, n, chunk size or versions "
+                "changed): delete the directory or choose another path."
             )
         if why is not None:
             warnings.warn(
-                f"monte_carlo: checkpoint file {path!r} is damaged ({why}); chunk {c} will be recomputed.",
+                f"monte_carlo: checkpoint file {path!r} is damaged ({why}); chunk {c} will be "
+                "recomputed.",
                 CheckpointWarning,
                 stacklevel=3,
             )
@@ -192,8 +201,8 @@ def read_checkpoint(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
     if meta is None:
         if problem is not None:
             warnings.warn(
-                f"monte_carlo: checkpoint file {meta_path!r} is damaged ({problem}); every chunk present "
-                "carries this study's fingerprint, so it is rewritten.",
+                f"monte_carlo: checkpoint file {meta_path!r} is damaged ({problem}); every chunk "
+                "present carries this study's fingerprint, so it is rewritten.",
                 CheckpointWarning,
                 stacklevel=3,
             )

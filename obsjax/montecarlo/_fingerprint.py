@@ -1,22 +1,23 @@
-"""A content fingerprint of everything that determines a study's result (the key of its checkpoints).
+"""A content fingerprint of everything that determines a study's result (its checkpoints' key).
 
-A checkpoint may only be reused by the study that wrote it.  Names are not enough: two samplers called
-``x0_sampler`` that differ by a constant in a closure, two LTV plants whose ``A(t)`` differ, or two noise
-models that differ by a static grid spacing give different results.  :func:`fingerprint` therefore hashes
-the *content* of the objects, recursively:
+A checkpoint may only be reused by the study that wrote it.  Names are not enough: two samplers
+called ``x0_sampler`` that differ by a constant in a closure, two LTV plants whose ``A(t)`` differ,
+or two noise models that differ by a static grid spacing give different results.
+:func:`fingerprint` therefore hashes the *content* of the objects, recursively:
 
 - arrays by dtype, shape and bytes; numbers, strings, tuples, lists, dicts and sets by value;
-- dataclasses (every ``eqx.Module``: plants, observers, noise models, diffrax solvers) field by field,
-  static fields included, plus the code of the methods of user-defined classes;
+- dataclasses (every ``eqx.Module``: plants, observers, noise models, diffrax solvers) field by
+  field, static fields included, plus the code of the methods of user-defined classes;
 - user functions by their bytecode (constants, names, nested functions), their closure values, their
   default arguments and the values of the globals they read, recursively;
-- functions, classes and modules of the numerical libraries (jax, numpy, scipy, diffrax, equinox, optax,
-  lineax, obsjax, ...) by qualified name (their versions enter the header), but their closures by value,
-  so ``jax.jit(f)`` and closures made by library factories are still hashed by content.
+- functions, classes and modules of the numerical libraries (jax, numpy, scipy, diffrax, equinox,
+  optax, lineax, obsjax, ...) by qualified name (their versions enter the header), but their
+  closures by value, so ``jax.jit(f)`` and closures made by library factories are still hashed by
+  content.
 
-What cannot be hashed this way (an object of a compiled extension without a dataclass, ``__dict__`` or
-slots, such as ``numpy.random.Generator``, or a traced array) is reported with its path; the caller refuses
-to checkpoint unless the user names the study with an explicit ``study_id``.
+What cannot be hashed this way (an object of a compiled extension without a dataclass, ``__dict__``
+or slots, such as ``numpy.random.Generator``, or a traced array) is reported with its path; the
+caller refuses to checkpoint unless the user names the study with an explicit ``study_id``.
 """
 
 from __future__ import annotations
@@ -205,7 +206,8 @@ class _Hasher:
             self.visit(v, f"{path}[{k!r}]")
 
     def _treedef(self, td, path: str) -> None:
-        """A pytree structure node by node: its node types and auxiliary data (static fields) by content."""
+        """A pytree structure node by node: node types and auxiliary data (static fields), by
+        content."""
         self.put("treedef", str(td.num_leaves))
         node = td.node_data()
         if node is None:
@@ -308,8 +310,8 @@ def _global_names(co: types.CodeType) -> set[str]:
 
 
 def fingerprint(parts: dict) -> tuple[str, list[str]]:
-    """SHA-256 hex digest of the version header and the named parts, and the list of paths that could not
-    be hashed by content (empty when the fingerprint covers everything)."""
+    """SHA-256 hex digest of the version header and the named parts, and the list of paths that
+    could not be hashed by content (empty when the fingerprint covers everything)."""
     h = _Hasher()
     h.put("header", header())
     for name in sorted(parts):

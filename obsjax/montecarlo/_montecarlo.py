@@ -23,7 +23,8 @@ from .._simulate_batch import simulate_batch
 from ..observers._base import AbstractObserver
 from ..systems._noise import AbstractNoise
 from ..systems._plants import AbstractSystem
-from ._checkpoint import read_checkpoint, write_chunk
+from ._checkpoint import read_checkpoint as _resume
+from ._checkpoint import write_chunk
 from ._fingerprint import fingerprint
 
 DEFAULT_QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
@@ -92,16 +93,16 @@ class MonteCarloResult:
     - `ts`: (T,) save times.
     - `error_norm`: (N, T) ‖x̃(t)‖ of every completed trajectory (NaN rows for failed ones).
     - `status`: (N,) int, 0 = success, 1 = solver failure, 2 = non-finite values (see
-      :func:`obsjax.simulate`); −1 marks trajectories not yet computed (an interrupted, resumable run).
-      A row whose ‖x̃(t)‖ or ISE is not finite (an overflowing error) is reported with status 2 here even
-      if the solver reported success: it is a failure, never a statistic.
+      :func:`obsjax.simulate`); −1 marks trajectories not yet computed (an interrupted, resumable
+      run). A row whose ‖x̃(t)‖ or ISE is not finite (an overflowing error) is reported with status
+      2 here even if the solver reported success: it is a failure, never a statistic.
     - `quantiles`: the quantile levels of `bands`.
     - `bands`: (Q, T) quantiles of ‖x̃(t)‖ over the *successful* trajectories at each save time.
     - `convergence_time`: (N,) time (relative to ``ts[0]``) after which ‖x̃‖ stays at or below the
-      convergence threshold: the crossing of the threshold after the last save time above it, interpolated
-      between that save time and the next one (log-linearly: exact for an exponential decay between two
-      save times), so it is not quantised by the save grid; ``0`` if ‖x̃‖ is never above the threshold,
-      ``inf`` if it is still above at the last save time, NaN for failures.
+      convergence threshold: the crossing of the threshold after the last save time above it,
+      interpolated between that save time and the next one (log-linearly: exact for an exponential
+      decay between two save times), so it is not quantised by the save grid; ``0`` if ‖x̃‖ is never
+      above the threshold, ``inf`` if it is still above at the last save time, NaN for failures.
     - `ise`: (N,) ∫‖x̃‖² dt on the save grid (trapezoid), NaN for failures.
     - `conv_tol`, `conv_relative`: the convergence threshold (relative to ‖x̃(t0)‖ when ``conv_relative``).
     - `n`: requested number of trajectories; `n_done`: number computed so far (``complete`` when equal).
@@ -254,9 +255,9 @@ def _quantiles(norms: np.ndarray, qs) -> np.ndarray:
 
 
 def _convergence_time(ts, norms, tol, relative):
-    """Time after which every later norm is ≤ threshold: the threshold crossing after the last save time
-    above it, interpolated (log-linearly where both norms are positive, else linearly) up to the next save
-    time; 0 when no norm is above, inf when the last one is."""
+    """Time after which every later norm is ≤ threshold: the threshold crossing after the last save
+    time above it, interpolated (log-linearly where both norms are positive, else linearly) up to
+    the next save time; 0 when no norm is above, inf when the last one is."""
     thr = tol * norms[:, :1] if relative else np.full((norms.shape[0], 1), float(tol))
     above = norms > thr
     T = ts.shape[0]
@@ -483,16 +484,16 @@ def _hashable_kwargs(kw: dict) -> tuple:
 
 
 def _study_fingerprint(study_id, **parts) -> str:
-    """The content fingerprint of a study (see ``_fingerprint``); refuses what it cannot hash unless the
-    study is named by `study_id`."""
+    """The content fingerprint of a study (see ``_fingerprint``); refuses what it cannot hash
+    unless the study is named by `study_id`."""
     fp, opaque = fingerprint(dict(parts, study_id=study_id))
     if opaque and study_id is None:
         listed = "; ".join(opaque[:5]) + ("; ..." if len(opaque) > 5 else "")
         raise ValueError(
-            "monte_carlo cannot fingerprint everything that determines this study, so a checkpoint could "
-            f"be reused by another study without notice: {listed}. Pass `study_id` (a name you change "
-            "whenever any of these changes) to checkpoint it anyway, or make the object hashable by "
-            "content (a dataclass / eqx.Module, a function, an array)."
+            "monte_carlo cannot fingerprint everything that determines this study, so a checkpoint "
+            f"could be reused by another study without notice: {listed}. Pass `study_id` (a name "
+            "you change whenever any of these changes) to checkpoint it anyway, or make the object "
+            "hashable by content (a dataclass / eqx.Module, a function, an array)."
         )
     return fp
 
@@ -560,26 +561,29 @@ def monte_carlo(
     the gain values.  A tqdm bar runs over the chunks.
 
     **Checkpoints.**  With ``checkpoint=<directory>``, each finished chunk is written there as
-    ``chunk_<k>.npz`` beside a ``meta.json``.  Calling ``monte_carlo`` again with the same study loads the
-    finished chunks and computes only the rest; ``max_chunks`` bounds the chunks computed in one call (a
-    time-boxed run; the result then has ``complete == False``).  What a checkpoint guarantees:
+    ``chunk_<k>.npz`` beside a ``meta.json``.  Calling ``monte_carlo`` again with the same study
+    loads the finished chunks and computes only the rest; ``max_chunks`` bounds the chunks computed
+    in one call (a time-boxed run; the result then has ``complete == False``).  What a checkpoint
+    guarantees:
 
-    - *It is never mixed with another study.*  ``meta.json`` and every chunk carry a SHA-256 fingerprint of
-      everything that determines the result, by content: the plant, observer and noise model field by field
-      (array leaves and static fields, such as a noise grid ``dt``), the samplers' and plant callables'
-      bytecode, closure values, default arguments and the globals they read (recursively), the methods of
-      user-defined classes, ``simulate_kwargs``, ``ts``, the key, N, the chunk size, the number of devices of
-      a lock-step study and the Python, JAX, NumPy, SciPy, diffrax, equinox, lineax, optax and obsjax
-      versions.  A directory or a chunk of a different study raises ``ValueError``.  An object that cannot
-      be hashed by content (e.g. a ``numpy.random.Generator`` read by a sampler) is refused with its path,
-      unless the study is named by ``study_id``, which then enters the fingerprint (change it whenever such
-      an object changes).
-    - *Files are whole or absent.*  Every file is written to a temporary name, flushed to disk and renamed
-      (``os.replace``), and carries a checksum of its content.
-    - *Damage is named and repaired.*  A chunk that cannot be read, fails its checksum or sits under another
-      chunk's name is named in a :class:`obsjax.montecarlo.CheckpointWarning` and recomputed; a damaged
-      ``meta.json`` is named likewise and rewritten once every chunk present has been verified to carry this
-      study's fingerprint.  A checkpoint written by an earlier format is refused.
+    - *It is never mixed with another study.*  ``meta.json`` and every chunk carry a SHA-256
+      fingerprint of everything that determines the result, by content: the plant, observer and
+      noise model field by field (array leaves and static fields, such as a noise grid ``dt``), the
+      samplers' and plant callables' bytecode, closure values, default arguments and the globals
+      they read (recursively), the methods of user-defined classes, ``simulate_kwargs``, ``ts``, the
+      key, N, the chunk size, the number of devices of a lock-step study and the Python, JAX, NumPy,
+      SciPy, diffrax, equinox, lineax, optax and obsjax versions.  A directory or a chunk of a
+      different study raises ``ValueError``.  An object that cannot be hashed by content (e.g. a
+      ``numpy.random.Generator`` read by a sampler) is refused with its path, unless the study is
+      named by ``study_id``, which then enters the fingerprint (change it whenever such an object
+      changes).
+    - *Files are whole or absent.*  Every file is written to a temporary name, flushed to disk and
+      renamed (``os.replace``), and carries a checksum of its content.
+    - *Damage is named and repaired.*  A chunk that cannot be read, fails its checksum or sits under
+      another chunk's name is named in a :class:`obsjax.montecarlo.CheckpointWarning` and
+      recomputed; a damaged ``meta.json`` is named likewise and rewritten once every chunk present
+      has been verified to carry this study's fingerprint.  A checkpoint written by an earlier
+      format is refused.
 
     **Several hosts.**  Call ``jax.distributed.initialize(coordinator_address, num_processes,
     process_id)`` in every process before anything else touches JAX (on CPU the cross-process
@@ -625,7 +629,8 @@ def monte_carlo(
       the default only to the solver tolerance (not bitwise across chunk sizes or device counts), and a
       solver failure (not a non-finite trajectory) fails the whole shard.  Needs ``param_sampler=None``.
     - `study_id`: an optional name of the study, added to the checkpoint fingerprint; needed only to
-      checkpoint a study whose samplers or plant read objects that cannot be fingerprinted by content.
+      checkpoint a study whose samplers or plant read objects that cannot be fingerprinted by
+      content.
     - `simulate_kwargs`: extra keyword arguments of :func:`obsjax.simulate` (``solver``, ``rtol``,
       ``atol``, ``dt0``, ``adaptive``, ``max_steps``); ``throw`` is always ``False`` (failures are counted
       from the per-trajectory ``status``).
@@ -782,11 +787,11 @@ def monte_carlo(
         mismatch, failure = False, None
         if lead:
             if n_proc == 1:
-                mismatch = read_checkpoint(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
+                mismatch = _resume(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
             else:
                 # any failure is told to the other processes before it is raised, or they would wait
                 try:
-                    mismatch = read_checkpoint(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
+                    mismatch = _resume(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
                 except Exception as e:  # noqa: BLE001
                     failure = e
         if n_proc > 1:
@@ -801,10 +806,10 @@ def monte_carlo(
             mismatch, done = bool(flag), done.astype(bool)
         if mismatch:
             raise ValueError(
-                f"checkpoint directory {ckpt!r} holds a different study (its fingerprint differs: gains, "
-                "plant, samplers (code, closures, globals), noise, ts, key, n, chunk size, simulate_kwargs, "
-                "study_id, the number of devices of a lock-step study or library versions changed): "
-                "delete it or choose another path."
+                f"checkpoint directory {ckpt!r} holds a different study (its fingerprint differs: "
+                "gains, plant, samplers (code, closures, globals), noise, ts, key, n, chunk size, "
+                "simulate_kwargs, study_id, the number of devices of a lock-step study or library "
+                "versions changed): delete it or choose another path."
             )
         if n_proc > 1:
             for c in np.flatnonzero(done):

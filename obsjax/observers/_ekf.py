@@ -79,16 +79,17 @@ class ExtendedKalman(AbstractObserver):
         self.P0 = _covariance(P0, "P0", model.n, definite=False)
 
     def check(self) -> ExtendedKalman:
-        """Q and P0 finite symmetric PSD, R finite symmetric positive definite: ``ValueError`` for concrete
-        values, ``eqx.error_if`` (survives jit) for traced ones."""
+        """Q and P0 finite symmetric PSD, R finite symmetric positive definite: ``ValueError`` for
+        concrete values, ``eqx.error_if`` (survives jit) for traced ones."""
         if is_concrete(self.Q, self.R, self.P0):
             _covariance(self.Q, "Q", self.model.n, definite=False)
             _covariance(self.R, "R", self.model.m, definite=True)
             _covariance(self.P0, "P0", self.model.n, definite=False)
             return self
-        Q = traced_spd(self.Q, "Q", semi=True, what=" (ExtendedKalman's process-noise intensity)")
-        R = traced_spd(self.R, "R", semi=False, what=" (ExtendedKalman's measurement-noise intensity)")
-        P0 = traced_spd(self.P0, "P0", semi=True, what=" (ExtendedKalman's initial covariance)")
+        who = "ExtendedKalman's"
+        Q = traced_spd(self.Q, "Q", semi=True, what=f" ({who} process-noise intensity)")
+        R = traced_spd(self.R, "R", semi=False, what=f" ({who} measurement-noise intensity)")
+        P0 = traced_spd(self.P0, "P0", semi=True, what=f" ({who} initial covariance)")
         return eqx.tree_at(lambda o: (o.Q, o.R, o.P0), self, (Q, R, P0))
 
     def prepare(self) -> ExtendedKalman:

@@ -402,7 +402,9 @@ class FiniteWindow(AbstractObserver):
 
 def _checked(T, alpha, beta, formula):
     T = eqx.error_if(
-        T, ~(T > 0) | ~jnp.isfinite(T), "FiniteWindow: `T` (the window length) must be > 0 and finite."
+        T,
+        ~(T > 0) | ~jnp.isfinite(T),
+        "FiniteWindow: `T` (the window length) must be > 0 and finite.",
     )
     alpha = eqx.error_if(
         alpha,

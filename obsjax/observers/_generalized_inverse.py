@@ -47,8 +47,9 @@ def _solvability(T, Td, F, A, C, C1):
 
 
 def _check_over(obs, ts, what):
-    """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time.  Returns
-    False when the values are traced (nothing could be checked here: see :func:`_guard_traced`)."""
+    """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time.
+    Returns False when the values are traced (nothing could be checked here: see
+    :func:`_guard_traced`)."""
     ts = jnp.asarray(ts, dtype=float)
     res, scale, det = _solvability_on_grid(obs, ts)
     res, scale, det = (concrete_value(v) for v in (res, scale, det))
@@ -82,25 +83,26 @@ def _check_over(obs, ts, what):
 
 
 def _guard_traced(obs, what):
-    """`obs.F` guarded by ``eqx.error_if`` (survives jit): the solvability condition and det T ≠ 0 on the
-    check grid (the horizon's, or t = 0), as :func:`_check_over` checks concrete values eagerly."""
+    """`obs.F` guarded by ``eqx.error_if`` (survives jit): the solvability condition and det T ≠ 0
+    on the check grid (the horizon's, or t = 0), as :func:`_check_over` checks concrete values
+    eagerly."""
     ts = jnp.asarray([0.0] if obs.horizon is None else _time_grid(obs.horizon, obs.num_checks))
     res, scale, det = jax.vmap(obs.solvability)(ts)
     rel = res / jnp.maximum(scale, 1.0)
     F = eqx.error_if(
         obs.F,
         jnp.any(~(rel <= obs.rtol)),
-        f"{what}: the Lovass-Nagy solvability condition ‖(Ṫ + T·Ā − F·T)(I − C^{{1}}·C)‖ ≤ rtol·scale "
-        f"(rtol = {obs.rtol:.1e}) fails (or is not finite) on the check grid: G·C = Ṫ + T·Ā − F·T has no "
-        "solution G there.",
+        f"{what}: the Lovass-Nagy solvability condition "
+        f"‖(Ṫ + T·Ā − F·T)(I − C^{{1}}·C)‖ ≤ rtol·scale (rtol = {obs.rtol:.1e}) fails (or is not "
+        "finite) on the check grid: G·C = Ṫ + T·Ā − F·T has no solution G there.",
     )
     tiny = jnp.min(jnp.abs(det)) <= 1e-12 * jnp.maximum(jnp.max(jnp.abs(det)), 1.0)
     flips = jnp.any(jnp.sign(det[:-1]) * jnp.sign(det[1:]) < 0) if det.shape[0] > 1 else False
     return eqx.error_if(
         F,
         ~jnp.all(jnp.isfinite(det)) | tiny | flips,
-        f"{what}: `T` must be invertible over the check grid (det T ≠ 0), found a vanishing, non-finite or "
-        "sign-changing det T.",
+        f"{what}: `T` must be invertible over the check grid (det T ≠ 0), found a vanishing, "
+        "non-finite or sign-changing det T.",
     )
 
 
@@ -154,7 +156,7 @@ class GeneralizedInverse(AbstractObserver):
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
-        if not _check_over(self, ts, "GeneralizedInverse"):  # built under jit: the same checks by eqx.error_if
+        if not _check_over(self, ts, "GeneralizedInverse"):  # built under jit: eqx.error_if
             self.F = _guard_traced(self, "GeneralizedInverse")
 
     # --- the design quantities -------------------------------------------------------------------
@@ -193,8 +195,8 @@ class GeneralizedInverse(AbstractObserver):
 
     def prepare(self):
         """The checks of :meth:`check` once per simulation: eagerly when the values are concrete
-        (``ValueError``), by ``eqx.error_if`` when anything they depend on is traced (F, C1, the model's or
-        T's leaves, or values T closes over)."""
+        (``ValueError``), by ``eqx.error_if`` when anything they depend on is traced (F, C1, the
+        model's or T's leaves, or values T closes over)."""
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
         if _check_over(self, ts, "GeneralizedInverse"):
             return self
@@ -305,7 +307,7 @@ class GeneralizedInverseReduced(AbstractObserver):
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
-        if not _check_over(self, ts, "GeneralizedInverseReduced"):  # built under jit: the same checks by eqx.error_if
+        if not _check_over(self, ts, "GeneralizedInverseReduced"):  # under jit: eqx.error_if
             self.F = _guard_traced(self, "GeneralizedInverseReduced")
 
     @property
@@ -357,8 +359,8 @@ class GeneralizedInverseReduced(AbstractObserver):
 
     def prepare(self):
         """The checks of :meth:`check` once per simulation: eagerly when the values are concrete
-        (``ValueError``), by ``eqx.error_if`` when anything they depend on is traced (F, C1, the model's or
-        T's leaves, or values T closes over)."""
+        (``ValueError``), by ``eqx.error_if`` when anything they depend on is traced (F, C1, the
+        model's or T's leaves, or values T closes over)."""
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
         if _check_over(self, ts, "GeneralizedInverseReduced"):
             return self

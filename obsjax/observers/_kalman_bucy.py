@@ -85,9 +85,10 @@ class KalmanBucy(AbstractObserver):
             _spd(self.Rv, "Rv", m)
             _spd(self.P0, "P0", n)
             return self
-        Qw = traced_spd(self.Qw, "Qw", semi=True, what=" (KalmanBucy's process-noise intensity)")
-        Rv = traced_spd(self.Rv, "Rv", semi=False, what=" (KalmanBucy's measurement-noise intensity)")
-        P0 = traced_spd(self.P0, "P0", semi=False, what=" (KalmanBucy's initial covariance)")
+        who = "KalmanBucy's"
+        Qw = traced_spd(self.Qw, "Qw", semi=True, what=f" ({who} process-noise intensity)")
+        Rv = traced_spd(self.Rv, "Rv", semi=False, what=f" ({who} measurement-noise intensity)")
+        P0 = traced_spd(self.P0, "P0", semi=False, what=f" ({who} initial covariance)")
         return eqx.tree_at(lambda o: (o.Qw, o.Rv, o.P0), self, (Qw, Rv, P0))
 
     def prepare(self) -> KalmanBucy:

@@ -195,7 +195,8 @@ class Kreisselmeier(AbstractObserver):
         return Ac, l_asc
 
     def prepare(self):
-        """Guards that survive ``jit``: G, Q > 0, q > 0, ℓ > 0, Re(poles) < 0, all finite (``eqx.error_if``)."""
+        """Guards that survive ``jit`` (``eqx.error_if``): G, Q > 0, q > 0, ℓ > 0, Re(poles) < 0,
+        all finite."""
         G = traced_finite(traced_positive(self.G, "G"), "G")
         Q = traced_finite(traced_positive(self.Q, "Q"), "Q")
         new = eqx.tree_at(lambda o: (o.G, o.Q), self, (G, Q))

@@ -91,12 +91,13 @@ class KudvaNarendra(AbstractObserver):
         self.Gamma1 = gain_array(Gamma1, "Gamma1", n)
         self.Gamma2 = gain_array(Gamma2, "Gamma2", n)
         self.Q = _spd(Q, "Q", n)
-        self.A0 = jnp.zeros((n, n)) if A0 is None else require_finite(matrix(A0, "A0", (n, n)), "A0")
-        self.B0 = jnp.zeros((n, m)) if B0 is None else require_finite(matrix(B0, "B0", (n, m)), "B0")
+        A0 = jnp.zeros((n, n)) if A0 is None else matrix(A0, "A0", (n, n))
+        B0 = jnp.zeros((n, m)) if B0 is None else matrix(B0, "B0", (n, m))
+        self.A0, self.B0 = require_finite(A0, "A0"), require_finite(B0, "B0")
 
     def prepare(self):
-        """Guards that survive ``jit`` (``eqx.error_if``): Γ₁, Γ₂, Q positive (definite), K Hurwitz, all
-        finite."""
+        """Guards that survive ``jit`` (``eqx.error_if``): Γ₁, Γ₂, Q positive (definite), K
+        Hurwitz, all finite."""
         # K is Hurwitz iff the solution P of KᵀP + PK = −Q (Q > 0) is positive definite (GPU-friendly test).
         K = traced_finite(self.K, "K")
         P = lyapunov(K, self.Q)

@@ -202,8 +202,9 @@ class TrajectoryLinearization(AbstractObserver):
 
     # ------------------------------------------------------------------ validation
     def check(self) -> TrajectoryLinearization:
-        """Eager checks (``ValueError``): ε finite > 0, ρ̄ finite < 0 (distinct per block), a constant ω
-        finite > 0.  :meth:`prepare` repeats the value checks with ``eqx.error_if`` under ``jit``."""
+        """Eager checks (``ValueError``): ε finite > 0, ρ̄ finite < 0 (distinct per block), a
+        constant ω finite > 0.  :meth:`prepare` repeats the value checks with ``eqx.error_if``
+        under ``jit``."""
         if self.eps.ndim != 0:
             raise ValueError(f"`eps` must be a scalar, got shape {tuple(self.eps.shape)}.")
         positive_scalar(self.eps, "eps", _EPS_WHAT)
@@ -219,8 +220,8 @@ class TrajectoryLinearization(AbstractObserver):
         return self
 
     def prepare(self) -> TrajectoryLinearization:
-        """Value checks that survive ``jit`` (``eqx.error_if``): ε finite > 0, ρ̄ finite < 0, a constant ω
-        finite > 0; concrete values were checked eagerly by :meth:`check`."""
+        """Value checks that survive ``jit`` (``eqx.error_if``): ε finite > 0, ρ̄ finite < 0, a
+        constant ω finite > 0; concrete values were checked eagerly by :meth:`check`."""
         eps = positive_scalar(self.eps, "eps", _EPS_WHAT)
         rho = self.rho_bar
         if concrete_value(rho) is None:
@@ -231,7 +232,8 @@ class TrajectoryLinearization(AbstractObserver):
             )
         new = eqx.tree_at(lambda o: (o.eps, o.rho_bar), self, (eps, rho))
         if not callable(self.omega):
-            new = eqx.tree_at(lambda o: o.omega, new, positive_scalar(self.omega, "omega", " (the bandwidth)"))
+            omega = positive_scalar(self.omega, "omega", " (the bandwidth)")
+            new = eqx.tree_at(lambda o: o.omega, new, omega)
         return new
 
     # ------------------------------------------------------------------ linearisation (7)

@@ -1,10 +1,11 @@
 """Value checks of observer gains, eager and under ``jit``.
 
-Each check comes in two tiers: a concrete value fails at once with a ``ValueError`` that names the gain,
-what was expected and what was found; a traced value (inside ``jit``, ``grad``, ``vmap``) is guarded by
-``eqx.error_if``, whose message names the gain and what was expected (the value itself is not known when
-the message is written).  ``check()`` and ``prepare()`` of the observers call these, so leaves updated by
-``eqx.tree_at`` (which skips ``__check_init__``), e.g. in :func:`obsjax.tune`, are re-validated.
+Each check comes in two tiers: a concrete value fails at once with a ``ValueError`` that names the
+gain, what was expected and what was found; a traced value (inside ``jit``, ``grad``, ``vmap``) is
+guarded by ``eqx.error_if``, whose message names the gain and what was expected (the value itself is
+not known when the message is written).  ``check()`` and ``prepare()`` of the observers call these,
+so leaves updated by ``eqx.tree_at`` (which skips ``__check_init__``), e.g. in :func:`obsjax.tune`,
+are re-validated.
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ from .._checks import concrete_value
 
 
 def require_finite(x, name: str):
-    """``ValueError`` when the concrete value of `x` holds NaN or inf; traced values pass (see `traced`)."""
+    """``ValueError`` when the concrete value of `x` holds NaN or inf; traced values pass (see
+    :func:`traced_finite`)."""
     v = concrete_value(x)
     if v is not None and not np.all(np.isfinite(v)):
         raise ValueError(f"`{name}` must be finite (no NaN or inf), got {np.asarray(v).tolist()}.")
@@ -25,17 +27,21 @@ def require_finite(x, name: str):
 
 
 def positive_scalar(x, name: str, what: str = ""):
-    """A finite x > 0: ``ValueError`` when concrete, ``eqx.error_if`` when traced.  `what` describes the
-    gain, e.g. ``" (the reset period)"``."""
+    """A finite x > 0: ``ValueError`` when concrete, ``eqx.error_if`` when traced.  `what`
+    describes the gain, e.g. ``" (the reset period)"``."""
     v = concrete_value(x)
     if v is not None:
         if not np.all(np.isfinite(v)):
-            raise ValueError(f"`{name}` must be > 0 and finite{what}, got {np.asarray(v).tolist()}.")
+            raise ValueError(
+                f"`{name}` must be > 0 and finite{what}, got {np.asarray(v).tolist()}."
+            )
         if not np.all(v > 0):
             raise ValueError(f"`{name}` must be > 0{what}, got {np.asarray(v).tolist()}.")
         return x
     x = jnp.asarray(x)
-    return eqx.error_if(x, jnp.any(~(x > 0) | ~jnp.isfinite(x)), f"`{name}` must be > 0 and finite{what}.")
+    return eqx.error_if(
+        x, jnp.any(~(x > 0) | ~jnp.isfinite(x)), f"`{name}` must be > 0 and finite{what}."
+    )
 
 
 def _scale(M):
@@ -66,8 +72,8 @@ def is_concrete(*xs) -> bool:
 
 
 def traced_finite(x, name: str):
-    """``eqx.error_if`` guard (survives jit) that every entry of `x` is finite; concrete values raise
-    ``ValueError`` at once."""
+    """``eqx.error_if`` guard (survives jit) that every entry of `x` is finite; concrete values
+    raise ``ValueError`` at once."""
     if concrete_value(x) is not None:
         return require_finite(x, name)
     x = jnp.asarray(x)

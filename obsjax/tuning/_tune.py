@@ -1,4 +1,4 @@
-"""Gradient tuning of observer gains with optax: validated arguments, backtracking, a stopping rule."""
+"""Gradient tuning of observer gains with optax: checked arguments, backtracking, a stop rule."""
 
 from __future__ import annotations
 
@@ -20,12 +20,13 @@ from ..observers._base import AbstractObserver
 from ..systems._noise import AbstractNoise
 from ..systems._plants import AbstractSystem
 
-#: Factor applied to the step after a rejected step (and its inverse, up to 1, after an accepted one).
+#: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
 BACKTRACK = 0.5
 
 
 class TuneWarning(UserWarning):
-    """:func:`obsjax.tune` rejected a step, stopped early, or met a kink of the loss (message says which)."""
+    """:func:`obsjax.tune` rejected a step, stopped early, or met a kink of the loss (the message
+    says which)."""
 
 
 class TuneResult(eqx.Module):
@@ -55,8 +56,8 @@ class TuneResult(eqx.Module):
 
 
 def risk_measure(losses, risk):
-    """Aggregate per-scenario losses: ``"mean"``, ``"worst"`` (max) or ``("cvar", α)`` — the mean of the
-    worst ⌈(1 − α)·N⌉ losses (conditional value at risk at level α)."""
+    """Aggregate per-scenario losses: ``"mean"``, ``"worst"`` (max) or ``("cvar", α)`` — the mean of
+    the worst ⌈(1 − α)·N⌉ losses (conditional value at risk at level α)."""
     if risk == "mean":
         return jnp.mean(losses)
     if risk in ("worst", "max"):
@@ -71,11 +72,13 @@ def risk_measure(losses, risk):
 
 
 def risk_weights(risk, batch: int) -> np.ndarray:
-    """Weights w (batch,) on the ascending-sorted losses, so that ``risk_measure(l, risk) = Σ_i w_i l_(i)``.
+    """Weights w (batch,) on the ascending-sorted losses, so that
+    ``risk_measure(l, risk) = Σ_i w_i l_(i)``.
 
     The risk measure then enters :func:`tune` as data rather than as traced code, so one compilation
-    serves ``"mean"``, ``"worst"`` and every ``("cvar", α)``.  A non-finite loss sorts last and makes the
-    weighted sum non-finite whatever its weight (a failed scenario is never averaged away).
+    serves ``"mean"``, ``"worst"`` and every ``("cvar", α)``.  A non-finite loss sorts last and
+    makes the weighted sum non-finite whatever its weight (a failed scenario is never averaged
+    away).
     """
     batch = int(batch)
     w = np.zeros(batch)
@@ -102,8 +105,8 @@ def _sorted_weighted(losses, weights):
 
 @eqx.filter_jit
 def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec):
-    """J(θ) and ∇J for :func:`tune`.  Module-level, with every array an argument: calls that differ only
-    in array values (initial gains, scenarios, risk weights, keys) reuse one compilation.
+    """J(θ) and ∇J for :func:`tune`.  Module-level, with every array an argument: calls that differ
+    only in array values (initial gains, scenarios, risk weights, keys) reuse one compilation.
     ``spec`` holds the static rest (where, loss, single, plant_batched, noise, u, max_segments,
     simulate_kwargs, and ts as a tuple of floats: simulate needs concrete save times)."""
     where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts = spec
@@ -116,14 +119,24 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
 
         def one(pl, x0, xh0, k):
             traj = simulate(
-                pl, obs, x0, xh0, ts, u=u, noise=noise, key=k, throw=False,
-                max_segments=max_segments, **dict(simulate_kwargs),
+                pl,
+                obs,
+                x0,
+                xh0,
+                ts,
+                u=u,
+                noise=noise,
+                key=k,
+                throw=False,
+                max_segments=max_segments,
+                **dict(simulate_kwargs),
             )
             val = jnp.asarray(loss(traj))
             if val.shape != () or not jnp.issubdtype(val.dtype, jnp.floating):
                 raise ValueError(
-                    "`loss` must map a trajectory to a real scalar (e.g. obsjax.losses.ise), got an array "
-                    f"of shape {val.shape} and dtype {val.dtype}: reduce it (sum, mean) to one number."
+                    "`loss` must map a trajectory to a real scalar (e.g. obsjax.losses.ise), "
+                    f"got an array of shape {val.shape} and dtype {val.dtype}: reduce it (sum, "
+                    "mean) to one number."
                 )
             return jnp.where(traj.status == 0, val, jnp.nan)
 
@@ -133,9 +146,9 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
     return jax.value_and_grad(J)(theta)
 
 
-# ----------------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Validation of tune's arguments (in the order a reader meets them in the signature)
-# ----------------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def _as_tuple(x):
@@ -146,7 +159,9 @@ def _is_int(x) -> bool:
     return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 
 
-def _check_types(observer, plant, where, loss, optimizer, steps, positive, rtol, patience, max_rejections):
+def _check_types(
+    observer, plant, where, loss, optimizer, steps, positive, rtol, patience, max_rejections
+):
     if not isinstance(observer, AbstractObserver):
         raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
     if not isinstance(plant, AbstractSystem):
@@ -160,13 +175,15 @@ def _check_types(observer, plant, where, loss, optimizer, steps, positive, rtol,
         )
     if not callable(loss):
         raise ValueError(
-            f"`loss` must be a callable trajectory -> scalar (e.g. obsjax.losses.ise), got {type(loss).__name__}."
+            "`loss` must be a callable trajectory -> scalar (e.g. obsjax.losses.ise), got "
+            f"{type(loss).__name__}."
         )
     if optimizer is not None and not (
         callable(getattr(optimizer, "init", None)) and callable(getattr(optimizer, "update", None))
     ):
         raise ValueError(
-            "`optimizer` must be an optax.GradientTransformation (e.g. optax.adam(1e-2)) or None, got "
+            "`optimizer` must be an optax.GradientTransformation (e.g. optax.adam(1e-2)) or None, "
+            "got "
             f"{type(optimizer).__name__} {optimizer!r}."
         )
     if not _is_int(steps) or steps < 1:
@@ -176,8 +193,12 @@ def _check_types(observer, plant, where, loss, optimizer, steps, positive, rtol,
         )
     if not isinstance(positive, (bool, np.bool_)):
         raise ValueError(f"`positive` must be True or False, got {positive!r}.")
-    if rtol is not None and not (isinstance(rtol, (int, float, np.floating)) and 0 <= rtol < math.inf):
-        raise ValueError(f"`rtol` (the stopping rule's relative improvement) must be >= 0 or None, got {rtol!r}.")
+    if rtol is not None and not (
+        isinstance(rtol, (int, float, np.floating)) and 0 <= rtol < math.inf
+    ):
+        raise ValueError(
+            f"`rtol` (the stopping rule's relative improvement) must be >= 0 or None, got {rtol!r}."
+        )
     if not _is_int(patience) or patience < 1:
         raise ValueError(f"`patience` must be an integer >= 1, got {patience!r}.")
     if not _is_int(max_rejections) or max_rejections < 1:
@@ -189,11 +210,15 @@ def _check_data(plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_k
     xhat0s = as_float_array(xhat0s, "xhat0s")
     if x0s.ndim != 2 or xhat0s.ndim != 2 or x0s.shape[0] != xhat0s.shape[0]:
         raise ValueError(
-            f"`x0s` and `xhat0s` must be (batch, n) with the same batch, got {tuple(x0s.shape)} and "
+            "`x0s` and `xhat0s` must be (batch, n) with the same batch, got "
+            f"{tuple(x0s.shape)} and "
             f"{tuple(xhat0s.shape)}."
         )
     if not plant_batched and x0s.shape[1] != plant.n:
-        raise ValueError(f"`x0s` must be (batch, {plant.n}) for a plant with n = {plant.n}, got {tuple(x0s.shape)}.")
+        raise ValueError(
+            f"`x0s` must be (batch, {plant.n}) for a plant with n = {plant.n}, got "
+            f"{tuple(x0s.shape)}."
+        )
     for name, arr in (("x0s", x0s), ("xhat0s", xhat0s)):
         if not bool(jnp.all(jnp.isfinite(arr))):
             raise ValueError(f"`{name}` must be finite, got NaN or inf entries.")
@@ -202,20 +227,28 @@ def _check_data(plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_k
     if not np.all(np.isfinite(ts_np)):
         raise ValueError("`ts` must be finite.")
     if noise is not None and not isinstance(noise, AbstractNoise):
-        raise ValueError(f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}.")
+        raise ValueError(
+            f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}."
+        )
     if noise is not None and key is None:
         raise ValueError("`key` is required when `noise` is given.")
     if u is not None and not callable(u):
         raise ValueError(f"`u` must be a callable t -> (p,) or None, got {type(u).__name__}.")
     if plant_batched:
-        sizes = {int(jnp.shape(leaf)[0]) if jnp.ndim(leaf) else -1 for leaf in jax.tree_util.tree_leaves(eqx.filter(plant, eqx.is_array))}
+        sizes = {
+            int(jnp.shape(leaf)[0]) if jnp.ndim(leaf) else -1
+            for leaf in jax.tree_util.tree_leaves(eqx.filter(plant, eqx.is_array))
+        }
         if sizes and sizes != {x0s.shape[0]}:
             raise ValueError(
-                f"`plant_batched=True` needs a leading axis of length batch = {x0s.shape[0]} on every array "
+                "`plant_batched=True` needs a leading axis of length batch = "
+                f"{x0s.shape[0]} on every array "
                 f"leaf of `plant`, found leading sizes {sorted(sizes)}."
             )
     if not isinstance(simulate_kwargs, dict):
-        raise ValueError(f"`simulate_kwargs` must be a dict or None, got {type(simulate_kwargs).__name__}.")
+        raise ValueError(
+            f"`simulate_kwargs` must be a dict or None, got {type(simulate_kwargs).__name__}."
+        )
     for bad in ("throw", "noise", "key", "max_segments", "u"):
         if bad in simulate_kwargs:
             raise ValueError(f"`simulate_kwargs` must not contain {bad!r}: tune sets it.")
@@ -239,12 +272,16 @@ def _selected_leaves(observer, where):
         if not isinstance(sel, (jax.Array, np.ndarray)) or id(sel) not in leaves:
             kind = "a method" if callable(sel) else f"a {type(sel).__name__}"
             raise ValueError(
-                f"{what} selects {kind} that is not an array leaf stored in the observer (a derived "
-                "property such as `gain` or `observer_matrix` is recomputed from the stored gains and "
-                "cannot be set): select the stored gains, e.g. lambda o: o.poles or lambda o: (o.gamma, o.T)."
+                f"{what} selects {kind} that is not an array leaf stored in the observer (a "
+                "derived property such as `gain` or `observer_matrix` is recomputed from the "
+                "stored gains and cannot be set): select the stored gains, e.g. "
+                "lambda o: o.poles or lambda o: (o.gamma, o.T)."
             )
-    # strongly typed copies: a weakly typed leaf (jnp.asarray(1.0)) would retrace after the first update
-    leaves0 = tuple(jnp.asarray(leaf, dtype=jnp.asarray(leaf).dtype) for leaf in _as_tuple(selection))
+    # strongly typed copies: a weakly typed leaf (jnp.asarray(1.0)) would retrace after the first
+    # update
+    leaves0 = tuple(
+        jnp.asarray(leaf, dtype=jnp.asarray(leaf).dtype) for leaf in _as_tuple(selection)
+    )
     return leaves0, not isinstance(selection, (tuple, list))
 
 
@@ -254,7 +291,9 @@ def _log_parametrisation(leaves0):
     for i, leaf in enumerate(leaves0):
         v = np.asarray(leaf)
         if np.iscomplexobj(v):
-            raise ValueError(f"tuned leaf {i} is complex: use positive=False for complex parameters.")
+            raise ValueError(
+                f"tuned leaf {i} is complex: use positive=False for complex parameters."
+            )
         if np.any(v == 0):
             raise ValueError(
                 f"tuned leaf {i} has zero entries {v.tolist()}: positive=True keeps signs through "
@@ -267,16 +306,18 @@ def _log_parametrisation(leaves0):
     return tuple(signs), tuple(thetas)
 
 
-# ----------------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Kinks: save times at reset instants
-# ----------------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def reset_coincidences(T, ts, rtol: float = 1e-8) -> list[float]:
-    """Save times t_i (i ≥ 1) that coincide with a reset instant t0 + kT (k ≥ 1) to `rtol` of the period.
+    """Save times t_i (i ≥ 1) that coincide with a reset instant t0 + kT (k ≥ 1), to `rtol` of the
+    period.
 
-    At such a time the trajectory, hence the loss, has a kink (or a jump) in T: an infinitesimal change of T
-    moves the reset to the other side of t_i, and autodiff returns the derivative from one side only."""
+    At such a time the trajectory, hence the loss, has a kink (or a jump) in T: an infinitesimal
+    change of T moves the reset to the other side of t_i, and autodiff returns the derivative from
+    one side only."""
     ts = np.asarray(ts, dtype=float)
     T = float(np.asarray(T))
     if not (T > 0 and math.isfinite(T)):
@@ -307,17 +348,18 @@ def _warn_kinks(obs, ts, step, warned) -> None:
         warned.add(key)
         shown = ", ".join(f"{t:g}" for t in hits[:5]) + (", ..." if len(hits) > 5 else "")
         warnings.warn(
-            f"tune: at evaluation {step} the save times {shown} coincide with reset instants t0 + kT of the "
-            f"observer (T = {key:.12g}); the loss has a kink in T there and autodiff returns a one-sided "
-            "derivative. Choose T off the save grid (or save times off the multiples of T).",
+            f"tune: at evaluation {step} the save times {shown} coincide with reset instants "
+            f"t0 + kT of the observer (T = {key:.12g}); the loss has a kink in T there and "
+            "autodiff returns a one-sided derivative. Choose T off the save grid (or save times "
+            "off the multiples of T).",
             TuneWarning,
             stacklevel=3,
         )
 
 
-# ----------------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # tune
-# ----------------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def tune(
@@ -345,69 +387,76 @@ def tune(
 ) -> TuneResult:
     """Tune observer gains by gradient descent through simulated error trajectories.
 
-    Minimises  J(θ) = risk_i [ loss(simulate(plant_i, observer(θ), x0_i, x̂0_i, ts, noise_i)) ]  over the
-    leaves selected by ``where``, with an optax optimizer, differentiating through the diffrax solves.
+    Minimises  J(θ) = risk_i [ loss(simulate(plant_i, observer(θ), x0_i, x̂0_i, ts, noise_i)) ]
+    over the leaves selected by ``where``, with an optax optimizer, differentiating through the
+    diffrax solves.
 
-    **Arguments** (validated by tune itself, each bad one a ``ValueError`` naming it, so they carry no type
-    annotations that a run-time type checker would enforce first):
+    **Arguments** (validated by tune itself, each bad one a ``ValueError`` naming it, so they carry
+    no type annotations that a run-time type checker would enforce first):
 
     - `observer`: the observer to tune (its other leaves stay fixed).
     - `plant`: the true plant; with ``plant_batched=True`` every array leaf has a leading batch axis
       (sampled plants, model uncertainty) matching ``x0s``.
-    - `where`: ``lambda obs: obs.poles`` or ``lambda obs: (obs.gamma, obs.T)``: the tuned leaves, which must
-      be array leaves stored in the observer (not ``None``, not a derived property such as ``gain``).
+    - `where`: ``lambda obs: obs.poles`` or ``lambda obs: (obs.gamma, obs.T)``: the tuned leaves,
+      which must be array leaves stored in the observer (not ``None``, not a derived property such
+      as ``gain``).
     - `loss`: trajectory -> real scalar, e.g. :func:`obsjax.losses.ise`.
     - `x0s`, `xhat0s`: (batch, n) initial states and estimates.
-    - `ts`: save times (concrete, strictly increasing): the points where the loss sees the trajectory.
+    - `ts`: save times (concrete, strictly increasing): the points where the loss sees the
+      trajectory.
     - `optimizer`: optax transformation (default ``optax.adam(1e-2)``).
     - `steps`: the budget of evaluations of J and ∇J, the initial point and rejected points included
       (at most ``steps − 1`` updates).
     - `positive`: keep each tuned leaf's sign: leaf = sign(leaf₀)·exp(θ) (a reparametrisation, never
-      clipping); gains, rates, periods stay positive and real poles stay in the left half-plane.  Every
-      tuned entry must then be nonzero.
-    - `key`: PRNG key for the noise (fixed across steps: common random numbers give a smooth objective).
+      clipping); gains, rates, periods stay positive and real poles stay in the left half-plane.
+      Every tuned entry must then be nonzero.
+    - `key`: PRNG key for the noise (fixed across steps: common random numbers give a smooth
+      objective).
     - `noise`, `u`: passed to :func:`obsjax.simulate`.
     - `risk`: ``"mean"``, ``"worst"`` or ``("cvar", α)`` across the batch.
     - `simulate_kwargs`: extra keyword arguments of :func:`obsjax.simulate` (solver, rtol, dt0, …).
-    - `rtol`, `patience`: the stopping rule.  With ``rtol`` given, tune stops (``converged=True``) once
-      `patience` consecutive accepted points have not lowered the reference loss by more than
-      ``rtol·|reference|``, the reference being the loss at the last such improvement; ``steps`` is then
-      only a bound.  ``rtol=None`` (the default) runs the whole budget.
+    - `rtol`, `patience`: the stopping rule.  With ``rtol`` given, tune stops (``converged=True``)
+      once `patience` consecutive accepted points have not lowered the reference loss by more than
+      ``rtol·|reference|``, the reference being the loss at the last such improvement; ``steps`` is
+      then only a bound.  ``rtol=None`` (the default) runs the whole budget.
     - `max_rejections`: stop after this many consecutive rejected points (see below).
 
-    **Guarantees.**  The arguments are checked before anything is traced (the objects and numbers first,
-    then the data, then what ``where`` selects); each bad one raises ``ValueError`` naming it (a ``where``
-    that selects None or a derived property, an optimizer that is not an optax transformation, a float
-    ``steps``, …).  A loss that does not return a real scalar is refused when the first evaluation is
-    traced, before any step.
-    The initial observer must be valid and give a finite loss.  Every later point is *accepted* only when
-    the updated observer passes its ``check()`` (``eqx.tree_at`` skips ``__check_init__``, so e.g. a pole
-    stepped into the right half-plane with ``positive=False`` or a negative reset period is caught there)
-    and J and ∇J are finite (every trajectory has status 0).  A rejected point is recorded in the history,
-    announced by a :class:`obsjax.TuneWarning`, and the step is retried from the last accepted point with
-    the optimizer's update scaled by ``BACKTRACK`` = 1/2 (the optimizer's state is not advanced, and no
+    **Guarantees.**  The arguments are checked before anything is traced (the objects and numbers
+    first, then the data, then what ``where`` selects); each bad one raises ``ValueError`` naming it
+    (a ``where`` that selects None or a derived property, an optimizer that is not an optax
+    transformation, a float ``steps``, …).  A loss that does not return a real scalar is refused
+    when the first evaluation is traced, before any step. The initial observer must be valid and
+    give a finite loss.  Every later point is *accepted* only when the updated observer passes its
+    ``check()`` (``eqx.tree_at`` skips ``__check_init__``, so e.g. a pole stepped into the right
+    half-plane with ``positive=False`` or a negative reset period is caught there) and J and ∇J are
+    finite (every trajectory has status 0).  A rejected point is recorded in the history, announced
+    by a :class:`obsjax.TuneWarning`, and the step is retried from the last accepted point with the
+    optimizer's update scaled by ``BACKTRACK`` = 1/2 (the optimizer's state is not advanced, and no
     point is evaluated twice); after an accepted point the scale grows back by 2, up to 1.  After
     ``max_rejections`` consecutive rejections (a scale of 2⁻⁸ with the default) tune stops with
-    ``stop_reason="rejections"``.  Whatever the stop, the best accepted observer and the full history are
-    returned.
+    ``stop_reason="rejections"``.  Whatever the stop, the best accepted observer and the full
+    history are returned.
 
-    **Kinks.**  For an observer with a reset period T that is tuned (directly or through a leaf it depends
-    on), a save time that coincides with a reset instant t0 + kT puts a kink (or, where the estimate jumps
-    at resets, a jump) into J as a function of T, and autodiff returns a one-sided derivative there
-    (Chen & Yen's example, γ = 20, p0 = 0.1, x̂(0) = (5, −5), the ISE on a 0.1 s grid over [0, 10] at
-    T = 2.3: autodiff −11.84, the left derivative, against −13.97 from the right).  tune detects such
-    coincidences at every accepted point and warns (:class:`obsjax.TuneWarning`); move T or the save times
-    off each other's grid.  See :func:`reset_coincidences`.
+    **Kinks.**  For an observer with a reset period T that is tuned (directly or through a leaf it
+    depends on), a save time that coincides with a reset instant t0 + kT puts a kink (or, where the
+    estimate jumps at resets, a jump) into J as a function of T, and autodiff returns a one-sided
+    derivative there (Chen & Yen's example, γ = 20, p0 = 0.1, x̂(0) = (5, −5), the ISE on a 0.1 s
+    grid over [0, 10] at T = 2.3: autodiff −11.84, the left derivative, against −13.97 from the
+    right).  tune detects such coincidences at every accepted point and warns
+    (:class:`obsjax.TuneWarning`); move T or the save times off each other's grid.  See
+    :func:`reset_coincidences`.
 
-    Observers with a reset period T are simulated with a number of segments recomputed from the current T
-    (a retrace happens only when it grows past a power-of-two bucket).
+    Observers with a reset period T are simulated with a number of segments recomputed from the
+    current T (a retrace happens only when it grows past a power-of-two bucket).
 
-    The gradient is compiled once per problem structure and reused across calls: calls that differ only in
-    array values (initial gains, scenario batches of the same size, the risk measure, which enters as
-    weights on the sorted losses, see :func:`risk_weights`) do not recompile, provided they pass the same
-    ``where`` and ``loss`` objects (a lambda written inside a loop is a new object each time).
+    The gradient is compiled once per problem structure and reused across calls: calls that differ
+    only in array values (initial gains, scenario batches of the same size, the risk measure, which
+    enters as weights on the sorted losses, see :func:`risk_weights`) do not recompile, provided
+    they pass the same ``where`` and ``loss`` objects (a lambda written inside a loop is a new
+    object each time).
 
-    **Returns:** :class:`TuneResult` (`observer`, `history`, `converged`, `stop_reason`, `steps_taken`).
+    **Returns:** :class:`TuneResult` (`observer`, `history`, `converged`, `stop_reason`,
+    `steps_taken`).
 
     **Example:**::
 
@@ -418,7 +467,9 @@ def tune(
         res.observer.poles, res.converged, res.stop_reason
     """
     require_x64("obsjax.tune")
-    _check_types(observer, plant, where, loss, optimizer, steps, positive, rtol, patience, max_rejections)
+    _check_types(
+        observer, plant, where, loss, optimizer, steps, positive, rtol, patience, max_rejections
+    )
     simulate_kwargs = {} if simulate_kwargs is None else simulate_kwargs
     x0s, xhat0s, ts_np = _check_data(
         plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_kwargs
@@ -454,7 +505,10 @@ def tune(
         """(observer, J, ∇J, None) at an acceptable point, or (None, J or NaN, None, reason)."""
         try:
             obs = build(theta).check()
-        except (ValueError, RuntimeError) as e:  # RuntimeError: an eqx.error_if run eagerly by check()
+        except (
+            ValueError,
+            RuntimeError,
+        ) as e:  # RuntimeError: an eqx.error_if run eagerly by check()
             return None, math.nan, None, f"the observer is invalid: {_checked_message(e)}"
         T = obs.reset_period
         if T is not None:
@@ -463,11 +517,14 @@ def tune(
             seg_bucket[0] = need if seg_bucket[0] is None else max(seg_bucket[0], need)
         spec = (where, loss, single, plant_batched, noise, u, seg_bucket[0], spec_kwargs, ts_key)
         try:
-            val, grads = _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec)
+            val, grads = _value_and_grad(
+                theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec
+            )
             val = float(val)
         except (ValueError, RuntimeError) as e:
-            # an eqx.error_if that fired at run time (JAX raises it as a RuntimeError, or as a ValueError
-            # from a cached kernel), or a retrace refused for this point; at the initial point: re-raised
+            # an eqx.error_if that fired at run time (JAX raises it as a RuntimeError, or as a
+            # ValueError from a cached kernel), or a retrace refused for this point; at the initial
+            # point: re-raised
             if first_call[0]:
                 raise
             return None, math.nan, None, f"a check failed while simulating: {_checked_message(e)}"
@@ -486,29 +543,53 @@ def tune(
 
 
 def _checked_message(e: Exception) -> str:
-    """The message of a check that fired inside a compiled kernel, without JAX's callback traceback."""
+    """The message of a check that fired inside a compiled kernel, without JAX's traceback."""
     text = str(e)
     for line in text.splitlines():
         line = line.strip()
-        if line.startswith(("equinox._errors._EquinoxRuntimeError:", "_EquinoxRuntimeError:", "EquinoxRuntimeError:")):
+        if line.startswith(
+            (
+                "equinox._errors._EquinoxRuntimeError:",
+                "_EquinoxRuntimeError:",
+                "EquinoxRuntimeError:",
+            )
+        ):
             return line.split(":", 1)[1].strip()
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     return lines[0] if lines else type(e).__name__
 
 
-def _descend(evaluate, build, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts, progress):
-    """The optimisation loop of :func:`tune`: optax updates with backtracking and a stopping rule."""
+def _descend(
+    evaluate,
+    build,
+    to_leaves,
+    theta0,
+    optimizer,
+    steps,
+    rtol,
+    patience,
+    max_rejections,
+    ts,
+    progress,
+):
+    """The optimisation loop of :func:`tune`: optax updates, backtracking, a stopping rule."""
     obs, val, grads, why = evaluate(theta0)
     if why is not None:
         raise ValueError(
-            f"tune: the initial observer cannot be tuned from: {why}. Check the initial gains, x0s, "
-            "xhat0s and the loss."
+            f"tune: the initial observer cannot be tuned from: {why}. Check the initial gains, "
+            "x0s, xhat0s and the loss."
         )
     depends = _period_depends_on(build, theta0, obs.reset_period)
     warned: set = set()
     if depends:
         _warn_kinks(obs, ts, 0, warned)
-    hist_loss, hist_params, accepted, scales, rejections = [val], [to_leaves(theta0)], [True], [1.0], []
+    hist_loss, hist_params, accepted, scales, rejections = (
+        [val],
+        [to_leaves(theta0)],
+        [True],
+        [1.0],
+        [],
+    )
     best = (val, obs, 0)
     reference, since = val, 0
     theta, opt_state = theta0, optimizer.init(theta0)
@@ -553,11 +634,16 @@ def _descend(evaluate, build, to_leaves, theta0, optimizer, steps, rtol, patienc
             scale *= BACKTRACK
             if in_row >= max_rejections:
                 stop_reason = "rejections"
-                then = f"{in_row} consecutive rejections: stopping with the best observer (evaluation {best[2]})"
+                then = (
+                    f"{in_row} consecutive rejections: stopping with the best observer "
+                    f"(evaluation {best[2]})"
+                )
             else:
                 then = f"retrying from the last accepted point with the step scaled by {scale:g}"
             warnings.warn(
-                f"tune: evaluation {len(hist_loss) - 1} rejected ({why}); {then}.", TuneWarning, stacklevel=3
+                f"tune: evaluation {len(hist_loss) - 1} rejected ({why}); {then}.",
+                TuneWarning,
+                stacklevel=3,
             )
             if stop_reason != "steps":
                 break
