@@ -96,11 +96,16 @@ def test_tune_skips_nonfinite_steps_and_returns_best():
         v = obsjax.losses.ise(traj)
         return jnp.where(v < 0.8 * 1.1, jnp.nan, v)
 
-    r = obsjax.tune(obs, PLANT, where=lambda o: o.poles, loss=loss, x0s=X0S[:2], xhat0s=XH0S[:2],
-                    ts=TS, steps=12, optimizer=optax.sgd(0.5), progress=False)
-    assert r.history["skipped"] > 0
-    assert np.isfinite(r.history["loss"][r.history["best_step"]])
+    with pytest.warns(obsjax.TuneWarning, match="rejected .the loss is not finite"):
+        r = obsjax.tune(obs, PLANT, where=lambda o: o.poles, loss=loss, x0s=X0S[:2],
+                        xhat0s=XH0S[:2], ts=TS, steps=12, optimizer=optax.sgd(0.5), progress=False)
+    h = r.history
+    assert h["skipped"] > 0 and h["skipped"] == int(np.sum(~h["accepted"]))
+    assert np.isfinite(h["loss"][h["best_step"]])
+    assert h["loss"][h["best_step"]] == np.nanmin(h["loss"])
     assert np.all(np.isfinite(np.asarray(r.observer.poles)))
+    # a rejected point is never evaluated again: every evaluated point is new
+    assert len({tuple(p) for p in h["params"][0]}) == len(h["params"][0])
 
 
 def test_tune_over_sampled_plants_with_risk_measures():
