@@ -28,6 +28,7 @@ from .systems._plants import LTV as LTV
 from .systems._plants import AbstractSystem as AbstractSystem
 from .systems._plants import Nonlinear as Nonlinear
 from .tuning._tune import TuneResult as TuneResult
+from .tuning._tune import TuneWarning as TuneWarning
 from .tuning._tune import risk_measure as risk_measure
 from .tuning._tune import risk_weights as risk_weights
 from .tuning._tune import tune as tune

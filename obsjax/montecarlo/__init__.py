@@ -27,6 +27,7 @@ print(mc.summary())
 
 from types import ModuleType as _ModuleType
 
+from ._checkpoint import CheckpointWarning as CheckpointWarning
 from ._montecarlo import MonteCarloResult as MonteCarloResult
 from ._montecarlo import comparison_table as comparison_table
 from ._montecarlo import monte_carlo as monte_carlo

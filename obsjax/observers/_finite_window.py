@@ -29,6 +29,7 @@ from .._checks import as_float_array, concrete_value, vector
 from .._config import require_x64
 from ..systems._plants import LTI
 from ._base import AbstractObserver
+from ._validation import require_finite
 
 _FORMULAS = ("auto", "(25)", "(28)")
 
@@ -215,6 +216,8 @@ class FiniteWindow(AbstractObserver):
 
     # ---- validation ---------------------------------------------------------------------------------
     def _check_values(self):
+        for name, leaf in (("T", self.T), ("alpha", self.alpha), ("beta", self.beta)):
+            require_finite(leaf, name)
         T, a, b = (concrete_value(v) for v in (self.T, self.alpha, self.beta))
         if T is not None and not T > 0:
             raise ValueError(f"`T` (the window length) must be > 0, got {float(T)}.")
@@ -399,11 +402,21 @@ class FiniteWindow(AbstractObserver):
 
 
 def _checked(T, alpha, beta, formula):
-    T = eqx.error_if(T, T <= 0, "FiniteWindow: `T` (the window length) must be > 0.")
-    alpha = eqx.error_if(
-        alpha, jnp.any(alpha <= 0), "FiniteWindow: `alpha` must be > 0 elementwise."
+    T = eqx.error_if(
+        T,
+        ~(T > 0) | ~jnp.isfinite(T),
+        "FiniteWindow: `T` (the window length) must be > 0 and finite.",
     )
-    beta = eqx.error_if(beta, jnp.any(beta < 0), "FiniteWindow: `beta` must be >= 0 elementwise.")
+    alpha = eqx.error_if(
+        alpha,
+        jnp.any(~(alpha > 0) | ~jnp.isfinite(alpha)),
+        "FiniteWindow: `alpha` must be > 0 and finite elementwise.",
+    )
+    beta = eqx.error_if(
+        beta,
+        jnp.any(~(beta >= 0) | ~jnp.isfinite(beta)),
+        "FiniteWindow: `beta` must be >= 0 and finite elementwise.",
+    )
     if formula == "(28)":
         alpha = eqx.error_if(
             alpha,

@@ -21,6 +21,7 @@ import numpy as np
 
 from .._checks import concrete_value, matrix
 from ._base import AbstractObserver
+from ._validation import require_finite
 
 
 def _time_grid(horizon, num):
@@ -46,12 +47,14 @@ def _solvability(T, Td, F, A, C, C1):
 
 
 def _check_over(obs, ts, what):
-    """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time."""
+    """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time.
+    Returns False when the values are traced (nothing could be checked here: see
+    :func:`_guard_traced`)."""
     ts = jnp.asarray(ts, dtype=float)
     res, scale, det = _solvability_on_grid(obs, ts)
     res, scale, det = (concrete_value(v) for v in (res, scale, det))
     if res is None or scale is None or det is None:
-        return  # traced (inside jit/grad): the caller checks with concrete values
+        return False  # traced (inside jit/grad)
     ts = np.asarray(ts)
     rel = res / np.maximum(scale, 1.0)
     i = int(np.argmax(rel))
@@ -76,6 +79,31 @@ def _check_over(obs, ts, what):
         raise ValueError(
             f"{what}: `T` must be invertible over the horizon (det T ≠ 0), found det T {where}."
         )
+    return True
+
+
+def _guard_traced(obs, what):
+    """`obs.F` guarded by ``eqx.error_if`` (survives jit): the solvability condition and det T ≠ 0
+    on the check grid (the horizon's, or t = 0), as :func:`_check_over` checks concrete values
+    eagerly."""
+    ts = jnp.asarray([0.0] if obs.horizon is None else _time_grid(obs.horizon, obs.num_checks))
+    res, scale, det = jax.vmap(obs.solvability)(ts)
+    rel = res / jnp.maximum(scale, 1.0)
+    F = eqx.error_if(
+        obs.F,
+        jnp.any(~(rel <= obs.rtol)),
+        f"{what}: the Lovass-Nagy solvability condition "
+        f"‖(Ṫ + T·Ā − F·T)(I − C^{{1}}·C)‖ ≤ rtol·scale (rtol = {obs.rtol:.1e}) fails (or is not "
+        "finite) on the check grid: G·C = Ṫ + T·Ā − F·T has no solution G there.",
+    )
+    tiny = jnp.min(jnp.abs(det)) <= 1e-12 * jnp.maximum(jnp.max(jnp.abs(det)), 1.0)
+    flips = jnp.any(jnp.sign(det[:-1]) * jnp.sign(det[1:]) < 0) if det.shape[0] > 1 else False
+    return eqx.error_if(
+        F,
+        ~jnp.all(jnp.isfinite(det)) | tiny | flips,
+        f"{what}: `T` must be invertible over the check grid (det T ≠ 0), found a vanishing, "
+        "non-finite or sign-changing det T.",
+    )
 
 
 class GeneralizedInverse(AbstractObserver):
@@ -122,11 +150,14 @@ class GeneralizedInverse(AbstractObserver):
         if tuple(T0.shape) != (n, n):
             raise ValueError(f"`T(t)` must return shape ({n}, {n}), got {tuple(T0.shape)}.")
         self.T = T
-        self.C1 = None if C1 is None else matrix(C1, "C1", (n, m))
+        self.C1 = None if C1 is None else require_finite(matrix(C1, "C1", (n, m)), "C1")
+        require_finite(self.F, "F")
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
-        self.check()
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        if not _check_over(self, ts, "GeneralizedInverse"):  # built under jit: eqx.error_if
+            self.F = _guard_traced(self, "GeneralizedInverse")
 
     # --- the design quantities -------------------------------------------------------------------
     def T_of(self, t):
@@ -161,6 +192,15 @@ class GeneralizedInverse(AbstractObserver):
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
         _check_over(self, ts, "GeneralizedInverse")
         return self
+
+    def prepare(self):
+        """The checks of :meth:`check` once per simulation: eagerly when the values are concrete
+        (``ValueError``), by ``eqx.error_if`` when anything they depend on is traced (F, C1, the
+        model's or T's leaves, or values T closes over)."""
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        if _check_over(self, ts, "GeneralizedInverse"):
+            return self
+        return eqx.tree_at(lambda o: o.F, self, _guard_traced(self, "GeneralizedInverse"))
 
     # --- the observer protocol -------------------------------------------------------------------
     def init(self, t0, xhat0, y0):
@@ -261,11 +301,14 @@ class GeneralizedInverseReduced(AbstractObserver):
                 f"`T(t)` must return shape ({q}, {q}) (n − m = {q}), got {tuple(T0.shape)}."
             )
         self.T = T
-        self.C1 = None if C1 is None else matrix(C1, "C1", (q, m))
+        self.C1 = None if C1 is None else require_finite(matrix(C1, "C1", (q, m)), "C1")
+        require_finite(self.F, "F")
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
-        self.check()
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        if not _check_over(self, ts, "GeneralizedInverseReduced"):  # under jit: eqx.error_if
+            self.F = _guard_traced(self, "GeneralizedInverseReduced")
 
     @property
     def m(self) -> int:
@@ -313,6 +356,15 @@ class GeneralizedInverseReduced(AbstractObserver):
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
         _check_over(self, ts, "GeneralizedInverseReduced")
         return self
+
+    def prepare(self):
+        """The checks of :meth:`check` once per simulation: eagerly when the values are concrete
+        (``ValueError``), by ``eqx.error_if`` when anything they depend on is traced (F, C1, the
+        model's or T's leaves, or values T closes over)."""
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        if _check_over(self, ts, "GeneralizedInverseReduced"):
+            return self
+        return eqx.tree_at(lambda o: o.F, self, _guard_traced(self, "GeneralizedInverseReduced"))
 
     def z_of(self, t, p, y):
         """z = p + G y, the estimate of T w."""

@@ -380,8 +380,8 @@ class MinMaxLuenberger(eqx.Module):
         if int(window) < 1:
             raise ValueError(f"`window` must be >= 1, got {window}.")
         self.window = int(window)
-        if float(eps) < 0:
-            raise ValueError(f"`eps` must be >= 0, got {eps}.")
+        if not (float(eps) >= 0 and np.isfinite(float(eps))):
+            raise ValueError(f"`eps` must be >= 0 and finite (a bound on |δy|), got {eps}.")
         self.eps = float(eps)
         self.rtol = float(rtol)
 
