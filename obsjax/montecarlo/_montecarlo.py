@@ -190,9 +190,12 @@ class MonteCarloResult:
             else float("nan"),
         }
 
-    def plot(self, axes=None, label: str | None = None, color=None):
+    def plot(self, axes=None, label: str | None = None, color=None, time_unit: str = "s"):
         """Quantile bands of ‖x̃(t)‖ (log scale: median, 25–75 % and 5–95 % shaded, or the outermost
-        levels available) and the histogram of convergence times.  Returns the matplotlib figure."""
+        levels available) and the histogram of convergence times.  Returns the matplotlib figure.
+
+        `time_unit` labels the time axes (``"s"`` by default; ``""`` for a dimensionless time); the
+        error norm carries the unit of the state."""
         import matplotlib.pyplot as plt
 
         if axes is None:
@@ -217,8 +220,9 @@ class MonteCarloResult:
         if 0.5 in qs:
             ax0.plot(ts, self.bands[qs.index(0.5)], color=color, lw=1.8, label=label or "median")
         ax0.set_yscale("log")
-        ax0.set_xlabel("t")
-        ax0.set_ylabel("‖x̃(t)‖")
+        unit = f" ({time_unit})" if time_unit else ""
+        ax0.set_xlabel(f"time t{unit}")
+        ax0.set_ylabel(r"estimation error $\|\tilde x(t)\|$")
         ax0.set_title(f"N = {self.n_done}, failed {self.n_failed} ({self.failure_fraction:.2%})")
         ax0.legend(fontsize=8)
         ct = self.convergence_time[self.ok]
@@ -231,9 +235,9 @@ class MonteCarloResult:
                 alpha=0.6,
                 label=label,
             )
-        thr = f"{self.conv_tol:g}·‖x̃(t0)‖" if self.conv_relative else f"{self.conv_tol:g}"
-        ax1.set_xlabel(f"convergence time (‖x̃‖ ≤ {thr} thereafter)")
-        ax1.set_ylabel("count")
+        thr = f"{self.conv_tol:g}·" + r"$\|\tilde x(t_0)\|$" if self.conv_relative else f"{self.conv_tol:g}"
+        ax1.set_xlabel(f"convergence time{unit}: " + r"$\|\tilde x\|$" + f" ≤ {thr} from then on")
+        ax1.set_ylabel("trajectories per bin")
         ax1.set_title(f"not converged within horizon: {1 - self.converged_fraction:.2%}")
         fig.tight_layout()
         return fig
