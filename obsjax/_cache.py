@@ -6,7 +6,8 @@ directory and read back by later processes that compile the same program (same j
 backend, flags and HLO).
 
 Importing obsjax does not turn the cache on (no global side effect beyond float64).  The ``obsjax``
-command, the test suite and the notebooks run under it turn it on; a library user calls
+command turns it on (the test suite only with ``OBSJAX_TEST_COMPILATION_CACHE=1``: XLA:CPU once aborted
+a CI run inside ``executable.serialize()`` while writing an entry); a library user calls
 :func:`enable_compilation_cache` once.
 
 What is not cached: JAX writes no entry for a program that carries host callbacks
@@ -70,8 +71,8 @@ def enable_compilation_cache(
     to that directory.
 
     Opt out with the environment variable ``OBSJAX_NO_COMPILATION_CACHE=1``: this function then
-    changes nothing and returns ``None`` (the ``obsjax`` command and the test suite call it, so the
-    variable turns the cache off for them too).  JAX's own ``JAX_ENABLE_COMPILATION_CACHE=false`` is
+    changes nothing and returns ``None`` (the ``obsjax`` command calls it, so the variable turns the
+    cache off for it too).  JAX's own ``JAX_ENABLE_COMPILATION_CACHE=false`` is
     respected the same way.
 
     The cache directory is trusted: an executable read from it runs in this process, so it must not

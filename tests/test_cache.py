@@ -124,8 +124,8 @@ def test_bad_threshold():
 
 
 def test_the_test_run_and_its_kernels_use_it():
-    if _cache._opted_out():
-        pytest.skip("the test run opted out of the compilation cache")
+    if _cache._opted_out() or not os.environ.get("OBSJAX_TEST_COMPILATION_CACHE"):
+        pytest.skip("the test run did not opt in to the compilation cache")
     d = jax.config.jax_compilation_cache_dir
     assert d and os.path.isdir(d) and os.environ["JAX_COMPILATION_CACHE_DIR"] == d
     # a child process (a notebook kernel started by nbmake) inherits the directory
