@@ -10,28 +10,31 @@ solver state, the while loop of ``diffeqsolve``) is several times the cost of th
 small float64 states of an observer; with fixed steps none of it is needed.  Results agree with diffrax's
 ``ConstantStepSize`` solve to rounding when the step grids coincide (tested).
 
-The grid: the breakpoints are the save times, the reset instants t0 + kT of a resetting observer and the
-plant's ``jump_ts``; each interval between consecutive breakpoints is cut into ⌈Δ/dt0⌉ equal steps.  An
-interval that ends at a plant jump ends one float before it, as diffrax's ``ClipStepSizeController`` does, so
-no stage sees the vector field after the jump.  An outer ``lax.scan`` over intervals (with
-``jax.checkpoint``, so reverse mode stores one state per interval) runs an inner ``lax.scan`` of K steps, K
-the largest step count of any interval (shorter intervals mask their extra steps).  A reset at a breakpoint is
-applied before the state there is saved (right-continuous, like the segmented adaptive solve).
+The grid: its nodes are the save times and the breakpoints of the schedule (reset instants, plant jumps,
+event times; a breakpoint within the schedule's tolerance of a save time is moved onto it); each interval
+between consecutive nodes is cut into ⌈Δ/dt0⌉ equal steps.  An interval that ends at a plant jump ends one
+float before it, as the segmented back-end does, so no stage sees the vector field after the jump.  An outer
+``lax.scan`` over intervals (with ``jax.checkpoint``, so reverse mode stores one state per interval) runs an
+inner ``lax.scan`` of K steps, K the largest step count of any interval (shorter intervals mask their extra
+steps).  The jump of a breakpoint (reset, then event update) is applied at the start of the interval it
+opens, before the state there is saved (right-continuous, like the segmented back-end).
 
-The path needs concrete save times, reset period and jump times (they fix the grid); otherwise, and for
-white noise (an SDE), :func:`obsjax.simulate` uses diffrax.
+The path needs concrete save times and breakpoints (they fix the grid); otherwise, and for white noise (an
+SDE), :func:`obsjax.simulate` uses the diffrax back-end.
 """
 
 from __future__ import annotations
 
-import math
+import functools
 
 import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import concrete_value
+from .._checks import concrete_value
+from . import _system
+from ._status import SUCCESS
 
 _EULER = (np.zeros((0, 0)), np.ones(1), np.zeros(1))
 
@@ -57,69 +60,68 @@ def tableau_of(solver):
     return a[:used, :used], b[:used], c[:used]
 
 
-def grid(ts, dt0, reset_period=None, jumps=None):
-    """The concrete step grid, or ``None`` when any of its inputs is traced.
+def grid(ts, dt0, breakpoints, tol):
+    """The concrete step grid, or ``None`` when the save times or dt0 are traced.
 
-    Returns a dict of NumPy arrays over the N − 1 intervals between N breakpoints: ``start`` (N − 1,),
-    ``h`` (N − 1,) step size, ``nsteps`` (N − 1,), ``reset`` (N − 1,) whether to reset at the interval's start;
-    and ``save_idx`` (len(ts),) the breakpoint index of each save time; ``K`` the largest step count.
+    `breakpoints`: ``Schedule.concrete``, i.e. NumPy (times, reset, event, jump) sorted by time; `tol`: the
+    schedule's tolerance.  Returns a dict of NumPy arrays over the intervals between consecutive nodes:
+    ``start``, ``h`` step size, ``nsteps``, ``reset`` and ``event`` (what to apply at the interval's start);
+    ``save_idx`` (len(ts),) the node of each save time; ``K`` the largest step count.
     """
     ts = concrete_value(ts)
     dt0 = concrete_value(dt0)
-    if ts is None or dt0 is None:
+    if ts is None or dt0 is None or breakpoints is None:
         return None
     ts = np.asarray(ts, dtype=np.float64)
     dt0 = float(np.asarray(dt0).reshape(()))
     if not dt0 > 0:
         raise ValueError(f"`dt0` must be > 0 for fixed steps, got {dt0}.")
-    t0, t1 = float(ts[0]), float(ts[-1])
-    tol = 1e-9 * max(1.0, abs(t1 - t0))
-    resets = np.zeros(0)
-    if reset_period is not None:
-        T = concrete_value(reset_period)
-        if T is None:
-            return None
-        T = float(np.asarray(T).reshape(()))
-        if not T > 0:
-            raise ValueError(f"the reset period `T` must be > 0, got {T}.")
-        k = np.arange(1, int(math.ceil((t1 - t0) / T)) + 1)
-        resets = t0 + k * T
-        resets = resets[resets < t1 - tol]
-    jump = np.zeros(0)
-    if jumps is not None:
-        jump = np.asarray(jumps, dtype=np.float64).reshape(-1)
-        jump = jump[(jump > t0 + tol) & (jump < t1 - tol)]
-    # breakpoints: save times first, so that a reset or jump within tol of a save time takes its value.
-    pts = list(ts)
-    for extra in (resets, jump):
-        for v in extra:
-            if np.min(np.abs(np.asarray(pts) - v)) > tol:
-                pts.append(float(v))
-    bp = np.sort(np.asarray(pts))
-    near = lambda vals: np.array([bool(len(vals)) and np.min(np.abs(vals - b)) <= tol for b in bp])
-    is_reset = near(resets)
-    is_jump = near(jump)
-    start = bp[:-1]
-    end = bp[1:].copy()
-    # an interval ending at a jump stops one float before it (diffrax's prevbefore).
-    end[is_jump[1:]] = np.nextafter(end[is_jump[1:]], -np.inf)
+    times, is_reset, is_event, is_jump = breakpoints
+    # nodes (t, kind, reset, event, jump, save index); at one instant breakpoints come before the save.
+    nodes = [(float(t), 1, False, False, False, i) for i, t in enumerate(ts)]
+    for t, r, e, j in zip(times, is_reset, is_event, is_jump):
+        near = np.flatnonzero(np.abs(ts - t) <= tol)
+        t = float(ts[near[0]]) if near.size else float(t)
+        nodes.append((t, 0, bool(r), bool(e), bool(j), -1))
+    nodes.sort(key=lambda nd: (nd[0], nd[1]))
+    t_node = np.array([nd[0] for nd in nodes])
+    start, end = t_node[:-1], t_node[1:].copy()
+    ends_at_jump = np.array([nd[4] for nd in nodes[1:]], bool)
+    end[ends_at_jump] = np.maximum(np.nextafter(end[ends_at_jump], -np.inf), start[ends_at_jump])
     span = end - start
     nsteps = np.maximum(1, np.ceil(span / dt0 - 1e-9)).astype(np.int64)
-    save_idx = np.searchsorted(bp, ts - tol)
+    save_idx = np.zeros(len(ts), np.int64)
+    for k, nd in enumerate(nodes):
+        if nd[5] >= 0:
+            save_idx[nd[5]] = k
     return dict(
         start=start,
         h=span / nsteps,
         nsteps=nsteps,
-        reset=is_reset[:-1],
+        reset=np.array([nd[2] for nd in nodes[:-1]], bool),
+        event=np.array([nd[3] for nd in nodes[:-1]], bool),
         save_idx=save_idx,
         K=int(nsteps.max()),
     )
 
 
-def integrate(drift, args, state0, g, tableau, reset=None):
+def integrate(args: _system.Args, state0, sched, g, tableau):
+    """The back-end's entry point: run grid `g` (from :func:`grid`) with the explicit RK `tableau` (from
+    :func:`tableau_of`) from `state0` = (x0, z0); returns ((xs, zs) at the save times, status code 0)."""
+    act = functools.partial(_act, args, sched.has_reset, sched.has_event)
+    out = _scan(_system.drift, args, state0, g, tableau, act)
+    return out, jnp.asarray(SUCCESS, jnp.int32)
+
+
+def _act(args, has_reset, has_event, t, state, do_reset, do_event):
+    return _system.act(args, t, state, do_reset, do_event, has_reset, has_event)
+
+
+def _scan(drift, args, state0, g, tableau, act):
     """Run the grid ``g`` from ``state0``; returns the states at the save times (leading axis len(ts)).
 
-    `drift(t, y, args)` is the joint vector field; `reset(t, state) -> state` is applied at flagged breakpoints.
+    `drift(t, y, args)` is the joint vector field; `act(t, state, do_reset, do_event) -> state` the jump
+    applied at the start of every interval (it branches on the flags).
     """
     a, b, c = (np.asarray(v) for v in tableau)
     s = len(b)
@@ -141,9 +143,8 @@ def integrate(drift, args, state0, g, tableau, reset=None):
 
     @jax.checkpoint
     def interval(state, xs):
-        t_start, h, n, do_reset = xs
-        if reset is not None:
-            state = jax.lax.cond(do_reset, lambda q: reset(t_start, q), lambda q: q, state)
+        t_start, h, n, do_reset, do_event = xs
+        state = act(t_start, state, do_reset, do_event)
         at_start = state
 
         def step(y, j):
@@ -161,6 +162,7 @@ def integrate(drift, args, state0, g, tableau, reset=None):
         jnp.asarray(g["h"], dtype),
         jnp.asarray(g["nsteps"]),
         jnp.asarray(g["reset"]),
+        jnp.asarray(g["event"]),
     )
     end, starts = jax.lax.scan(interval, state0, xs)
     # breakpoint states: the (post-reset) state at each interval's start, then the final state.

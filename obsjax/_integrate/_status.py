@@ -1,0 +1,116 @@
+"""Status codes of a trajectory, and the guards that let a solve stop early instead of burning ``max_steps``.
+
+``Trajectory.status``:
+
+- ``SUCCESS`` (0): the solve reached the end of the horizon and every saved x, x̂, y is finite, and so is
+  Σ‖x̃‖² over the save grid (an error norm that overflows is not a success).
+- ``SOLVER_FAILED`` (1): the solver could not continue with finite values: ``max_steps`` reached, or the
+  step size collapsed below a few ulp of the time (a finite-time escape of the true solution, or a stiffness
+  an explicit solver cannot follow), or an implicit solver's Newton iteration failed.
+- ``NONFINITE`` (2): the state, the estimate, the measurement or the error became non-finite or overflowed
+  (including a NaN initial state or gain), i.e. the trajectory diverged.
+
+Early stop.  A solve whose state becomes non-finite would make diffrax reject every further step (its error
+estimate is NaN) until ``max_steps``.  Two guards prevent that: :class:`GuardedController` accepts a step
+whose candidate is not finite (Σ y² overflows), and the event :func:`divergence_event` then ends the solve
+with ``RESULTS.event_occurred``, mapped to ``NONFINITE``.  The event also fires at t0, so a NaN x0 costs
+nothing.  The guard also ends a solve whose step size collapses (``RESULTS.dt_min_reached``).
+
+Gradients.  :class:`GuardedController` stops the gradient of the proposed step size: the time grid moves
+with the start of the solve (and of each segment) but does not depend on the state, so the derivative is
+that of a fixed grid, the consistent discretisation of the true sensitivity (the solution's derivative does
+not depend on the step choice).  Without it, reverse-mode derivatives through a step that lands on an
+undeclared discontinuity can come out NaN (a 0 × inf in the step-size update).
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+SUCCESS = 0
+SOLVER_FAILED = 1
+NONFINITE = 2
+
+# A step below this many ulp of max(|t0|, |t1|) of the horizon counts as a collapse of the step size.
+COLLAPSE_ULPS = 64.0
+
+
+def sum_of_squares(tree):
+    """Σ of squares over every leaf (inf when it overflows, NaN when a value is NaN)."""
+    leaves = jax.tree_util.tree_leaves(tree)
+    return sum(jnp.sum(jnp.square(leaf)) for leaf in leaves)
+
+
+def is_finite(tree):
+    """True when Σ y² over the pytree is finite: no NaN/inf and no overflow of the squared norm."""
+    return jnp.isfinite(sum_of_squares(tree))
+
+
+def _diverged(t, y, args, **kwargs):
+    return jnp.logical_not(is_finite(y))
+
+
+def divergence_event() -> diffrax.Event:
+    """A boolean diffrax event that ends the solve when the state is no longer finite (see module doc)."""
+    return diffrax.Event(_diverged)
+
+
+def code_of(result):
+    """diffrax ``RESULTS`` → SUCCESS / SOLVER_FAILED / NONFINITE (an event is the divergence event)."""
+    ok = result == diffrax.RESULTS.successful
+    event = result == diffrax.RESULTS.event_occurred
+    return jnp.where(ok, SUCCESS, jnp.where(event, NONFINITE, SOLVER_FAILED)).astype(jnp.int32)
+
+
+def first_failure(code, new):
+    """Combine segment codes: the first non-zero code wins."""
+    return jnp.where(code == SUCCESS, new, code)
+
+
+class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
+    """diffrax's ``PIDController`` with three guards (see the module docstring): a non-finite candidate is
+    accepted (so :func:`divergence_event` ends the solve), a collapsed step ends it with
+    ``dt_min_reached``, and the proposed step size carries no gradient."""
+
+    inner: diffrax.PIDController
+    dt_floor: jax.Array
+
+    def __init__(self, rtol, atol, t0, t1, norm=None):
+        kw = {} if norm is None else {"norm": norm}
+        self.inner = diffrax.PIDController(rtol=rtol, atol=atol, **kw)
+        scale = jnp.maximum(jnp.abs(t0), jnp.abs(t1))
+        self.dt_floor = jax.lax.stop_gradient(COLLAPSE_ULPS * jnp.finfo(jnp.result_type(scale)).eps * scale)
+
+    @property
+    def rtol(self):
+        return self.inner.rtol
+
+    @property
+    def atol(self):
+        return self.inner.atol
+
+    @property
+    def norm(self):
+        return self.inner.norm
+
+    def wrap(self, direction):
+        return eqx.tree_at(lambda c: c.inner, self, self.inner.wrap(direction))
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        tnext, state = self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
+        return t0 + jax.lax.stop_gradient(tnext - t0), state
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        keep, next_t0, next_t1, jump, state, result = self.inner.adapt_step_size(
+            t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
+        )
+        finite = is_finite(y1_candidate)
+        keep = keep | jnp.logical_not(finite)
+        next_t0 = jnp.where(finite, next_t0, t1)
+        dt = jax.lax.stop_gradient(jnp.where(finite, next_t1 - next_t0, t1 - t0))
+        collapsed = finite & (dt < self.dt_floor)
+        result = diffrax.RESULTS.where(collapsed, diffrax.RESULTS.dt_min_reached, result)
+        return keep, next_t0, next_t0 + dt, jump, state, result
