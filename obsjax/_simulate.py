@@ -37,7 +37,7 @@ class Trajectory(eqx.Module):
     - `y`: (T, m) measurement (with band-limited noise included; noise-free under white noise).
     - `error`: (T, n) estimation error x̃ = x̂ − x (Chen & Yen's sign).
     - `z`: observer state pytree, each leaf with a leading axis of length T.
-    - `status`: int, 0 success, 1 solver failure (max_steps, step size collapse), 2 non-finite values
+    - `status`: int, 0 success, 1 solver failure (max_steps reached), 2 non-finite values
       (the trajectory diverged, a value overflowed or an input was NaN); see ``throw``.  Rows after a solve
       stopped early (status 1 or 2) are not meaningful.
     """
@@ -68,9 +68,9 @@ def simulate(
     noise: AbstractNoise | None = None,
     key=None,
     solver: diffrax.AbstractSolver | None = None,
-    rtol: float = 1e-6,
-    atol: float = 1e-8,
-    dt0: float | None = None,
+    rtol: float | jax.Array = 1e-6,
+    atol: float | jax.Array = 1e-8,
+    dt0: float | jax.Array | None = None,
     adaptive: bool = True,
     max_steps: int | None = 16384,
     max_segments: int | None = None,
@@ -99,8 +99,8 @@ def simulate(
     times and breakpoints run as a direct ``lax.scan`` over the Butcher tableau; everything else runs one
     ``diffrax.diffeqsolve`` per segment.
 
-    **Status.**  0 success; 1 the solver could not continue (``max_steps``, a collapsed step size);
-    2 non-finite: the state, estimate, measurement or error became NaN/inf or Σ‖x̃‖² overflowed, including a
+    **Status.**  0 success; 1 the solver did not reach the end of the horizon (``max_steps``, an implicit
+    solver's failed Newton iteration); 2 non-finite: the state, estimate, measurement or error became NaN/inf or Σ‖x̃‖² overflowed, including a
     NaN initial state or gain.  A diverging solve stops as soon as its state is no longer finite (it does not
     burn ``max_steps``).
 
@@ -187,8 +187,8 @@ def _raise_if(traj: Trajectory, throw: bool, who: str, status) -> Trajectory:
     error = eqx.error_if(
         traj.error,
         jnp.any(status == SOLVER_FAILED),
-        f"{who}: the solver did not reach the end of the horizon (max_steps reached or the step size "
-        "collapsed). Raise `max_steps`, loosen `rtol`/`atol`, or use an implicit solver for a stiff observer; "
+        f"{who}: the solver did not reach the end of the horizon (max_steps reached, or an implicit "
+        "solver failed). Raise `max_steps`, loosen `rtol`/`atol`, or use an implicit solver for a stiff observer; "
         "pass throw=False to get a per-trajectory status instead.",
     )
     error = eqx.error_if(

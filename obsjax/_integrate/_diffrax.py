@@ -14,13 +14,16 @@ import functools
 import math
 
 import diffrax
+import equinox as eqx
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 from .._checks import concrete_value
 from ..systems._noise import WhiteNoise
 from . import _segments, _system
 from ._schedule import Schedule
-from ._status import GuardedController, code_of, divergence_event
+from ._status import GuardedController, code_of, divergence_event, is_finite
 
 tmap = jax.tree_util.tree_map
 
@@ -30,9 +33,9 @@ class Options:
     """How to integrate (what ``simulate`` resolved from its keyword arguments)."""
 
     solver: diffrax.AbstractSolver
-    rtol: float
-    atol: float
-    dt0: float | None
+    rtol: float | jax.Array
+    atol: float | jax.Array
+    dt0: float | jax.Array | None
     adaptive: bool
     max_steps: int | None
     adjoint: diffrax.AbstractAdjoint | None
@@ -69,6 +72,88 @@ def steps_budget(opt: Options) -> int | None:
     return max(opt.max_steps, int(math.ceil((t1c - t0c) / float(dt0))) + 16)
 
 
+def _finite_gradient_step(solver, terms, t0, t1, y0, args, solver_state, made_jump):
+    """``solver.step`` whose reverse-mode derivative is zero when the step's output is not finite.
+
+    An adaptive solve rejects a step whose candidate is not finite (a stage left the domain of the vector
+    field, typically a step across an undeclared discontinuity); its cotangent is zero, but the step's own
+    partial derivatives are NaN there and 0 × NaN poisons the whole gradient.  The gradient of such a step is
+    defined as zero instead (per trajectory, also under ``vmap``); finite steps are untouched.
+    """
+    diff, rest = eqx.partition((terms, t0, t1, y0, args, solver_state, made_jump), eqx.is_inexact_array)
+    arrs, static = eqx.partition(rest, eqx.is_array)
+
+    def run(d, a):
+        terms_, t0_, t1_, y0_, args_, state_, jump_ = eqx.combine(d, a, static)
+        y1, err, dense, state1, _ = solver.step(terms_, t0_, t1_, y0_, args_, state_, jump_)
+        return y1, err, dense, state1
+
+    @jax.custom_vjp
+    def call(d, a):
+        return run(d, a)
+
+    def fwd(d, a):
+        out, vjp = jax.vjp(lambda dd: run(dd, a), d)
+        return out, (vjp, is_finite(eqx.filter(out, eqx.is_inexact_array)), a)
+
+    def bwd(res, ct):
+        vjp, ok, a = res
+        (g,) = vjp(ct)
+        g = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), g)
+        return g, jax.tree_util.tree_map(lambda x: np.zeros(x.shape, jax.dtypes.float0), a)
+
+    call.defvjp(fwd, bwd)
+    y1, err, dense, state1 = call(diff, arrs)
+    return y1, err, dense, state1, diffrax.RESULTS.successful
+
+
+class FiniteGradientSolver(diffrax.AbstractWrappedSolver):
+    """An explicit Runge–Kutta solver whose non-finite (rejected) steps contribute a zero gradient
+    (:func:`_finite_gradient_step`); everything else is the wrapped solver's."""
+
+    solver: diffrax.AbstractSolver
+
+    @property
+    def term_structure(self):
+        return self.solver.term_structure
+
+    @property
+    def interpolation_cls(self):
+        return self.solver.interpolation_cls
+
+    @property
+    def term_compatible_contr_kwargs(self):
+        return self.solver.term_compatible_contr_kwargs
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def strong_order(self, terms):
+        return self.solver.strong_order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    def init(self, terms, t0, t1, y0, args):
+        return self.solver.init(terms, t0, t1, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        return _finite_gradient_step(self.solver, terms, t0, t1, y0, args, solver_state, made_jump)
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)
+
+
+def solver_of(opt: Options):
+    """The solver, wrapped by :class:`FiniteGradientSolver` when it is an explicit Runge–Kutta method
+    differentiated in reverse mode by the default adjoint (a ``custom_vjp`` has no forward mode)."""
+    adj = opt.adjoint
+    reverse = adj is None or type(adj) is diffrax.RecursiveCheckpointAdjoint
+    if reverse and isinstance(opt.solver, diffrax.AbstractERK) and opt.white_noise is None:
+        return FiniteGradientSolver(opt.solver)
+    return opt.solver
+
+
 def _event_of(adjoint):
     if isinstance(adjoint, (diffrax.BacksolveAdjoint, diffrax.ImplicitAdjoint)):
         return None
@@ -78,6 +163,7 @@ def _event_of(adjoint):
 def integrate(args: _system.Args, state0, ts, sched: Schedule, opt: Options):
     """Integrate from `state0` = (x0, z0) over the schedule; returns ((xs, zs) at `ts`, status code)."""
     terms = terms_of(opt, args.plant.m)
+    solver = solver_of(opt)
     ctrl = controller_of(opt, sched.t0, sched.t1)
     event = _event_of(opt.adjoint)
     max_steps = steps_budget(opt)
@@ -85,7 +171,7 @@ def integrate(args: _system.Args, state0, ts, sched: Schedule, opt: Options):
 
     def solve(s0, s1, state, save_ts):
         sol = diffrax.diffeqsolve(
-            terms, opt.solver, s0, s1, opt.dt0, state, args=args,
+            terms, solver, s0, s1, opt.dt0, state, args=args,
             saveat=diffrax.SaveAt(ts=save_ts, t1=True), stepsize_controller=ctrl,
             max_steps=max_steps, throw=False, event=event, **adjoint,
         )

@@ -7,7 +7,8 @@ own solve applies.  The solver's bookkeeping then runs once per step for the who
 
 Failure isolation.  One member must not decide the fate of the others:
 
-- a member whose values become non-finite stops participating (its error is ignored);
+- a member whose state becomes non-finite stops participating (its error is ignored); a member whose
+  candidate step is not finite (a too-long step) rejects the step like any other, until it is evicted;
 - a member that alone would force the shared step below a floor, dt_floor = (t1 − t0)/max_steps (the pace at
   which max_steps would just cover the horizon), while the median member's demanded step is above it, is
   *evicted*: it stops participating for the rest of the solve;
@@ -57,10 +58,10 @@ class LockstepController(diffrax.AbstractAdaptiveStepSizeController):
     member evicted in one segment stays out of the later ones.  The proposed step carries no gradient.
     """
 
-    rtol: float
-    atol: float
+    rtol: float | jax.Array
+    atol: float | jax.Array
     dt_floor: jax.Array
-    dt_collapse: jax.Array
+    dt_min: jax.Array
     safety: float = 0.9
     factormin: float = 0.2
     factormax: float = 10.0
@@ -84,8 +85,12 @@ class LockstepController(diffrax.AbstractAdaptiveStepSizeController):
 
         r = member_rms(tmap(scale, y0, y1_candidate, y_error))
         dt = t1 - t0
-        evicted = evicted | self._outliers(r, evicted, dt, error_order)
-        use = ~evicted & jnp.isfinite(r)
+        # members whose state is already not finite take no part; a member whose candidate is not finite
+        # (a too-long step) rejects the step like any other, until it is evicted
+        live = jax.vmap(is_finite)(y0)
+        r = jnp.where(jnp.isfinite(r), r, jnp.inf)
+        evicted = evicted | self._outliers(r, evicted, live, dt, error_order)
+        use = ~evicted & live
         err = jax.lax.stop_gradient(jnp.max(jnp.where(use, r, 0.0)))
         keep = err < 1
         factor = jnp.clip(
@@ -93,17 +98,19 @@ class LockstepController(diffrax.AbstractAdaptiveStepSizeController):
             jnp.where(keep, 1.0, self.factormin),
             jnp.where(keep, self.factormax, self.safety),
         )
+        # as GuardedController: never below the smallest step, and a step at it is accepted
+        at_floor = jax.lax.stop_gradient(dt) <= self.dt_min
+        keep = keep | at_floor
         step = jax.lax.stop_gradient(dt * factor)
+        step = jnp.where(step >= self.dt_min, step, self.dt_min)
         next_t0 = jnp.where(keep, t1, t0)
-        result = diffrax.RESULTS.where(
-            step < self.dt_collapse, diffrax.RESULTS.dt_min_reached, diffrax.RESULTS.successful
-        )
-        return keep, next_t0, next_t0 + step, False, evicted, result
+        return keep, next_t0, next_t0 + step, False, evicted, diffrax.RESULTS.successful
 
-    def _outliers(self, r, evicted, dt, error_order):
+    def _outliers(self, r, evicted, live, dt, error_order):
         """Members whose own demanded step is below the floor while the median member's is above it."""
-        alive = ~evicted & jnp.isfinite(r)
-        demand = jax.lax.stop_gradient(dt * self.safety * r ** (-1.0 / error_order))
+        alive = ~evicted & live
+        own = jnp.clip(self.safety * r ** (-1.0 / error_order), self.factormin, None)
+        demand = jax.lax.stop_gradient(dt * own)
         low = alive & (demand < self.dt_floor)
 
         def median_ok():
@@ -171,7 +178,7 @@ def integrate(args_b: _system.Args, state0, ts, sched: Schedule, opt: _diffrax.O
     ctrl = LockstepController(
         opt.rtol, opt.atol,
         dt_floor=jax.lax.stop_gradient((t1 - t0) / budget),
-        dt_collapse=jax.lax.stop_gradient(COLLAPSE_ULPS * eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))),
+        dt_min=jax.lax.stop_gradient(COLLAPSE_ULPS * eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))),
     )
 
     def act(t, carry, do_reset, do_event):

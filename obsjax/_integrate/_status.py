@@ -4,17 +4,23 @@
 
 - ``SUCCESS`` (0): the solve reached the end of the horizon and every saved x, x̂, y is finite, and so is
   Σ‖x̃‖² over the save grid (an error norm that overflows is not a success).
-- ``SOLVER_FAILED`` (1): the solver could not continue with finite values: ``max_steps`` reached, or the
-  step size collapsed below a few ulp of the time (a finite-time escape of the true solution, or a stiffness
-  an explicit solver cannot follow), or an implicit solver's Newton iteration failed.
+- ``SOLVER_FAILED`` (1): the solver did not reach the end of the horizon with finite values: ``max_steps``
+  reached, or an implicit solver's Newton iteration failed.
 - ``NONFINITE`` (2): the state, the estimate, the measurement or the error became non-finite or overflowed
   (including a NaN initial state or gain), i.e. the trajectory diverged.
 
 Early stop.  A solve whose state becomes non-finite would make diffrax reject every further step (its error
-estimate is NaN) until ``max_steps``.  Two guards prevent that: :class:`GuardedController` accepts a step
-whose candidate is not finite (Σ y² overflows), and the event :func:`divergence_event` then ends the solve
-with ``RESULTS.event_occurred``, mapped to ``NONFINITE``.  The event also fires at t0, so a NaN x0 costs
-nothing.  The guard also ends a solve whose step size collapses (``RESULTS.dt_min_reached``).
+estimate is NaN) until ``max_steps``.  Two guards prevent that.  The event :func:`divergence_event` ends the
+solve with ``RESULTS.event_occurred`` (mapped to ``NONFINITE``) as soon as an accepted state is not finite
+(Σ y² is NaN/inf, which includes an overflowing norm); it also fires at t0, so a NaN x0 costs nothing.
+:class:`GuardedController` rejects a non-finite candidate like any other (a too-long step may leave the
+domain of the vector field), but the step size never goes below a floor of 64 ulp of the horizon's end,
+max(|t0|, |t1|), and a step at the floor is accepted whatever its error, as diffrax's ``dtmin`` does.  A
+non-finite candidate at the floor (a NaN gain, a state overflowing) then reaches the event: a few dozen steps
+instead of ``max_steps``.  A finite-time escape of the solution, or a stiffness an explicit solver cannot
+follow, is stepped through at the floor until it overflows (``NONFINITE``) or ``max_steps`` is reached; a
+tolerance below the rounding error of the state (rtol ≈ 1e-13) costs a few steps at the floor instead of a
+failure.
 
 Gradients.  :class:`GuardedController` stops the gradient of the proposed step size: the time grid moves
 with the start of the solve (and of each segment) but does not depend on the state, so the derivative is
@@ -34,7 +40,7 @@ SUCCESS = 0
 SOLVER_FAILED = 1
 NONFINITE = 2
 
-# A step below this many ulp of max(|t0|, |t1|) of the horizon counts as a collapse of the step size.
+# The smallest step: this many ulp of max(|t0|, |t1|) of the horizon.
 COLLAPSE_ULPS = 64.0
 
 
@@ -71,9 +77,9 @@ def first_failure(code, new):
 
 
 class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
-    """diffrax's ``PIDController`` with three guards (see the module docstring): a non-finite candidate is
-    accepted (so :func:`divergence_event` ends the solve), a collapsed step ends it with
-    ``dt_min_reached``, and the proposed step size carries no gradient."""
+    """diffrax's ``PIDController`` with two guards (see the module docstring): steps never go below
+    ``dt_floor`` and a step at the floor is accepted (so a non-finite candidate reaches
+    :func:`divergence_event`), and the proposed step size carries no gradient."""
 
     inner: diffrax.PIDController
     dt_floor: jax.Array
@@ -101,16 +107,20 @@ class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         tnext, state = self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
-        return t0 + jax.lax.stop_gradient(tnext - t0), state
+        dt = jax.lax.stop_gradient(tnext - t0)
+        # a non-finite vector field at t0 gives a NaN first step: start small, the guard below takes over
+        dt = jnp.where(jnp.isfinite(dt) & (dt > 0), dt, jax.lax.stop_gradient(1e-6 * (t1 - t0)))
+        return t0 + dt, state
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
         keep, next_t0, next_t1, jump, state, result = self.inner.adapt_step_size(
             t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
         )
-        finite = is_finite(y1_candidate)
-        keep = keep | jnp.logical_not(finite)
-        next_t0 = jnp.where(finite, next_t0, t1)
-        dt = jax.lax.stop_gradient(jnp.where(finite, next_t1 - next_t0, t1 - t0))
-        collapsed = finite & (dt < self.dt_floor)
-        result = diffrax.RESULTS.where(collapsed, diffrax.RESULTS.dt_min_reached, result)
+        dt = jax.lax.stop_gradient(next_t1 - next_t0)
+        # A step already at the floor is accepted whatever its error (diffrax's ``dtmin``): a non-finite
+        # candidate then ends the solve through the divergence event, a finite one lets the solve go on.
+        at_floor = jax.lax.stop_gradient(t1 - t0) <= self.dt_floor
+        keep = keep | at_floor
+        next_t0 = jnp.where(at_floor, t1, next_t0)
+        dt = jnp.where(dt >= self.dt_floor, dt, self.dt_floor)
         return keep, next_t0, next_t0 + dt, jump, state, result

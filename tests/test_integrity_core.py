@@ -1,0 +1,351 @@
+"""Integrity of the integration core: every door checks, statuses tell the truth (early), lock-step batches
+isolate failures, plant jumps and observer events are segment boundaries (gradients with respect to the reset
+period against central finite differences)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+
+import obsjax
+from obsjax._integrate._schedule import MAX_RESET_SEGMENTS
+
+A28 = np.array([[-2.0, 1.0], [0.0, -1.0]])
+B28 = np.array([[0.0], [1.0]])
+C28 = np.array([[1.0, 0.0]])
+PLANT = obsjax.LTI(A28, B28, C28)
+OBS = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0])
+TS = np.linspace(0.0, 2.0, 11)
+X0, XH0 = jnp.array([1.0, -1.0]), jnp.zeros(2)
+
+
+def sim(*args, **kw):
+    kw.setdefault("throw", False)
+    return obsjax.simulate(*args, **kw)
+
+
+# ---------------------------------------------------------------- bad input: one test per class
+
+
+def _plant3():
+    return obsjax.LTI(np.diag([-1.0, -2.0, -3.0]), None, [[1.0, 1.0, 1.0]])
+
+
+SHAPE_CASES = {
+    "x0": (lambda: sim(PLANT, OBS, jnp.ones(3), XH0, TS), "`x0`"),
+    "xhat0": (lambda: sim(PLANT, OBS, X0, jnp.zeros(3), TS), "`xhat0`"),
+    "observer n": (
+        lambda: sim(PLANT, obsjax.Luenberger.from_poles(_plant3(), [-4.0, -5.0, -6.0]), X0, XH0, TS),
+        "`observer`",
+    ),
+    "observer m": (
+        lambda: sim(obsjax.LTI(A28, B28, np.eye(2)), OBS, X0, XH0, TS),
+        "`observer` expects m = 1",
+    ),
+    "u": (lambda: sim(PLANT, OBS, X0, XH0, TS, u=lambda t: jnp.ones(2)), "`u(t)`"),
+    "controller": (
+        lambda: sim(PLANT, OBS, X0, XH0, TS, controller=lambda t, xh: jnp.ones(3)),
+        "`controller(t, x̂)`",
+    ),
+    "noise sigma": (
+        lambda: sim(PLANT, OBS, X0, XH0, TS, noise=obsjax.noise.BandLimitedNoise([0.1, 0.1, 0.1]), key=jax.random.key(0)),
+        "`noise.sigma`",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(SHAPE_CASES))
+def test_dimension_mismatch_names_the_argument(case):
+    call, name = SHAPE_CASES[case]
+    with pytest.raises(ValueError, match="must|expects|has") as e:
+        call()
+    assert name in str(e.value) and "got" in str(e.value) or "but `plant` has" in str(e.value), str(e.value)
+
+
+VALUE_CASES = {
+    "A nan": (lambda: obsjax.LTI([[np.nan, 0.0], [0.0, -1.0]], None, [[1.0, 0.0]]), "`A`"),
+    "B inf": (lambda: obsjax.LTI(A28, [[np.inf], [1.0]], C28), "`B`"),
+    "A complex": (lambda: obsjax.LTI(A28 + 1j, B28, C28), "`A` must be real"),
+    "LTV A(t) nan": (lambda: obsjax.LTV(lambda t: jnp.full((2, 2), jnp.nan), lambda t: jnp.ones((1, 2))), "`A(t)"),
+    "Nonlinear n = 0": (lambda: obsjax.Nonlinear(lambda t, x, u: x, lambda t, x, u: x[:1], n=0, m=1), "`n`"),
+    "jump_ts nan": (lambda: obsjax.LTI(A28, B28, C28, jump_ts=[0.5, np.nan]), "`jump_ts`"),
+    "white sigma nan": (lambda: obsjax.noise.WhiteNoise(np.nan), "`sigma`"),
+    "band sigma < 0": (lambda: obsjax.noise.BandLimitedNoise(-0.1), "`sigma`"),
+    "multisine frequency nan": (lambda: obsjax.signals.multisine([1.0], [np.nan]), "`frequencies`"),
+    "multisine amplitude inf": (lambda: obsjax.signals.multisine([np.inf], [1.0]), "`amplitudes`"),
+    "max_steps = 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, max_steps=0), "`max_steps`"),
+    "dt0 = 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, dt0=0.0, adaptive=False), "`dt0`"),
+    "dt0 < 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, dt0=-0.1), "`dt0`"),
+    "rtol = 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, rtol=0.0), "`rtol`"),
+    "ts nan": (lambda: sim(PLANT, OBS, X0, XH0, np.array([0.0, np.nan, 1.0])), "`ts`"),
+    "ts decreasing": (lambda: sim(PLANT, OBS, X0, XH0, TS[::-1]), "`ts` must be strictly increasing"),
+    "x0 complex": (lambda: sim(PLANT, OBS, X0 + 1j, XH0, TS), "`x0` must be real"),
+}
+
+
+@pytest.mark.parametrize("case", list(VALUE_CASES))
+def test_bad_value_names_the_argument(case):
+    call, name = VALUE_CASES[case]
+    with pytest.raises(ValueError) as e:
+        call()
+    assert name in str(e.value), str(e.value)
+
+
+def test_reset_period_far_below_the_horizon_is_refused():
+    """T = 1e-6 on [0, 4] would be 4·10⁶ segments: a clear error, not a hang."""
+    lsr = obsjax.LeastSquaresReset(PLANT, gamma=1.0, p0=1.0, T=1e-6)
+    with pytest.raises(ValueError, match=r"reset period T = 1e-06 gives 4\d+ reset segments on \[0, 4\]"):
+        sim(PLANT, lsr, X0, XH0, np.linspace(0.0, 4.0, 5))
+    with pytest.raises(ValueError, match="`max_segments`"):
+        sim(PLANT, lsr, X0, XH0, np.linspace(0.0, 4.0, 5), max_segments=MAX_RESET_SEGMENTS + 1)
+
+
+def test_float32_inputs_are_promoted_to_float64():
+    ts32 = np.linspace(0.0, 2.0, 11, dtype=np.float32)
+    a = sim(PLANT, OBS, np.asarray(X0, np.float32), np.zeros(2, np.float32), ts32)
+    b = sim(PLANT, OBS, X0, XH0, ts32.astype(np.float64))
+    assert a.x.dtype == a.ts.dtype == jnp.float64 and int(a.status) == 0
+    np.testing.assert_array_equal(a.error, b.error)
+
+
+def test_decreasing_ts_under_jit_never_integrates_backwards():
+    """Issue item 1: traced save times are checked with eqx.error_if, whatever `throw` says."""
+    f = jax.jit(lambda ts: obsjax.simulate(PLANT, OBS, X0, XH0, ts, throw=False).error_norm)
+    np.testing.assert_allclose(f(jnp.asarray(TS)), sim(PLANT, OBS, X0, XH0, TS).error_norm, atol=1e-12)
+    with pytest.raises(Exception, match="strictly increasing"):
+        jax.block_until_ready(f(jnp.asarray(TS[::-1])))
+    with pytest.raises(Exception, match="strictly increasing"):
+        jax.block_until_ready(f(jnp.asarray(TS).at[3].set(TS[2])))
+
+
+# ---------------------------------------------------------------- statuses that tell the truth, early
+
+
+def test_overflowing_error_with_a_finite_state_is_nonfinite():
+    """Issue item 3: a finite estimate whose ‖x̃‖ overflows is not a success."""
+    xh0 = jnp.array([1e200, 0.0])
+    assert np.all(np.isfinite(xh0 - X0))
+    tr = sim(PLANT, OBS, X0, xh0, TS)
+    assert int(tr.status) == obsjax._simulate.NONFINITE
+    with pytest.raises(Exception, match="diverged or contains non-finite"):
+        obsjax.simulate(PLANT, OBS, X0, xh0, TS)
+
+
+def test_nan_start_or_gain_stops_at_once():
+    """A NaN x0 (or x̂0, or gain) is NONFINITE, found within a few steps: with a step budget that a regular run
+    does not meet (status 1) the NaN runs still end with status 2, not by exhausting the budget."""
+    budget = dict(max_steps=24)
+    assert int(sim(PLANT, OBS, X0, XH0, np.linspace(0.0, 40.0, 3), rtol=1e-12, atol=1e-14, **budget).status) == 1
+    nan_gain = eqx.tree_at(lambda o: o.L, obsjax.Luenberger(PLANT, L=[[1.0], [1.0]]), jnp.array([[jnp.nan], [1.0]]))
+    for x0, xh0, obs in ((X0.at[0].set(jnp.nan), XH0, OBS), (X0, XH0.at[1].set(jnp.inf), OBS), (X0, XH0, nan_gain)):
+        tr = sim(PLANT, obs, x0, xh0, np.linspace(0.0, 40.0, 3), rtol=1e-12, atol=1e-14, **budget)
+        assert int(tr.status) == 2
+
+
+def test_divergent_trajectory_is_nonfinite_not_solver_failure():
+    """An observer whose error grows like e^{28 t}: the state overflows and the solve stops (status 2), where
+    the NaN rejection loop used to end at max_steps with status 1."""
+    unstable = obsjax.Luenberger(PLANT, L=[[-30.0], [0.0]])
+    tr = sim(PLANT, unstable, X0, XH0, np.linspace(0.0, 30.0, 7), rtol=1e-3, atol=1e-6, max_steps=4096)
+    assert int(tr.status) == 2
+    assert np.isfinite(tr.error_norm[1])  # rows before the divergence are kept
+
+
+# ---------------------------------------------------------------- item 6: jumps as segment boundaries
+
+SWITCH = obsjax.switching_ltv_example(period=0.3, horizon=7.5)
+SWITCH_UNDECLARED = obsjax.LTV(SWITCH.A_fn, SWITCH.C_fn)
+LSR3 = obsjax.LeastSquaresReset(SWITCH, gamma=1.0, p0=1.0, T=1.93)
+TS6 = jnp.array([0.0, 7.5])
+X06 = jnp.array([1.0, -0.5, 0.8])
+
+
+def _terminal(T, rtol, declared):
+    obs = eqx.tree_at(lambda o: o.T, LSR3, T)
+    plant = SWITCH if declared else SWITCH_UNDECLARED
+    tr = obsjax.simulate(plant, obs, X06, jnp.zeros(3), TS6, rtol=rtol, atol=rtol * 1e-2, max_segments=4)
+    return jnp.sum(tr.error[-1] ** 2)
+
+
+_TERMINAL = jax.jit(_terminal, static_argnums=2)
+_TERMINAL_GRAD = jax.jit(jax.grad(_terminal), static_argnums=2)
+
+
+def test_reset_period_gradient_with_several_jumps_per_segment():
+    """Issue item 6: a 3-state plant switching every 0.3 s, T = 1.93 (every reset segment of [0, 7.5] holds
+    5-6 jumps), terminal squared error: d/dT against central differences at rtol 1e-6 and 1e-10."""
+    T, h = 1.93, 1e-4
+    edges = np.append(np.arange(4) * T, 7.5)
+    jumps = np.asarray(SWITCH.jump_ts)
+    assert min(np.sum((jumps > a) & (jumps < b)) for a, b in zip(edges[:-1], edges[1:])) >= 5
+    for rtol, tol in ((1e-6, 1e-3), (1e-10, 1e-6)):
+        g = float(_TERMINAL_GRAD(T, rtol, True))
+        fd = (float(_TERMINAL(T + h, rtol, True)) - float(_TERMINAL(T - h, rtol, True))) / (2 * h)
+        assert abs(g) > 1e-3
+        np.testing.assert_allclose(g, fd, rtol=tol)
+
+
+def test_undeclared_jumps_give_finite_gradients():
+    """Steps across an undeclared switch leave the LSR gain's domain on rejected steps (NaN stages); their
+    gradient is zero, so the derivative is finite (not exact: declare the jumps)."""
+    for rtol in (1e-6, 1e-10):
+        assert np.isfinite(float(_TERMINAL_GRAD(1.93, rtol, False)))
+    x_grad = jax.grad(lambda x0: jnp.sum(sim(SWITCH_UNDECLARED, LSR3, x0, jnp.zeros(3), TS6).error[-1] ** 2))
+    assert np.all(np.isfinite(x_grad(X06)))
+
+
+# ---------------------------------------------------------------- events: sampled-data observers
+
+
+class SampledLuenberger(obsjax.AbstractObserver):
+    """x̂' = A x̂ + B u between samples, x̂⁺ = x̂ + K (y − C x̂) at t0 + k h, k < n (a sampled-data observer;
+    the count n is static, so the horizon may be traced)."""
+
+    model: obsjax.LTI
+    K: jax.Array
+    h: float = eqx.field(static=True)
+    n: int = eqx.field(static=True)
+
+    def init(self, t0, xhat0, y0):
+        return xhat0
+
+    def vector_field(self, t, z, y, u):
+        return self.model.A @ z + self.model.B @ u
+
+    def estimate(self, t, z, y):
+        return z
+
+    def event_times(self, t0, t1):
+        return t0 + self.h * jnp.arange(self.n)
+
+    def update(self, t, z, y, u):
+        return z + self.K @ (y - self.model.C @ z)
+
+
+SAMPLED = SampledLuenberger(PLANT, jnp.array([[0.6], [0.3]]), 0.25, 10)  # the 10th sample is past t1 = 2
+TS_EV = np.linspace(0.0, 2.0, 17)  # every 0.125: on and between the samples; the last sample is t1
+U = obsjax.signals.multisine([1.0, 0.5], [1.0, 2.7])
+
+
+def _sampled_closed_form(K, x0, xh0):
+    """x̃ = x̂ − x: x̃ ← (I − K C) x̃ at each sample (t0 included), x̃' = A x̃ between (u cancels)."""
+    M = np.eye(2) - np.asarray(K) @ C28
+    out, e, last = [], M @ np.asarray(xh0 - x0), 0.0
+    for t in TS_EV:
+        k = np.floor(t / 0.25 + 1e-9)
+        while last < k * 0.25 - 1e-12:
+            e = M @ scipy.linalg.expm(A28 * 0.25) @ e
+            last += 0.25
+        out.append(scipy.linalg.expm(A28 * (t - last)) @ e)
+    return np.stack(out)
+
+
+def test_sampled_data_observer_matches_the_discrete_closed_form():
+    ref = _sampled_closed_form(SAMPLED.K, X0, XH0)
+    a = sim(PLANT, SAMPLED, X0, XH0, TS_EV, u=U, rtol=1e-11, atol=1e-13)
+    b = sim(PLANT, SAMPLED, X0, XH0, TS_EV, u=U, adaptive=False, dt0=1e-2)  # the tableau scan
+    c = jax.jit(lambda ts: sim(PLANT, SAMPLED, X0, XH0, ts, u=U, rtol=1e-11, atol=1e-13).error)(TS_EV)  # traced
+    assert int(a.status) == int(b.status) == 0
+    np.testing.assert_allclose(a.error, ref, atol=1e-9)
+    np.testing.assert_allclose(b.error, ref, atol=1e-9)
+    np.testing.assert_allclose(c, ref, atol=1e-9)
+
+
+def test_events_in_lock_step_and_their_gradient():
+    x0s = jnp.array([[1.0, -1.0], [0.5, 2.0], [-1.0, 0.0]])
+    xh0s = jnp.zeros((3, 2))
+    lock = obsjax.simulate_batch(PLANT, SAMPLED, x0s, xh0s, TS_EV, rtol=1e-11, atol=1e-13)
+    for i in range(3):
+        np.testing.assert_allclose(lock.error[i], _sampled_closed_form(SAMPLED.K, x0s[i], xh0s[i]), atol=1e-9)
+
+    @jax.jit
+    def loss(k):
+        obs = eqx.tree_at(lambda o: o.K, SAMPLED, jnp.array([[k], [0.3]]))
+        return jnp.sum(sim(PLANT, obs, X0, XH0, TS_EV, rtol=1e-11, atol=1e-13).error ** 2)
+
+    g = jax.grad(loss)(0.6)
+    ref = lambda k: np.sum(_sampled_closed_form(np.array([[k], [0.3]]), X0, XH0) ** 2)
+    np.testing.assert_allclose(g, (ref(0.6 + 1e-5) - ref(0.6 - 1e-5)) / 2e-5, rtol=1e-6)
+
+
+class _Recorder(obsjax.AbstractObserver):
+    """z = (clock, last clock seen by an event, last y seen by an event); resets zero the clock."""
+
+    def init(self, t0, xhat0, y0):
+        return (jnp.zeros(()), jnp.full((), -1.0), jnp.zeros(1))
+
+    def vector_field(self, t, z, y, u):
+        return (jnp.ones(()), jnp.zeros(()), jnp.zeros(1))
+
+    def estimate(self, t, z, y):
+        return jnp.zeros(2)
+
+    @property
+    def reset_period(self):
+        return jnp.asarray(0.5)
+
+    def reset(self, t, z):
+        return (jnp.zeros(()), z[1], z[2])
+
+    def event_times(self, t0, t1):
+        return np.array([0.0, 0.3, 0.5, 1.0])
+
+    def update(self, t, z, y, u):
+        return (z[0], z[0], y)
+
+
+def test_event_semantics_reset_first_then_update_with_the_measurement():
+    ts = np.array([0.0, 0.3, 0.4, 0.5, 0.75, 1.0])
+    for kw in (dict(rtol=1e-10, atol=1e-12), dict(adaptive=False, dt0=0.01)):
+        tr = sim(PLANT, _Recorder(), X0, XH0, ts, **kw)
+        clock, seen, y_seen = tr.z
+        # resets at t0 + kT < t1 only (none at t1 = 1.0); events on all of [t0, t1]
+        np.testing.assert_allclose(clock, [0.0, 0.3, 0.4, 0.0, 0.25, 0.5], atol=1e-9)
+        # events at 0 and 0.3 record the clock; at 0.5 the reset (first) has zeroed it; at t1 no reset
+        np.testing.assert_allclose(seen, [0.0, 0.3, 0.3, 0.0, 0.0, 0.5], atol=1e-9)
+        # the update sees y(t_e): the saved measurement at the same instant
+        at = np.array([0, 1, 3, 5])
+        np.testing.assert_allclose(np.asarray(y_seen)[at], np.asarray(tr.y)[at], atol=1e-9)
+
+
+# ---------------------------------------------------------------- item 4: lock-step batches isolate failures
+
+CUBIC = obsjax.Nonlinear(lambda t, x, u: -x + x**3, lambda t, x, u: x, n=1, m=1)  # escapes for |x0| > 1
+CUBIC_OBS = obsjax.Luenberger.from_poles(obsjax.LTI([[-1.0]], None, [[1.0]]), [-3.0])
+TS_C = np.linspace(0.0, 1.0, 11)
+TIGHT = dict(rtol=1e-8, atol=1e-10)
+
+
+def test_lockstep_batch_isolates_failing_members():
+    """64 members, 3 escaping in finite time: exactly those 3 fail; the other 61 equal independent solves."""
+    x0s = jnp.linspace(-0.9, 0.9, 64)[:, None]
+    bad = np.array([5, 30, 50])
+    x0s = x0s.at[bad, 0].set(jnp.array([1.5, 1.3, -1.4]))
+    xh0s = jnp.zeros((64, 1))
+    lock = obsjax.simulate_batch(CUBIC, CUBIC_OBS, x0s, xh0s, TS_C, throw=False, **TIGHT)
+    alone = jax.vmap(lambda a, b: sim(CUBIC, CUBIC_OBS, a, b, TS_C, **TIGHT))(x0s, xh0s)
+    np.testing.assert_array_equal(np.flatnonzero(np.asarray(lock.status)), bad)
+    np.testing.assert_array_equal(lock.status, alone.status)
+    ok = np.asarray(lock.status) == 0
+    np.testing.assert_allclose(np.asarray(lock.error)[ok], np.asarray(alone.error)[ok], atol=1e-7)
+
+
+def _x0_cubic(key):
+    k1, k2 = jax.random.split(key)
+    return jnp.where(jax.random.uniform(k1) < 0.08, 1.5, jax.random.uniform(k2, (1,), minval=-0.9, maxval=0.9))
+
+
+def test_monte_carlo_lockstep_counts_only_the_failing_members():
+    kw = dict(x0_sampler=_x0_cubic, xhat0_sampler=np.zeros(1), ts=TS_C, chunk_size=64, progress=False,
+              simulate_kwargs=TIGHT)
+    lock = obsjax.monte_carlo(CUBIC, CUBIC_OBS, jax.random.key(1), 64, lockstep=True, **kw)
+    alone = obsjax.monte_carlo(CUBIC, CUBIC_OBS, jax.random.key(1), 64, **kw)
+    assert 0 < alone.n_failed < 16
+    assert lock.n_failed == alone.n_failed
+    np.testing.assert_array_equal(lock.status > 0, alone.status > 0)
+    ok = alone.status == 0
+    np.testing.assert_allclose(lock.error_norm[ok], alone.error_norm[ok], atol=1e-7)
