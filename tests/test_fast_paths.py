@@ -78,10 +78,12 @@ def test_grid_puts_breakpoints_on_saves_resets_and_before_jumps():
     seen = []
     jax.jit(lambda t: seen.append(grid(t, 0.1, (np.zeros(0),) * 4, 1e-9)) or t)(jnp.array([0.0, 1.0]))
     assert seen == [None]  # traced save times: no concrete grid (simulate then uses diffrax)
-    # events: a node each, the update applied at the start of the interval they open (an event at t0 too)
-    g = _grid(np.array([0.0, 1.0]), 0.1, events=np.array([0.0, 0.45]))
-    np.testing.assert_allclose(g["start"], [0.0, 0.0, 0.45])
-    assert g["event"].tolist() == [True, False, True] and g["save_idx"].tolist() == [1, 3]
+    # events: a node each, the update applied at the start of the interval they open (an event at t0 too);
+    # a save time at a breakpoint shares its node (the state after it), except at t1
+    g = _grid(np.array([0.0, 1.0]), 0.1, events=np.array([0.0, 0.45, 1.0]))
+    np.testing.assert_allclose(g["start"], [0.0, 0.45, 1.0])
+    assert g["event"].tolist() == [True, True, True] and g["save_idx"].tolist() == [0, 3]
+    assert g["nsteps"].tolist() == [5, 6, 1] and g["h"][-1] == 0.0
 
 
 def test_fixed_step_scan_matches_diffrax_constant_steps_with_resets():

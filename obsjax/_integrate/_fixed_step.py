@@ -77,23 +77,38 @@ def grid(ts, dt0, breakpoints, tol):
     if not dt0 > 0:
         raise ValueError(f"`dt0` must be > 0 for fixed steps, got {dt0}.")
     times, is_reset, is_event, is_jump = breakpoints
-    # nodes (t, kind, reset, event, jump, save index); at one instant breakpoints come before the save.
-    nodes = [(float(t), 1, False, False, False, i) for i, t in enumerate(ts)]
-    for t, r, e, j in zip(times, is_reset, is_event, is_jump):
-        near = np.flatnonzero(np.abs(ts - t) <= tol)
-        t = float(ts[near[0]]) if near.size else float(t)
-        nodes.append((t, 0, bool(r), bool(e), bool(j), -1))
+    t1 = float(ts[-1])
+    # nodes (t, kind, reset, event, jump, save index): the breakpoints (moved onto a save time within tol),
+    # then the save times that are no breakpoint.  A save time at a breakpoint is the state after it, i.e.
+    # the node of the (last) breakpoint there, except at t1, where no interval starts after the node.
+    times = np.asarray(times, dtype=np.float64)
+    N = len(ts)
+    hi = np.clip(np.searchsorted(ts, times), 0, N - 1)
+    lo = np.clip(hi - 1, 0, N - 1)
+    near = np.where(np.abs(ts[lo] - times) <= np.abs(ts[hi] - times), lo, hi)
+    close = np.abs(ts[near] - times) <= tol
+    snapped = np.where(close, ts[near], times)
+    merged = np.zeros(N, bool)
+    merged[near[close & (ts[near] != t1)]] = True
+    nodes = [(float(t), 0, bool(r), bool(e), bool(j), -1)
+             for t, r, e, j in zip(snapped, is_reset, is_event, is_jump)]
+    nodes += [(float(t), 1, False, False, False, i) for i, t in enumerate(ts) if not merged[i]]
     nodes.sort(key=lambda nd: (nd[0], nd[1]))
+    save_idx = np.zeros(N, np.int64)
+    last_breakpoint = {}
+    for k, nd in enumerate(nodes):
+        if nd[1] == 0:
+            last_breakpoint[nd[0]] = k
+        else:
+            save_idx[nd[5]] = k
+    for i in np.flatnonzero(merged):  # the state after the (last) breakpoint at that instant
+        save_idx[i] = last_breakpoint[float(ts[i])]
     t_node = np.array([nd[0] for nd in nodes])
     start, end = t_node[:-1], t_node[1:].copy()
     ends_at_jump = np.array([nd[4] for nd in nodes[1:]], bool)
     end[ends_at_jump] = np.maximum(np.nextafter(end[ends_at_jump], -np.inf), start[ends_at_jump])
     span = end - start
     nsteps = np.maximum(1, np.ceil(span / dt0 - 1e-9)).astype(np.int64)
-    save_idx = np.zeros(len(ts), np.int64)
-    for k, nd in enumerate(nodes):
-        if nd[5] >= 0:
-            save_idx[nd[5]] = k
     return dict(
         start=start,
         h=span / nsteps,
