@@ -91,9 +91,10 @@ def simulate(
     one solve per segment and applies the reset, then the update, at its start, so no solve ever steps
     across a discontinuity and gradients with respect to T are those of smooth solves.  A save time at a
     breakpoint sees the state after it.  A plant switch that is *not* declared is stepped over by the
-    adaptive solver (accurate to the tolerances, first order in the step across the switch); its gradients
-    stay finite (the proposed step size carries no gradient) but are only as accurate as the step grid
-    near the switch, so declare known switches.
+    adaptive solver (accurate to the tolerances, at the price of rejected steps); its gradients stay finite
+    (a rejected step whose stages left the domain of the vector field contributes zero) but are not
+    accurate: the discrete solution is not differentiable where a step straddles the switch.  Declare known
+    switches.
 
     **Back-ends** (``obsjax/_integrate/``): fixed steps of an explicit Runge–Kutta solver with concrete save
     times and breakpoints run as a direct ``lax.scan`` over the Butcher tableau; everything else runs one

@@ -9,9 +9,10 @@ Failure isolation.  One member must not decide the fate of the others:
 
 - a member whose state becomes non-finite stops participating (its error is ignored); a member whose
   candidate step is not finite (a too-long step) rejects the step like any other, until it is evicted;
-- a member that alone would force the shared step below a floor, dt_floor = (t1 − t0)/max_steps (the pace at
-  which max_steps would just cover the horizon), while the median member's demanded step is above it, is
-  *evicted*: it stops participating for the rest of the solve;
+- a member that alone forces the shared step below a floor, dt_floor = (t1 − t0)/max_steps (the pace at
+  which max_steps would just cover the horizon), while the median member's demanded step is above it, for
+  ``PATIENCE`` consecutive steps (a stiffness or an escape, not the few short steps around a kink of an
+  input), is *evicted*: it stops participating for the rest of the solve;
 - afterwards every evicted or non-finite member, and every member if the shared solve itself failed, is
   integrated again alone by the diffrax back-end (``_diffrax.py``, the path :func:`obsjax.simulate` takes),
   and its result and status replace the lock-step ones.  The others keep their lock-step result.
@@ -32,9 +33,12 @@ import numpy as np
 
 from . import _diffrax, _segments, _system
 from ._schedule import Schedule
-from ._status import COLLAPSE_ULPS, SUCCESS, is_finite
+from ._status import COLLAPSE_ULPS, SUCCESS, frozen, is_finite
 
 tmap = jax.tree_util.tree_map
+
+# Consecutive steps a member may hold the shared step below the floor before it is evicted.
+PATIENCE = 32
 
 
 def member_rms(y):
@@ -54,8 +58,9 @@ def lockstep_norm(y):
 class LockstepController(diffrax.AbstractAdaptiveStepSizeController):
     """Integral step-size control on the worst participating member, with eviction (module docstring).
 
-    Its state is the (B,) mask of evicted members; a solve starts from the mask passed in ``args[1]``, so a
-    member evicted in one segment stays out of the later ones.  The proposed step carries no gradient.
+    Its state is the (B,) mask of evicted members and a (B,) count of consecutive steps below the floor; a
+    solve starts from the mask passed in ``args[1]``, so a member evicted in one segment stays out of the
+    later ones.  The proposed step carries no gradient.
     """
 
     rtol: float | jax.Array
@@ -75,10 +80,11 @@ class LockstepController(diffrax.AbstractAdaptiveStepSizeController):
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         pid = diffrax.PIDController(rtol=self.rtol, atol=self.atol, norm=lockstep_norm)
-        tnext, _ = pid.init(terms, t0, t1, y0, dt0, args, func, error_order)
-        return t0 + jax.lax.stop_gradient(tnext - t0), args[1]
+        tnext, _ = pid.init(terms, t0, t1, y0, dt0, args, func, error_order)  # t0 + a step without gradient
+        return tnext, (args[1], jnp.zeros(args[1].shape, jnp.int32))
 
-    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, evicted):
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, state):
+        evicted, count = state
         def scale(a, b, e):
             b = jnp.where(jnp.isnan(b), a, b)
             return e / (self.atol + jnp.maximum(jnp.abs(a), jnp.abs(b)) * self.rtol)
@@ -89,22 +95,25 @@ class LockstepController(diffrax.AbstractAdaptiveStepSizeController):
         # (a too-long step) rejects the step like any other, until it is evicted
         live = jax.vmap(is_finite)(y0)
         r = jnp.where(jnp.isfinite(r), r, jnp.inf)
-        evicted = evicted | self._outliers(r, evicted, live, dt, error_order)
+        count = jnp.where(self._outliers(r, evicted, live, dt, error_order), count + 1, 0)
+        evicted = evicted | (count >= PATIENCE)
         use = ~evicted & live
         err = jax.lax.stop_gradient(jnp.max(jnp.where(use, r, 0.0)))
         keep = err < 1
+        # the arithmetic of diffrax's PIDController (integral control), so that a batch without evictions
+        # takes the very steps it took with ``PIDController(norm=lockstep_norm)``
         factor = jnp.clip(
-            self.safety * err ** (-1.0 / error_order),
-            jnp.where(keep, 1.0, self.factormin),
-            jnp.where(keep, self.factormax, self.safety),
+            self.safety * (1 / err) ** (1 / error_order) * 1 * 1,
+            min=jnp.where(keep, 1, self.factormin),
+            max=jnp.where(keep, self.factormax, self.safety),
         )
+        step = dt * jax.lax.stop_gradient(factor).astype(jnp.result_type(dt))
         # as GuardedController: never below the smallest step, and a step at it is accepted
         at_floor = jax.lax.stop_gradient(dt) <= self.dt_min
         keep = keep | at_floor
-        step = jax.lax.stop_gradient(dt * factor)
-        step = jnp.where(step >= self.dt_min, step, self.dt_min)
         next_t0 = jnp.where(keep, t1, t0)
-        return keep, next_t0, next_t0 + step, False, evicted, diffrax.RESULTS.successful
+        next_t1 = jnp.where(at_floor | (step < self.dt_min), next_t0 + self.dt_min, next_t0 + step)
+        return keep, next_t0, frozen(next_t1, next_t0), False, (evicted, count), diffrax.RESULTS.successful
 
     def _outliers(self, r, evicted, live, dt, error_order):
         """Members whose own demanded step is below the floor while the median member's is above it."""
@@ -144,17 +153,25 @@ def _drift(t, y, a):
     return per_member(args_b, lambda ai, xx, zz: _system.drift(t, (xx, zz), ai))(x, z)
 
 
+def _fresh(fn):
+    """A new function object for `fn`: diffrax caches the trace of ``diffeqsolve`` by its terms, and a batch
+    must not reuse a trace made with runtime checks in another mode (``monte_carlo`` traces its kernels with
+    checks as NaN), nor leave its own to ``simulate``; as a fresh closure per call it never does."""
+    return lambda t, y, a: fn(t, y, a)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Solve:
     args_b: _system.Args
     opt: _diffrax.Options
     ctrl: LockstepController
+    drift: object
 
     def __call__(self, s0, s1, carry, save_ts):
         state, evicted = carry
         opt = self.opt
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(_drift), opt.solver, s0, s1, opt.dt0, state, args=(self.args_b, evicted),
+            diffrax.ODETerm(self.drift), opt.solver, s0, s1, opt.dt0, state, args=(self.args_b, evicted),
             saveat=diffrax.SaveAt(ts=save_ts, t1=True, controller_state=True),
             stepsize_controller=self.ctrl, max_steps=opt.max_steps, throw=False,
             **({} if opt.adjoint is None else {"adjoint": opt.adjoint}),
@@ -162,7 +179,7 @@ class _Solve:
         ok = sol.result == diffrax.RESULTS.successful
         code = jnp.where(ok, SUCCESS, 1).astype(jnp.int32)
         end = tmap(lambda a: a[-1], sol.ys)
-        return tmap(lambda a: a[:-1], sol.ys), code, (end, evicted | sol.controller_state)
+        return tmap(lambda a: a[:-1], sol.ys), code, (end, evicted | sol.controller_state[0])
 
 
 def integrate(args_b: _system.Args, state0, ts, sched: Schedule, opt: _diffrax.Options):
@@ -191,8 +208,10 @@ def integrate(args_b: _system.Args, state0, ts, sched: Schedule, opt: _diffrax.O
 
     carry0 = (state0, jnp.zeros((B,), bool))
     row = jax.eval_shape(lambda s: s, state0)
-    saved, code, (_, evicted) = _segments.integrate(_Solve(args_b, opt, ctrl), act, carry0, ts, sched, row)
-    return _isolate(args_b, state0, ts, sched, opt, saved, code, evicted)
+    solve = _Solve(args_b, opt, ctrl, _fresh(_drift))
+    saved, code, (_, evicted) = _segments.integrate(solve, act, carry0, ts, sched, row)
+    alone = dataclasses.replace(opt, drift=_fresh(_system.drift))
+    return _isolate(args_b, state0, ts, sched, alone, saved, code, evicted)
 
 
 def _isolate(args_b, state0, ts, sched, opt, saved, code, evicted):

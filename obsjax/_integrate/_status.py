@@ -25,8 +25,9 @@ failure.
 Gradients.  :class:`GuardedController` stops the gradient of the proposed step size: the time grid moves
 with the start of the solve (and of each segment) but does not depend on the state, so the derivative is
 that of a fixed grid, the consistent discretisation of the true sensitivity (the solution's derivative does
-not depend on the step choice).  Without it, reverse-mode derivatives through a step that lands on an
-undeclared discontinuity can come out NaN (a 0 × inf in the step-size update).
+not depend on the step choice).  A rejected step whose stages left the domain of the vector field would still
+poison reverse-mode derivatives (its cotangent is zero, its partial derivatives NaN); ``_diffrax.py`` gives
+such steps a zero gradient.
 """
 
 from __future__ import annotations
@@ -106,11 +107,11 @@ class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
         return eqx.tree_at(lambda c: c.inner, self, self.inner.wrap(direction))
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        # (diffrax's PID init already stops the gradient of its initial step: t0 + dt0 moves with t0)
         tnext, state = self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
-        dt = jax.lax.stop_gradient(tnext - t0)
         # a non-finite vector field at t0 gives a NaN first step: start small, the guard below takes over
-        dt = jnp.where(jnp.isfinite(dt) & (dt > 0), dt, jax.lax.stop_gradient(1e-6 * (t1 - t0)))
-        return t0 + dt, state
+        ok = jnp.isfinite(tnext) & (tnext > t0)
+        return jnp.where(ok, tnext, t0 + jax.lax.stop_gradient(1e-6 * (t1 - t0))), state
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
         keep, next_t0, next_t1, jump, state, result = self.inner.adapt_step_size(
@@ -122,5 +123,11 @@ class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
         at_floor = jax.lax.stop_gradient(t1 - t0) <= self.dt_floor
         keep = keep | at_floor
         next_t0 = jnp.where(at_floor, t1, next_t0)
-        dt = jnp.where(dt >= self.dt_floor, dt, self.dt_floor)
-        return keep, next_t0, next_t0 + dt, jump, state, result
+        low = at_floor | (dt < self.dt_floor)
+        next_t1 = jnp.where(low, next_t0 + self.dt_floor, next_t1)
+        return keep, next_t0, frozen(next_t1, next_t0), jump, state, result
+
+
+def frozen(t_next, t_start):
+    """``t_next`` (bit for bit) whose derivative is that of ``t_start``: the step length carries no gradient."""
+    return t_next - (t_next - jax.lax.stop_gradient(t_next)) + (t_start - jax.lax.stop_gradient(t_start))

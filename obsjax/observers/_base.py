@@ -74,10 +74,12 @@ class AbstractObserver(eqx.Module):
         scalars inside ``jit``).
 
         **Returns:** ``None`` or a 1-D array of non-decreasing times.  Its length must be known before
-        tracing (it sets the number of segments); its values may be traced (then ``simulate`` uses the
-        diffrax back-end, whose segment ends follow them, instead of the fixed-step scan).  Times outside
-        [t0, t1] are ignored; an event at t0 is applied right after ``init``, one at t1 before the last save;
-        a time listed twice is applied twice.
+        tracing (it sets the number of segments; with a traced horizon return a fixed number of times, those
+        past t1 are ignored).  Return NumPy values when the horizon is concrete: times known before tracing
+        let ``simulate`` use the fixed-step scan and size its save windows; traced times (JAX arrays, or
+        values that depend on traced leaves) are merged at run time by the diffrax back-end, whose segment
+        ends then follow them (differentiably).  Times outside [t0, t1] are ignored; an event at t0 is
+        applied right after ``init``, one at t1 before the last save; a time listed twice is applied twice.
         """
         return None
 
