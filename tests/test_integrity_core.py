@@ -135,6 +135,22 @@ def test_overflowing_error_with_a_finite_state_is_nonfinite():
         obsjax.simulate(PLANT, OBS, X0, xh0, TS)
 
 
+def _xhat0_sometimes_huge(key):
+    return jnp.where(jax.random.uniform(key) < 0.25, 1e200, 0.0) * jnp.ones(2)
+
+
+def test_overflowing_members_are_failures_of_a_study():
+    """Issue item 3 in a study: the overflowing rows are counted failed, and no statistic sees them."""
+    res = obsjax.monte_carlo(PLANT, OBS, jax.random.key(2), 32, x0_sampler=np.asarray(X0),
+                             xhat0_sampler=_xhat0_sometimes_huge, ts=TS, chunk_size=32, progress=False)
+    huge = np.array([float(_xhat0_sometimes_huge(jax.random.split(jax.random.fold_in(jax.random.key(2), i), 4)[1])[0])
+                     for i in range(32)]) > 0
+    assert 0 < huge.sum() < 32
+    np.testing.assert_array_equal(res.status == 2, huge)
+    assert res.n_failed == huge.sum()
+    assert np.all(np.isfinite(res.bands)) and np.all(np.isfinite(res.ise[~huge]))
+
+
 def test_nan_start_or_gain_stops_at_once():
     """A NaN x0 (or x̂0, or gain) is NONFINITE, found within a few steps: with a step budget that a regular run
     does not meet (status 1) the NaN runs still end with status 2, not by exhausting the budget."""
