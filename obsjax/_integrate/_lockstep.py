@@ -153,11 +153,28 @@ def _drift(t, y, a):
     return per_member(args_b, lambda ai, xx, zz: _system.drift(t, (xx, zz), ai))(x, z)
 
 
-def _fresh(fn):
-    """A new function object for `fn`: diffrax caches the trace of ``diffeqsolve`` by its terms, and a batch
-    must not reuse a trace made with runtime checks in another mode (``monte_carlo`` traces its kernels with
-    checks as NaN), nor leave its own to ``simulate``; as a fresh closure per call it never does."""
-    return lambda t, y, a: fn(t, y, a)
+_BY_MODE: dict = {}
+
+
+def _for_check_mode(fn):
+    """`fn`, or one function object per mode of equinox's runtime checks.
+
+    diffrax caches the trace of ``diffeqsolve`` by its terms; a batch must not reuse a trace made with the
+    runtime checks in another mode (``monte_carlo`` traces its kernels with checks as NaN, so that no host
+    callback serialises its shards), nor leave its own to a later call in the other mode.
+    """
+    try:
+        import equinox._errors as E
+
+        mode = E.EQX_ON_ERROR
+    except (ImportError, AttributeError):  # pragma: no cover
+        return fn
+    if mode == "raise":
+        return fn
+    key = (fn, mode)
+    if key not in _BY_MODE:
+        _BY_MODE[key] = lambda t, y, a: fn(t, y, a)
+    return _BY_MODE[key]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,9 +225,9 @@ def integrate(args_b: _system.Args, state0, ts, sched: Schedule, opt: _diffrax.O
 
     carry0 = (state0, jnp.zeros((B,), bool))
     row = jax.eval_shape(lambda s: s, state0)
-    solve = _Solve(args_b, opt, ctrl, _fresh(_drift))
+    solve = _Solve(args_b, opt, ctrl, _for_check_mode(_drift))
     saved, code, (_, evicted) = _segments.integrate(solve, act, carry0, ts, sched, row)
-    alone = dataclasses.replace(opt, drift=_fresh(_system.drift))
+    alone = dataclasses.replace(opt, drift=_for_check_mode(_system.drift))
     return _isolate(args_b, state0, ts, sched, alone, saved, code, evicted)
 
 
