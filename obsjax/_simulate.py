@@ -12,20 +12,20 @@ import jax.numpy as jnp
 from . import _integrate
 from ._config import require_x64
 from ._integrate import _validate
-from ._integrate._schedule import MAX_RESET_SEGMENTS as MAX_RESET_SEGMENTS
-from ._integrate._schedule import num_segments as num_segments
-from ._integrate._status import NONFINITE as NONFINITE
-from ._integrate._status import SOLVER_FAILED as SOLVER_FAILED
-from ._integrate._status import SUCCESS as SUCCESS
-from ._integrate._status import is_finite
+from ._integrate._schedule import MAX_RESET_SEGMENTS, num_segments
+from ._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, is_finite
 from ._integrate._system import Args as _Args
 from ._integrate._system import drift as _drift
 from ._integrate._system import initial_state, signals
 from ._integrate._validate import check_ts as _check_ts
 from .systems._noise import AbstractNoise, BandLimitedNoise, realise_band_limited
 
-__all__ = ["MAX_RESET_SEGMENTS", "NONFINITE", "SOLVER_FAILED", "SUCCESS", "Trajectory", "_Args", "_check_ts",
-           "_drift", "num_segments", "simulate"]
+# Also imported from here: the status codes, ``num_segments`` and ``_check_ts`` (monte_carlo, tune), ``_Args``
+# and ``_drift`` (tests, benchmarks).
+__all__ = [
+    "MAX_RESET_SEGMENTS", "NONFINITE", "SOLVER_FAILED", "SUCCESS", "Trajectory", "_Args", "_check_ts",
+    "_drift", "num_segments", "simulate",
+]
 
 
 class Trajectory(eqx.Module):

@@ -12,10 +12,11 @@ import jax.numpy as jnp
 from . import _integrate
 from ._config import require_x64
 from ._integrate import _validate
-from ._integrate._lockstep import lockstep_norm as lockstep_norm
-from ._integrate._lockstep import per_member
+from ._integrate._lockstep import lockstep_norm, per_member
 from ._integrate._system import initial_state
 from ._simulate import Trajectory, _Args, _raise_if, simulate, trajectory
+
+__all__ = ["lockstep_norm", "simulate_batch"]
 from .systems._noise import AbstractNoise, BandLimitedNoise, WhiteNoise, realise_band_limited
 
 

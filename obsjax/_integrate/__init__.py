@@ -12,6 +12,11 @@
 ``_segments.py`` is the segmented scan the diffrax and lock-step back-ends share; ``_system.py`` the joint
 plant–observer vector field and the jumps at breakpoints.  A new back-end is one file with one entry point
 ``integrate(args, state0, ...) -> ((xs, zs), code)`` and one branch in :func:`integrate` below.
+
+Reuse for other drivers (recorded data): ``_schedule.build(ts, ts_np, T, n_reset, jumps, event_times)``
+takes any ``event_times(t0, t1)`` callable (e.g. the sample times of a data set), and
+``_segments.integrate(solve, act, carry0, ts, schedule, row)`` runs any per-segment ``solve`` and any jump
+``act``, so a driver whose "plant" is interpolated data only supplies those two functions.
 """
 
 from __future__ import annotations

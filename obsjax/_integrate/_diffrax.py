@@ -72,7 +72,7 @@ def steps_budget(opt: Options) -> int | None:
     if opt.max_steps is None or opt.adaptive or opt.span is None or dt0 is None:
         return opt.max_steps
     t0c, t1c = opt.span
-    return max(opt.max_steps, int(math.ceil((t1c - t0c) / float(dt0))) + 16)
+    return max(opt.max_steps, math.ceil((t1c - t0c) / float(dt0)) + 16)
 
 
 def _finite_gradient_step(solver, terms, t0, t1, y0, args, solver_state, made_jump):

@@ -53,7 +53,7 @@ def num_segments(T, t0, t1) -> int | None:
             f"obsjax.simulate integrates at most {MAX_RESET_SEGMENTS} (T ≥ (t1 − t0)/{MAX_RESET_SEGMENTS} = "
             f"{(float(b) - float(a)) / MAX_RESET_SEGMENTS:.3g}). Raise T or shorten the horizon."
         )
-    return max(1, int(math.ceil(r - 1e-9 * max(1.0, r))))
+    return max(1, math.ceil(r - 1e-9 * max(1.0, r)))
 
 
 def reset_segments(T, ts, ts_np, max_segments) -> int:

@@ -81,7 +81,6 @@ class AbstractObserver(eqx.Module):
         ends then follow them (differentiably).  Times outside [t0, t1] are ignored; an event at t0 is
         applied right after ``init``, one at t1 before the last save; a time listed twice is applied twice.
         """
-        return None
 
     def update(self, t, z, y, u):
         """Discrete update z⁺ at an event time t (identity by default).
