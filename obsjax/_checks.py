@@ -39,15 +39,13 @@ def real_array(x, name: str) -> jax.Array:
     return arr
 
 
-def finite(x, name: str, what: str = "finite values"):
-    """Refuse NaN/inf in ``x`` when its value is known (eagerly); traced values pass (checked later, under
-    ``jit``, by the caller's ``eqx.error_if`` or the trajectory's status)."""
+def require_finite(x, name: str):
+    """``ValueError`` when the concrete value of `x` holds NaN or inf (naming `name` and the value);
+    traced values pass (checked under ``jit`` by the caller's ``eqx.error_if``, e.g.
+    ``observers._validation.traced_finite``, or by the trajectory's status)."""
     v = concrete_value(x)
     if v is not None and not np.all(np.isfinite(v)):
-        bad = np.argwhere(~np.isfinite(np.atleast_1d(v)))[0].tolist()
-        raise ValueError(
-            f"`{name}` must hold {what}, got {np.atleast_1d(v)[tuple(bad)]} at index {tuple(bad)}."
-        )
+        raise ValueError(f"`{name}` must be finite (no NaN or inf), got {np.asarray(v).tolist()}.")
     return x
 
 

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from .._checks import concrete_value, finite, real_array
+from .._checks import concrete_value, real_array, require_finite
 
 
 def _sigma(sigma):
@@ -35,7 +35,7 @@ def _sigma(sigma):
         raise ValueError(
             f"`sigma` must be a scalar or a vector (m,) (one intensity per output), got shape {tuple(arr.shape)}."
         )
-    finite(arr, "sigma")
+    require_finite(arr, "sigma")
     v = concrete_value(arr)
     if v is not None and np.any(v < 0):
         raise ValueError(f"`sigma` must be ≥ 0, got {v.tolist()}.")

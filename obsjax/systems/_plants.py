@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import finite, matrix, real_array
+from .._checks import matrix, real_array, require_finite
 
 
 def _jump_ts(jump_ts):
@@ -49,7 +49,7 @@ def _dimension(value, name, minimum):
 def _real_finite(x, name):
     """A real matrix with finite entries when its value is known (complex or NaN/inf is refused)."""
     arr = real_array(x, name)
-    finite(arr, name)
+    require_finite(arr, name)
     return arr
 
 

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import finite, real_array
+from .._checks import real_array, require_finite
 
 
 class Multisine(eqx.Module):
@@ -39,8 +39,8 @@ def multisine(amplitudes, frequencies, phases=None) -> Multisine:
 
     **Example:** ``u = obsjax.signals.multisine([1., .5, .2], [.7, 1.9, 3.1])``
     """
-    a = finite(real_array(amplitudes, "amplitudes"), "amplitudes")
-    w = finite(real_array(frequencies, "frequencies"), "frequencies")
+    a = require_finite(real_array(amplitudes, "amplitudes"), "amplitudes")
+    w = require_finite(real_array(frequencies, "frequencies"), "frequencies")
     if a.ndim == 0:
         a = a.reshape(1)
     if w.ndim == 0:
@@ -56,7 +56,7 @@ def multisine(amplitudes, frequencies, phases=None) -> Multisine:
     if phases is None:
         ph = jnp.zeros_like(a)
     else:
-        ph = finite(real_array(phases, "phases"), "phases")
+        ph = require_finite(real_array(phases, "phases"), "phases")
         if ph.size != a.size:
             raise ValueError(
                 f"`phases` must have the shape of `amplitudes` {tuple(a.shape)}, got {tuple(ph.shape)}."
@@ -76,4 +76,4 @@ class Constant(eqx.Module):
 
 def constant(value) -> Constant:
     """A constant input of shape (p,)."""
-    return Constant(jnp.atleast_1d(finite(real_array(value, "value"), "value")))
+    return Constant(jnp.atleast_1d(require_finite(real_array(value, "value"), "value")))
