@@ -76,7 +76,6 @@ def simulate(
     max_segments: int | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
-    _study: bool = False,
 ) -> Trajectory:
     """Simulate the true plant and an observer together, integrating the joint state (x, z).
 
@@ -156,7 +155,7 @@ def simulate(
     _validate.check_dimensions(plant, observer, x0, xhat0, ts[0], u, controller, noise)
     plan = _validate.plan(
         plant, observer, ts, ts_np, noise=noise, key=key, solver=solver, rtol=rtol, atol=atol, dt0=dt0,
-        adaptive=adaptive, max_steps=max_steps, max_segments=max_segments, adjoint=adjoint, study=_study,
+        adaptive=adaptive, max_steps=max_steps, max_segments=max_segments, adjoint=adjoint,
     )
     path = None
     if isinstance(noise, BandLimitedNoise):

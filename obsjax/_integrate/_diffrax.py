@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from collections.abc import Callable
 
 import diffrax
 import equinox as eqx
@@ -43,14 +42,11 @@ class Options:
     white_noise: WhiteNoise | None = None
     key: jax.Array | None = None
     span: tuple[float, float] | None = None  # concrete horizon (white noise needs it)
-    study: bool = False
-    drift: Callable | None = None  # another function object for the same vector field (a fresh trace)
 
 
 def terms_of(opt: Options, m: int):
     """The ODE term, or drift + white-noise diffusion driven by a virtual Brownian tree."""
-    drift = _system.drift_in_study if opt.study else _system.drift
-    drift = drift if opt.drift is None else opt.drift
+    drift = _system.for_check_mode(_system.drift)
     if opt.white_noise is None:
         return diffrax.ODETerm(drift)
     t0c, t1c = opt.span

@@ -33,7 +33,7 @@ import numpy as np
 
 from . import _diffrax, _segments, _system
 from ._schedule import Schedule
-from ._status import COLLAPSE_ULPS, SUCCESS, frozen, is_finite
+from ._status import COLLAPSE_ULPS, SOLVER_FAILED, SUCCESS, frozen, is_finite
 
 tmap = jax.tree_util.tree_map
 
@@ -153,30 +153,6 @@ def _drift(t, y, a):
     return per_member(args_b, lambda ai, xx, zz: _system.drift(t, (xx, zz), ai))(x, z)
 
 
-_BY_MODE: dict = {}
-
-
-def _for_check_mode(fn):
-    """`fn`, or one function object per mode of equinox's runtime checks.
-
-    diffrax caches the trace of ``diffeqsolve`` by its terms; a batch must not reuse a trace made with the
-    runtime checks in another mode (``monte_carlo`` traces its kernels with checks as NaN, so that no host
-    callback serialises its shards), nor leave its own to a later call in the other mode.
-    """
-    try:
-        import equinox._errors as E
-
-        mode = E.EQX_ON_ERROR
-    except (ImportError, AttributeError):  # pragma: no cover
-        return fn
-    if mode == "raise":
-        return fn
-    key = (fn, mode)
-    if key not in _BY_MODE:
-        _BY_MODE[key] = lambda t, y, a: fn(t, y, a)
-    return _BY_MODE[key]
-
-
 @dataclasses.dataclass(frozen=True)
 class _Solve:
     args_b: _system.Args
@@ -194,7 +170,7 @@ class _Solve:
             **({} if opt.adjoint is None else {"adjoint": opt.adjoint}),
         )
         ok = sol.result == diffrax.RESULTS.successful
-        code = jnp.where(ok, SUCCESS, 1).astype(jnp.int32)
+        code = jnp.where(ok, SUCCESS, SOLVER_FAILED).astype(jnp.int32)
         end = tmap(lambda a: a[-1], sol.ys)
         return tmap(lambda a: a[:-1], sol.ys), code, (end, evicted | sol.controller_state[0])
 
@@ -225,10 +201,9 @@ def integrate(args_b: _system.Args, state0, ts, sched: Schedule, opt: _diffrax.O
 
     carry0 = (state0, jnp.zeros((B,), bool))
     row = jax.eval_shape(lambda s: s, state0)
-    solve = _Solve(args_b, opt, ctrl, _for_check_mode(_drift))
+    solve = _Solve(args_b, opt, ctrl, _system.for_check_mode(_drift))
     saved, code, (_, evicted) = _segments.integrate(solve, act, carry0, ts, sched, row)
-    alone = dataclasses.replace(opt, drift=_for_check_mode(_system.drift))
-    return _isolate(args_b, state0, ts, sched, alone, saved, code, evicted)
+    return _isolate(args_b, state0, ts, sched, opt, saved, code, evicted)
 
 
 def _isolate(args_b, state0, ts, sched, opt, saved, code, evicted):

@@ -2,12 +2,15 @@
 
 ``Trajectory.status``:
 
-- ``SUCCESS`` (0): the solve reached the end of the horizon and every saved x, x̂, y is finite, and so is
+- ``SUCCESS`` (0): the solve reached the end of the horizon and every saved x, z, x̂, y is finite, and so is
   Σ‖x̃‖² over the save grid (an error norm that overflows is not a success).
 - ``SOLVER_FAILED`` (1): the solver did not reach the end of the horizon with finite values: ``max_steps``
   reached, or an implicit solver's Newton iteration failed.
-- ``NONFINITE`` (2): the state, the estimate, the measurement or the error became non-finite or overflowed
-  (including a NaN initial state or gain), i.e. the trajectory diverged.
+- ``NONFINITE`` (2): the plant or observer state, the estimate, the measurement or the error became
+  non-finite or overflowed (including a NaN initial state or gain), i.e. the trajectory diverged.
+
+Every back-end (``_diffrax.py``, ``_fixed_step.py``, ``_lockstep.py``, ``_adaptive_rk.py``) and every study
+(``monte_carlo``, ``tune``) uses these codes.
 
 Early stop.  A solve whose state becomes non-finite would make diffrax reject every further step (its error
 estimate is NaN) until ``max_steps``.  Two guards prevent that.  The event :func:`divergence_event` ends the

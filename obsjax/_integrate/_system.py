@@ -57,11 +57,31 @@ def drift(t, state, args: Args):
     return args.plant.f(t, x, u), args.observer.vector_field(t, z, y, u)
 
 
-def drift_in_study(t, state, args):
-    """The same vector field as :func:`drift`, as a distinct function: diffrax caches the trace of
-    ``diffeqsolve`` by its terms, so studies (``monte_carlo``, which traces its kernel with runtime checks as
-    NaN) never reuse a trace made outside one, nor leave theirs to ``simulate``."""
-    return drift(t, state, args)
+_BY_MODE: dict = {}
+
+
+def for_check_mode(fn):
+    """`fn`, or one function object per mode of equinox's runtime checks (``eqx.error_if``).
+
+    diffrax caches the trace of ``diffeqsolve`` by its terms, i.e. by the vector field's function object.  A
+    solve traced with the checks in another mode (``monte_carlo`` traces its kernels with the checks as NaN,
+    so that a failing check marks a trajectory failed instead of raising, and no host callback serialises
+    its shards) must neither reuse a trace made in raise mode nor leave its own to a later call in raise
+    mode: outside raise mode each mode gets its own function object (created once, so traces are still
+    shared within a mode).
+    """
+    try:
+        import equinox._errors as E
+
+        mode = E.EQX_ON_ERROR
+    except (ImportError, AttributeError):  # pragma: no cover
+        return fn
+    if mode == "raise":
+        return fn
+    key = (fn, mode)
+    if key not in _BY_MODE:
+        _BY_MODE[key] = lambda t, y, a: fn(t, y, a)
+    return _BY_MODE[key]
 
 
 def initial_state(args: Args, t0, x0, xhat0):

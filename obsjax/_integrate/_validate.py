@@ -214,7 +214,7 @@ class Plan:
 
 
 def plan(plant, observer, ts, ts_np, *, noise, key, solver, rtol, atol, dt0, adaptive, max_steps,
-         max_segments, adjoint, study=False) -> Plan:
+         max_segments, adjoint) -> Plan:
     """Resolve the options (solver, white-noise SDE settings) and build the schedule."""
     span = None
     if isinstance(noise, WhiteNoise):
@@ -228,7 +228,7 @@ def plan(plant, observer, ts, ts_np, *, noise, key, solver, rtol, atol, dt0, ada
         solver=pick_solver(solver, observer, ts_np, noise), rtol=rtol, atol=atol, dt0=dt0,
         adaptive=bool(adaptive), max_steps=max_steps, adjoint=adjoint,
         white_noise=noise if isinstance(noise, WhiteNoise) else None,
-        key=key if isinstance(noise, WhiteNoise) else None, span=span, study=study,
+        key=key if isinstance(noise, WhiteNoise) else None, span=span,
     )
     T = observer.reset_period
     n_reset = 1 if T is None else _schedule.reset_segments(T, ts, ts_np, max_segments)

@@ -18,7 +18,7 @@ import numpy as np
 
 from .._checks import as_float_array
 from .._config import require_x64
-from .._simulate import _check_ts, num_segments, simulate
+from .._simulate import NONFINITE, SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch
 from ..observers._base import AbstractObserver
 from ..systems._noise import AbstractNoise
@@ -144,7 +144,7 @@ class MonteCarloResult:
     @property
     def ok(self) -> np.ndarray:
         """(N,) mask of the successful trajectories."""
-        return self.status == 0
+        return self.status == SUCCESS
 
     @property
     def converged_fraction(self) -> float:
@@ -309,9 +309,9 @@ def summarise(
         )
     done = status >= 0
     ise_all = _trapz_sq(ts, norms)
-    overflow = (status == 0) & ~(np.all(np.isfinite(norms), axis=1) & np.isfinite(ise_all))
-    status[overflow] = 2  # NONFINITE: the solver finished, the error did not stay finite
-    ok = status == 0
+    overflow = (status == SUCCESS) & ~(np.all(np.isfinite(norms), axis=1) & np.isfinite(ise_all))
+    status[overflow] = NONFINITE  # the solver finished, the error did not stay finite
+    ok = status == SUCCESS
     norms[~ok] = np.nan
     ct = np.full(status.shape, np.nan)
     ise = np.full(status.shape, np.nan)
@@ -381,7 +381,6 @@ def _one(dyn, cfg: _Config, key, i):
         key=kn if noise is not None else None,
         throw=False,
         max_segments=cfg.max_segments,
-        _study=True,
         **dict(cfg.sim_kwargs),
     )
     return traj.error_norm, traj.status
