@@ -39,7 +39,8 @@ class Trajectory(eqx.Module):
     - `z`: observer state pytree, each leaf with a leading axis of length T.
     - `status`: int, 0 success, 1 solver failure (max_steps reached), 2 non-finite values
       (the trajectory diverged, a value overflowed or an input was NaN); see ``throw``.  Rows after a solve
-      stopped early (status 1 or 2) are not meaningful.
+      stopped early (status 1 or 2) are not meaningful: with ``throw=True`` every other field carries the
+      check of the status (reading any of them raises), with ``throw=False`` read the status first.
     """
 
     ts: jax.Array
@@ -100,9 +101,10 @@ def simulate(
     ``diffrax.diffeqsolve`` per segment.
 
     **Status.**  0 success; 1 the solver did not reach the end of the horizon (``max_steps``, an implicit
-    solver's failed Newton iteration); 2 non-finite: the state, estimate, measurement or error became NaN/inf or Σ‖x̃‖² overflowed, including a
-    NaN initial state or gain.  A diverging solve stops as soon as its state is no longer finite (it does not
-    burn ``max_steps``).
+    solver's failed Newton iteration); 2 non-finite: the plant state, observer state, estimate, measurement
+    or error became NaN/inf or a sum of their squares (Σ‖x̃‖² included) overflowed, including a NaN initial
+    state or gain.  A diverging solve stops as soon as its state is no longer finite (it does not burn
+    ``max_steps``).
 
     **Arguments:**
 
@@ -131,8 +133,9 @@ def simulate(
     - `max_segments`: number of reset segments, needed only when the reset period is traced under ``jit``
       (outside ``jit`` it is computed as ceil((t1 − t0) / T)); must satisfy max_segments·T ≥ t1 − t0.  At
       most ``MAX_RESET_SEGMENTS`` (100 000) reset segments are integrated: a shorter period is refused.
-    - `throw`: raise on solver failure or non-finite values; ``False`` returns ``status`` instead, so a failing
-      member of a vmapped batch does not poison the rest.
+    - `throw`: raise on solver failure or non-finite values (the check is attached to every array of the
+      trajectory, so it fires under ``jit`` whichever field is read); ``False`` returns ``status`` instead, so
+      a failing member of a vmapped batch does not poison the rest.
 
     **Returns:** a :class:`obsjax.Trajectory`.
 
@@ -176,26 +179,30 @@ def trajectory(args: _Args, ts, xs, zs, code) -> Trajectory:
 
     y, xhat = jax.vmap(outputs)(ts, xs, zs)
     error = xhat - jax.vmap(args.observer.target)(ts, xs)
-    finite = is_finite((xs, xhat, y)) & is_finite(error)
+    finite = is_finite((xs, xhat, y)) & is_finite(error) & is_finite(zs)
     status = jnp.where(code != SUCCESS, code, jnp.where(finite, SUCCESS, NONFINITE)).astype(jnp.int32)
     return Trajectory(ts=ts, x=xs, xhat=xhat, y=y, error=error, z=zs, status=status)
 
 
 def _raise_if(traj: Trajectory, throw: bool, who: str, status) -> Trajectory:
+    """With `throw`, every array of the trajectory (x, x̂, y, x̃, z) carries the check of its status, so a
+    computation that reads any of them (under ``jit`` too) raises on a failed trajectory."""
     if not throw:
         return traj
-    error = eqx.error_if(
-        traj.error,
+    fields = (traj.x, traj.xhat, traj.y, traj.error, traj.z)
+    fields = eqx.error_if(
+        fields,
         jnp.any(status == SOLVER_FAILED),
         f"{who}: the solver did not reach the end of the horizon (max_steps reached, or an implicit "
         "solver failed). Raise `max_steps`, loosen `rtol`/`atol`, or use an implicit solver for a stiff observer; "
         "pass throw=False to get a per-trajectory status instead.",
     )
-    error = eqx.error_if(
-        error,
+    fields = eqx.error_if(
+        fields,
         jnp.any(status == NONFINITE),
         f"{who}: the trajectory diverged or contains non-finite values (the plant or the observer diverged, "
         "a value overflowed, or an initial state or gain is NaN/inf). Pass throw=False to get a "
         "per-trajectory status instead.",
     )
-    return eqx.tree_at(lambda t: t.error, traj, error)
+    x, xhat, y, error, z = fields
+    return Trajectory(ts=traj.ts, x=x, xhat=xhat, y=y, error=error, z=z, status=traj.status)

@@ -63,7 +63,8 @@ def test_dimension_mismatch_names_the_argument(case):
     call, name = SHAPE_CASES[case]
     with pytest.raises(ValueError, match="must|expects|has") as e:
         call()
-    assert name in str(e.value) and "got" in str(e.value) or "but `plant` has" in str(e.value), str(e.value)
+    msg = str(e.value)
+    assert name in msg and ("got" in msg or "but `plant` has" in msg), msg
 
 
 VALUE_CASES = {
@@ -149,6 +150,45 @@ def test_overflowing_members_are_failures_of_a_study():
     np.testing.assert_array_equal(res.status == 2, huge)
     assert res.n_failed == huge.sum()
     assert np.all(np.isfinite(res.bands)) and np.all(np.isfinite(res.ise[~huge]))
+
+
+def test_every_field_of_a_failed_trajectory_carries_the_failure():
+    """With throw=True a computation that reads only x, x̂, y or z (not x̃) of a failed trajectory still raises
+    under jit (the check is not dead code of an unread field); with throw=False the status says so."""
+    xh0 = jnp.array([1e200, 0.0])  # finite estimate, overflowing Σ‖x̃‖²
+    for field in ("x", "xhat", "y", "z"):
+        f = jax.jit(lambda xh, field=field: getattr(obsjax.simulate(PLANT, OBS, X0, xh, TS), field))
+        with pytest.raises(Exception, match="diverged or contains non-finite"):
+            jax.block_until_ready(f(xh0))
+
+
+class _HiddenState(obsjax.AbstractObserver):
+    """The estimate is a Luenberger-like copy; a second state leaf becomes NaN without reaching x̂."""
+
+    def init(self, t0, xhat0, y0):
+        return (xhat0, jnp.zeros(()))
+
+    def vector_field(self, t, z, y, u):
+        return (-z[0], jnp.where(t > 0.5, jnp.nan, 0.0))
+
+    def estimate(self, t, z, y):
+        return z[0]
+
+
+def test_a_nonfinite_observer_state_is_nonfinite_even_if_the_estimate_is_finite():
+    fixed = sim(PLANT, _HiddenState(), X0, XH0, TS, adaptive=False, dt0=0.05)  # the tableau scan
+    assert np.all(np.isfinite(fixed.xhat)) and np.all(np.isfinite(fixed.error))
+    assert int(fixed.status) == 2
+    assert int(sim(PLANT, _HiddenState(), X0, XH0, TS).status) == 2  # diffrax segments stop at once
+
+
+def test_traced_reset_period_must_be_covered_by_max_segments():
+    """Under jit the bound max_segments·T ≥ t1 − t0 is checked (too small a bound would drop resets)."""
+    lsr = obsjax.LeastSquaresReset(PLANT, gamma=1.0, p0=1.0, T=1.5)
+    f = jax.jit(lambda T: sim(PLANT, eqx.tree_at(lambda o: o.T, lsr, T), X0, XH0, TS, max_segments=2).status)
+    assert int(f(1.5)) == 0
+    with pytest.raises(Exception, match="raise `max_segments`"):
+        jax.block_until_ready(f(0.3))
 
 
 def test_nan_start_or_gain_stops_at_once():

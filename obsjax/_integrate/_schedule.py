@@ -149,9 +149,18 @@ class _Part:
 
 def build(ts, ts_np, T, n_reset, jumps, event_times) -> Schedule:
     """Merge resets (n_reset − 1 of them), plant jumps and observer events into a :class:`Schedule`."""
-    t0, t1 = ts[0], ts[-1]
     tol = tolerance(ts_np[-1] - ts_np[0]) if ts_np is not None else None
-    tol_rt = tol if tol is not None else 1e-9 * jnp.maximum(1.0, t1 - t0)
+    tol_rt = tol if tol is not None else 1e-9 * jnp.maximum(1.0, ts[-1] - ts[0])
+    if T is not None and (ts_np is None or concrete_value(T) is None):
+        # A traced period must be covered by the bound (n_reset segments of length T reach t1), or the last
+        # resets would silently be dropped: checked under jit.
+        Tt = jnp.asarray(T, dtype=ts.dtype)
+        ts = eqx.error_if(
+            ts, ~(ts[0] + n_reset * Tt >= ts[-1] - tol_rt),
+            f"the reset period T (traced) needs more than `max_segments` = {n_reset} reset segments to "
+            "cover [ts[0], ts[-1]] (max_segments·T < t1 − t0, or T is not finite and > 0): raise "
+            "`max_segments`.",
+        )
     parts = [
         _resets(ts, ts_np, T, n_reset, tol, tol_rt),
         _jumps(ts, ts_np, jumps, tol, tol_rt),
