@@ -131,7 +131,7 @@ def _events(event_times, t0, t1, ts_np):
             raise ValueError("`observer.event_times(t0, t1)` must return finite times.")
         if np.any(np.diff(v) < 0):
             raise ValueError("`observer.event_times(t0, t1)` must return non-decreasing times.")
-    elif ev.shape[0] > 1:
+    elif ev.shape[0] >= 1:
         ev = eqx.error_if(
             ev, jnp.any(jnp.diff(ev) < 0) | jnp.any(~jnp.isfinite(ev)),
             "`observer.event_times(t0, t1)` must return finite, non-decreasing times.",

@@ -24,13 +24,30 @@ from . import _schedule
 from ._diffrax import Options
 
 
-def check_types(plant, observer, noise):
+def check_plant(plant):
     if not isinstance(plant, AbstractSystem):
         raise ValueError(f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}.")
+
+
+def check_observer(observer):
     if not isinstance(observer, AbstractObserver):
         raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
+
+
+def check_noise(noise):
     if noise is not None and not isinstance(noise, (WhiteNoise, BandLimitedNoise)):
-        raise ValueError(f"`noise` must be WhiteNoise or BandLimitedNoise, got {type(noise).__name__}.")
+        raise ValueError(
+            "`noise` must be an obsjax noise model (obsjax.noise.WhiteNoise or BandLimitedNoise) or None, "
+            f"got {type(noise).__name__}."
+        )
+
+
+def check_types(plant, observer, noise):
+    """The types of the plant, the observer and the noise (``simulate``, ``simulate_batch``, ``tune``,
+    ``monte_carlo``)."""
+    check_plant(plant)
+    check_observer(observer)
+    check_noise(noise)
 
 
 def concrete_times(ts):

@@ -18,11 +18,9 @@ import numpy as np
 
 from .._checks import as_float_array
 from .._config import require_x64
+from .._integrate import _validate
 from .._simulate import NONFINITE, SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch
-from ..observers._base import AbstractObserver
-from ..systems._noise import AbstractNoise
-from ..systems._plants import AbstractSystem
 from ._checkpoint import read_checkpoint as _resume
 from ._checkpoint import write_chunk
 from ._fingerprint import fingerprint
@@ -625,8 +623,9 @@ def monte_carlo(
       (:func:`obsjax.simulate_batch`: one adaptive solve whose step every member accepts) instead of a
       ``jax.vmap`` of independent solves.  Several times faster on the CPU for adaptive solves of alike
       trajectories; but the steps then depend on which trajectories share a batch, so results agree with
-      the default only to the solver tolerance (not bitwise across chunk sizes or device counts), and a
-      solver failure (not a non-finite trajectory) fails the whole shard.  Needs ``param_sampler=None``.
+      the default only to the solver tolerance (not bitwise across chunk sizes or device counts).  A member
+      that fails (or alone drags the shared step down) is integrated again alone, so only the members that
+      fail on their own are counted failed.  Needs ``param_sampler=None``.
     - `study_id`: an optional name of the study, added to the checkpoint fingerprint; needed only to
       checkpoint a study whose samplers or plant read objects that cannot be fingerprinted by
       content.
@@ -649,16 +648,7 @@ def monte_carlo(
         res.plot()
     """
     require_x64("obsjax.monte_carlo")
-    if not isinstance(plant, AbstractSystem):
-        raise ValueError(
-            f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}."
-        )
-    if not isinstance(observer, AbstractObserver):
-        raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
-    if noise is not None and not isinstance(noise, AbstractNoise):
-        raise ValueError(
-            f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}."
-        )
+    _validate.check_types(plant, observer, noise)
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"`n` (the number of trajectories) must be a positive integer, got {n!r}.")
     n = int(n)

@@ -15,10 +15,8 @@ import optax
 
 from .._checks import as_float_array
 from .._config import require_x64
+from .._integrate import _validate
 from .._simulate import SUCCESS, _check_ts, num_segments, simulate
-from ..observers._base import AbstractObserver
-from ..systems._noise import AbstractNoise
-from ..systems._plants import AbstractSystem
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
 BACKTRACK = 0.5
@@ -162,12 +160,8 @@ def _is_int(x) -> bool:
 def _check_types(
     observer, plant, where, loss, optimizer, steps, positive, rtol, patience, max_rejections
 ):
-    if not isinstance(observer, AbstractObserver):
-        raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
-    if not isinstance(plant, AbstractSystem):
-        raise ValueError(
-            f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}."
-        )
+    _validate.check_observer(observer)
+    _validate.check_plant(plant)
     if not callable(where):
         raise ValueError(
             f"`where` must be a callable selecting the tuned leaves (e.g. lambda o: o.poles), got "
@@ -223,10 +217,7 @@ def _check_data(plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_k
         if not bool(jnp.all(jnp.isfinite(arr))):
             raise ValueError(f"`{name}` must be finite, got NaN or inf entries.")
     ts_np = np.asarray(_check_ts(ts), dtype=float)  # finite and strictly increasing
-    if noise is not None and not isinstance(noise, AbstractNoise):
-        raise ValueError(
-            f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}."
-        )
+    _validate.check_noise(noise)
     if noise is not None and key is None:
         raise ValueError("`key` is required when `noise` is given.")
     if u is not None and not callable(u):
