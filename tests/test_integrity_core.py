@@ -35,6 +35,10 @@ def _plant3():
     return obsjax.LTI(np.diag([-1.0, -2.0, -3.0]), None, [[1.0, 1.0, 1.0]])
 
 
+def _giode(F=np.diag([-4.0, -5.0, -6.0]), G=np.ones((3, 1)), T0=None):
+    return obsjax.GeneralizedInverseODE(_plant3(), F, G, T0, horizon=(0.0, 10.0))
+
+
 SHAPE_CASES = {
     "x0": (lambda: sim(PLANT, OBS, jnp.ones(3), XH0, TS), "`x0`"),
     "xhat0": (lambda: sim(PLANT, OBS, X0, jnp.zeros(3), TS), "`xhat0`"),
@@ -78,6 +82,19 @@ VALUE_CASES = {
     "band sigma < 0": (lambda: obsjax.noise.BandLimitedNoise(-0.1), "`sigma`"),
     "multisine frequency nan": (lambda: obsjax.signals.multisine([1.0], [np.nan]), "`frequencies`"),
     "multisine amplitude inf": (lambda: obsjax.signals.multisine([np.inf], [1.0]), "`amplitudes`"),
+    # explicit observer gains: finite at construction (NaN/inf used to fail later, naming nothing)
+    "Luenberger L nan": (lambda: obsjax.Luenberger(PLANT, L=[[np.nan], [1.0]]), "`L` must be finite"),
+    "ReducedOrder G inf": (lambda: obsjax.ReducedOrder(PLANT, G=[[np.inf]]), "`G` must be finite"),
+    "FunctionalObserver a nan": (lambda: obsjax.FunctionalObserver(PLANT, [np.nan, 1.0], []), "`a` must be finite"),
+    "GeneralizedInverseODE F nan": (lambda: _giode(F=np.diag([-4.0, np.nan, -6.0])), "`F` must be finite"),
+    "GeneralizedInverseODE G nan": (lambda: _giode(G=np.full((3, 1), np.nan)), "`G` must be finite"),
+    "GeneralizedInverseODE T0 inf": (lambda: _giode(T0=np.full((3, 3), np.inf)), "`T0` must be finite"),
+    "MinimalAdaptive a0 nan": (
+        lambda: obsjax.MinimalAdaptiveObserver(2, [-1.0], 1.0, 1.0, a0=[np.nan, 0.0]), "`a0` must be finite"
+    ),
+    "NonMinimalAdaptive b0 nan": (
+        lambda: obsjax.NonMinimalAdaptiveObserver(2, [-1.0], 1.0, 1.0, b0=[0.0, np.inf]), "`b0` must be finite"
+    ),
     "max_steps = 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, max_steps=0), "`max_steps`"),
     "dt0 = 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, dt0=0.0, adaptive=False), "`dt0`"),
     "dt0 < 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, dt0=-0.1), "`dt0`"),
@@ -373,6 +390,10 @@ TS_C = np.linspace(0.0, 1.0, 11)
 TIGHT = dict(rtol=1e-8, atol=1e-10)
 
 
+# independent solves of 64 members, compiled once for both tests below
+_ALONE = jax.jit(jax.vmap(lambda a, b: sim(CUBIC, CUBIC_OBS, a, b, TS_C, **TIGHT)))
+
+
 def test_lockstep_batch_isolates_failing_members():
     """64 members, 3 escaping in finite time: exactly those 3 fail; the other 61 equal independent solves."""
     x0s = jnp.linspace(-0.9, 0.9, 64)[:, None]
@@ -380,7 +401,7 @@ def test_lockstep_batch_isolates_failing_members():
     x0s = x0s.at[bad, 0].set(jnp.array([1.5, 1.3, -1.4]))
     xh0s = jnp.zeros((64, 1))
     lock = obsjax.simulate_batch(CUBIC, CUBIC_OBS, x0s, xh0s, TS_C, throw=False, **TIGHT)
-    alone = jax.vmap(lambda a, b: sim(CUBIC, CUBIC_OBS, a, b, TS_C, **TIGHT))(x0s, xh0s)
+    alone = _ALONE(x0s, xh0s)
     np.testing.assert_array_equal(np.flatnonzero(np.asarray(lock.status)), bad)
     np.testing.assert_array_equal(lock.status, alone.status)
     ok = np.asarray(lock.status) == 0
@@ -393,12 +414,17 @@ def _x0_cubic(key):
 
 
 def test_monte_carlo_lockstep_counts_only_the_failing_members():
-    kw = dict(x0_sampler=_x0_cubic, xhat0_sampler=np.zeros(1), ts=TS_C, chunk_size=64, progress=False,
-              simulate_kwargs=TIGHT)
-    lock = obsjax.monte_carlo(CUBIC, CUBIC_OBS, jax.random.key(1), 64, lockstep=True, **kw)
-    alone = obsjax.monte_carlo(CUBIC, CUBIC_OBS, jax.random.key(1), 64, **kw)
-    assert 0 < alone.n_failed < 16
-    assert lock.n_failed == alone.n_failed
-    np.testing.assert_array_equal(lock.status > 0, alone.status > 0)
-    ok = alone.status == 0
-    np.testing.assert_allclose(lock.error_norm[ok], alone.error_norm[ok], atol=1e-7)
+    """Issue item 4: a lock-step study counts exactly the members that fail alone (x0 = 1.5 escapes in
+    finite time), and the others keep the result of their own solve."""
+    key = jax.random.key(1)
+    lock = obsjax.monte_carlo(CUBIC, CUBIC_OBS, key, 64, lockstep=True, x0_sampler=_x0_cubic,
+                              xhat0_sampler=np.zeros(1), ts=TS_C, chunk_size=64, progress=False,
+                              simulate_kwargs=TIGHT)
+    # trajectory i draws x0 from the first of four keys split from fold_in(key, i)
+    x0s = jax.vmap(lambda i: _x0_cubic(jax.random.split(jax.random.fold_in(key, i), 4)[0]))(jnp.arange(64))
+    alone = _ALONE(x0s, jnp.zeros((64, 1)))
+    failing = np.asarray(alone.status) > 0
+    assert 0 < failing.sum() < 16 and np.all(failing == (np.asarray(x0s)[:, 0] > 1))
+    assert lock.n_failed == failing.sum()
+    np.testing.assert_array_equal(lock.status > 0, failing)
+    np.testing.assert_allclose(lock.error_norm[~failing], np.asarray(alone.error_norm)[~failing], atol=1e-7)
