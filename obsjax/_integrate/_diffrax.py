@@ -2,9 +2,8 @@
 
 Any diffrax solver (explicit, implicit, an SDE solver for white measurement noise), adaptive steps with
 :class:`GuardedController` (diffrax's PID controller with the early-stop and gradient guards of
-``_status.py``) or constant steps, any adjoint.  Every solve carries :func:`divergence_event`, so a state that
-becomes non-finite ends it at once (except under adjoints that do not support events, where it runs on to
-the end with constant steps and the status comes from the saved values).
+``_status.py``: a state that becomes non-finite ends the solve within a few steps) or constant steps, any
+adjoint.
 """
 
 from __future__ import annotations
@@ -23,7 +22,7 @@ from .._checks import concrete_value
 from ..systems._noise import WhiteNoise
 from . import _segments, _system
 from ._schedule import Schedule
-from ._status import GuardedController, code_of, divergence_event, is_finite
+from ._status import GuardedController, code_of, is_finite
 
 tmap = jax.tree_util.tree_map
 
@@ -153,18 +152,11 @@ def solver_of(opt: Options):
     return opt.solver
 
 
-def _event_of(adjoint):
-    if isinstance(adjoint, (diffrax.BacksolveAdjoint, diffrax.ImplicitAdjoint)):
-        return None
-    return divergence_event()
-
-
 def integrate(args: _system.Args, state0, ts, sched: Schedule, opt: Options):
     """Integrate from `state0` = (x0, z0) over the schedule; returns ((xs, zs) at `ts`, status code)."""
     terms = terms_of(opt, args.plant.m)
     solver = solver_of(opt)
     ctrl = controller_of(opt, sched.t0, sched.t1)
-    event = _event_of(opt.adjoint)
     max_steps = steps_budget(opt)
     adjoint = {} if opt.adjoint is None else {"adjoint": opt.adjoint}
 
@@ -172,7 +164,7 @@ def integrate(args: _system.Args, state0, ts, sched: Schedule, opt: Options):
         sol = diffrax.diffeqsolve(
             terms, solver, s0, s1, opt.dt0, state, args=args,
             saveat=diffrax.SaveAt(ts=save_ts, t1=True), stepsize_controller=ctrl,
-            max_steps=max_steps, throw=False, event=event, **adjoint,
+            max_steps=max_steps, throw=False, **adjoint,
         )
         saved = tmap(lambda a: a[:-1], sol.ys)
         return saved, code_of(sol.result), tmap(lambda a: a[-1], sol.ys)

@@ -13,17 +13,20 @@ Every back-end (``_diffrax.py``, ``_fixed_step.py``, ``_lockstep.py``, ``_adapti
 (``monte_carlo``, ``tune``) uses these codes.
 
 Early stop.  A solve whose state becomes non-finite would make diffrax reject every further step (its error
-estimate is NaN) until ``max_steps``.  Two guards prevent that.  The event :func:`divergence_event` ends the
-solve with ``RESULTS.event_occurred`` (mapped to ``NONFINITE``) as soon as an accepted state is not finite
-(Σ y² is NaN/inf, which includes an overflowing norm); it also fires at t0, so a NaN x0 costs nothing.
-:class:`GuardedController` rejects a non-finite candidate like any other (a too-long step may leave the
-domain of the vector field), but the step size never goes below a floor of 64 ulp of the horizon's end,
-max(|t0|, |t1|), and a step at the floor is accepted whatever its error, as diffrax's ``dtmin`` does.  A
-non-finite candidate at the floor (a NaN gain, a state overflowing) then reaches the event: a few dozen steps
-instead of ``max_steps``.  A finite-time escape of the solution, or a stiffness an explicit solver cannot
-follow, is stepped through at the floor until it overflows (``NONFINITE``) or ``max_steps`` is reached; a
-tolerance below the rounding error of the state (rtol ≈ 1e-13) costs a few steps at the floor instead of a
-failure.
+estimate is NaN) until ``max_steps``.  :class:`GuardedController` prevents that.  It rejects a non-finite
+candidate like any other (a too-long step may leave the domain of the vector field; "non-finite" means Σ y²
+is NaN/inf, which includes an overflowing norm), but the step size never goes below a floor of 64 ulp of the
+horizon's end, max(|t0|, |t1|), and a step at the floor is accepted whatever its error, as diffrax's
+``dtmin`` does.  If that step's candidate is not finite (a NaN gain, a state overflowing) the controller ends
+the solve with ``RESULTS.dt_min_reached``, mapped to ``NONFINITE``: a few dozen steps instead of
+``max_steps``.  A solve that starts from a non-finite state (a NaN x0, or the state carried from an earlier
+segment that diverged) starts at the floor and ends after one step.  A finite-time escape of the solution,
+or a stiffness an explicit solver cannot follow, is stepped through at the floor until it overflows
+(``NONFINITE``) or ``max_steps`` is reached; a tolerance below the rounding error of the state
+(rtol ≈ 1e-13) costs a few steps at the floor instead of a failure.  (The guard lives in the controller, not
+in a diffrax ``Event``: it costs a few scalar operations per step and works under every adjoint.)  With
+constant steps (no controller) a non-finite solve runs to its end and the status comes from the saved
+values.
 
 Gradients.  :class:`GuardedController` stops the gradient of the proposed step size: the time grid moves
 with the start of the solve (and of each segment) but does not depend on the state, so the derivative is
@@ -59,20 +62,12 @@ def is_finite(tree):
     return jnp.isfinite(sum_of_squares(tree))
 
 
-def _diverged(t, y, args, **kwargs):
-    return jnp.logical_not(is_finite(y))
-
-
-def divergence_event() -> diffrax.Event:
-    """A boolean diffrax event that ends the solve when the state is no longer finite (see module doc)."""
-    return diffrax.Event(_diverged)
-
-
 def code_of(result):
-    """diffrax ``RESULTS`` → SUCCESS / SOLVER_FAILED / NONFINITE (an event is the divergence event)."""
+    """diffrax ``RESULTS`` → SUCCESS / SOLVER_FAILED / NONFINITE (``dt_min_reached`` is the stop of
+    :class:`GuardedController` on a non-finite state; its inner PID controller has no ``dtmin``)."""
     ok = result == diffrax.RESULTS.successful
-    event = result == diffrax.RESULTS.event_occurred
-    return jnp.where(ok, SUCCESS, jnp.where(event, NONFINITE, SOLVER_FAILED)).astype(jnp.int32)
+    diverged = result == diffrax.RESULTS.dt_min_reached
+    return jnp.where(ok, SUCCESS, jnp.where(diverged, NONFINITE, SOLVER_FAILED)).astype(jnp.int32)
 
 
 def first_failure(code, new):
@@ -82,8 +77,8 @@ def first_failure(code, new):
 
 class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
     """diffrax's ``PIDController`` with two guards (see the module docstring): steps never go below
-    ``dt_floor`` and a step at the floor is accepted (so a non-finite candidate reaches
-    :func:`divergence_event`), and the proposed step size carries no gradient."""
+    ``dt_floor``, a step at the floor is accepted and ends the solve (``RESULTS.dt_min_reached``) when its
+    candidate is not finite; and the proposed step size carries no gradient."""
 
     inner: diffrax.PIDController
     dt_floor: jax.Array
@@ -112,22 +107,26 @@ class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         # (diffrax's PID init already stops the gradient of its initial step: t0 + dt0 moves with t0)
         tnext, state = self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
-        # a non-finite vector field at t0 gives a NaN first step: start small, the guard below takes over
+        # a non-finite vector field at t0 gives a NaN first step: start small, the guard below takes over;
+        # a non-finite initial state starts at the floor (its first step ends the solve)
         ok = jnp.isfinite(tnext) & (tnext > t0)
-        return jnp.where(ok, tnext, t0 + jax.lax.stop_gradient(1e-6 * (t1 - t0))), state
+        tnext = jnp.where(ok, tnext, t0 + jax.lax.stop_gradient(1e-6 * (t1 - t0)))
+        return jnp.where(is_finite(y0), tnext, t0 + self.dt_floor), state
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
         keep, next_t0, next_t1, jump, state, result = self.inner.adapt_step_size(
             t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
         )
         dt = jax.lax.stop_gradient(next_t1 - next_t0)
-        # A step already at the floor is accepted whatever its error (diffrax's ``dtmin``): a non-finite
-        # candidate then ends the solve through the divergence event, a finite one lets the solve go on.
+        # A step already at the floor is accepted whatever its error (diffrax's ``dtmin``): a finite one lets
+        # the solve go on, a non-finite one (the state is kept, so later segments start from it) ends it.
         at_floor = jax.lax.stop_gradient(t1 - t0) <= self.dt_floor
-        keep = keep | at_floor
+        finite = is_finite(y1_candidate)
+        keep = (keep & finite) | at_floor
         next_t0 = jnp.where(at_floor, t1, next_t0)
         low = at_floor | (dt < self.dt_floor)
         next_t1 = jnp.where(low, next_t0 + self.dt_floor, next_t1)
+        result = diffrax.RESULTS.where(at_floor & ~finite, diffrax.RESULTS.dt_min_reached, result)
         return keep, next_t0, frozen(next_t1, next_t0), jump, state, result
 
 
