@@ -272,7 +272,7 @@ Targets:
   (the two agree to {fixed_vs_scan:.1e} in ‖x̃‖: same method, same steps).
 
 Where the time goes.  Fixed steps: `simulate(adaptive=False)` with an explicit Runge–Kutta solver runs the
-tableau directly in a `lax.scan` (obsjax/_fixed_step.py), the same computation as the hand-written scan;
+tableau directly in a `lax.scan` (obsjax/_integrate/_fixed_step.py), the same computation as the hand-written scan;
 diffrax's own `Tsit5.step` in the same scan takes {res["dstep"]["best"]:.3f} s, the cost of its generic step
 (error estimate, dense-output stages, solver state) that fixed steps do not need.  Adaptive: the least-squares
 gain L = Φ Qinv⁻¹ w is a 2 × 2 SPD solve per stage; a batched `jnp.linalg.solve` is one LAPACK call per

@@ -13,16 +13,40 @@ except ImportError:  # pragma: no cover
 
 
 def as_float_array(x, name: str) -> jax.Array:
-    """Convert to a floating JAX array (float64 under x64), naming ``name`` on failure."""
+    """Convert to a floating JAX array, naming ``name`` on failure.
+
+    Integers and narrower floats (float16, float32) become the default float (float64 under x64, which
+    importing obsjax turns on), so a float32 input never meets a float64 state inside a solve; complex input is
+    returned as is (callers that need real values use :func:`real_array`).
+    """
     try:
         arr = jnp.asarray(x)
     except Exception as e:  # noqa: BLE001
         raise ValueError(f"`{name}` must be array-like, got {type(x).__name__}: {e}") from None
     if jnp.issubdtype(arr.dtype, jnp.complexfloating):
         return arr
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
+    default = jnp.result_type(float)
+    if not jnp.issubdtype(arr.dtype, jnp.floating) or arr.dtype.itemsize < jnp.dtype(default).itemsize:
+        arr = arr.astype(default)
     return arr
+
+
+def real_array(x, name: str) -> jax.Array:
+    """:func:`as_float_array` that refuses complex values (a plant, a state, a time are real)."""
+    arr = as_float_array(x, name)
+    if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+        raise ValueError(f"`{name}` must be real, got an array of dtype {arr.dtype}.")
+    return arr
+
+
+def require_finite(x, name: str):
+    """``ValueError`` when the concrete value of `x` holds NaN or inf (naming `name` and the value);
+    traced values pass (checked under ``jit`` by the caller's ``eqx.error_if``, e.g.
+    ``observers._validation.traced_finite``, or by the trajectory's status)."""
+    v = concrete_value(x)
+    if v is not None and not np.all(np.isfinite(v)):
+        raise ValueError(f"`{name}` must be finite (no NaN or inf), got {np.asarray(v).tolist()}.")
+    return x
 
 
 def matrix(x, name: str, shape: tuple[int | None, int | None]) -> jax.Array:

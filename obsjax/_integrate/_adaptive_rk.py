@@ -85,9 +85,8 @@ import lineax.internal as lxi
 import numpy as np
 import optimistix as optx
 
-SUCCESS = 0
-SOLVER_FAILED = 1  # max_steps attempts, or step-size underflow
-NONFINITE = 2
+# the status codes of every back-end (SOLVER_FAILED here: max_steps attempts, or step-size underflow)
+from ._status import NONFINITE, SOLVER_FAILED, SUCCESS
 _RUNNING = -1
 
 tmap = jtu.tree_map

@@ -18,11 +18,9 @@ import numpy as np
 
 from .._checks import as_float_array
 from .._config import require_x64
-from .._simulate import _check_ts, num_segments, simulate
+from .._integrate import _validate
+from .._simulate import NONFINITE, SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch
-from ..observers._base import AbstractObserver
-from ..systems._noise import AbstractNoise
-from ..systems._plants import AbstractSystem
 from ._checkpoint import read_checkpoint as _resume
 from ._checkpoint import write_chunk
 from ._fingerprint import fingerprint
@@ -144,7 +142,7 @@ class MonteCarloResult:
     @property
     def ok(self) -> np.ndarray:
         """(N,) mask of the successful trajectories."""
-        return self.status == 0
+        return self.status == SUCCESS
 
     @property
     def converged_fraction(self) -> float:
@@ -313,9 +311,9 @@ def summarise(
         )
     done = status >= 0
     ise_all = _trapz_sq(ts, norms)
-    overflow = (status == 0) & ~(np.all(np.isfinite(norms), axis=1) & np.isfinite(ise_all))
-    status[overflow] = 2  # NONFINITE: the solver finished, the error did not stay finite
-    ok = status == 0
+    overflow = (status == SUCCESS) & ~(np.all(np.isfinite(norms), axis=1) & np.isfinite(ise_all))
+    status[overflow] = NONFINITE  # the solver finished, the error did not stay finite
+    ok = status == SUCCESS
     norms[~ok] = np.nan
     ct = np.full(status.shape, np.nan)
     ise = np.full(status.shape, np.nan)
@@ -385,7 +383,6 @@ def _one(dyn, cfg: _Config, key, i):
         key=kn if noise is not None else None,
         throw=False,
         max_segments=cfg.max_segments,
-        _study=True,
         **dict(cfg.sim_kwargs),
     )
     return traj.error_norm, traj.status
@@ -630,8 +627,9 @@ def monte_carlo(
       (:func:`obsjax.simulate_batch`: one adaptive solve whose step every member accepts) instead of a
       ``jax.vmap`` of independent solves.  Several times faster on the CPU for adaptive solves of alike
       trajectories; but the steps then depend on which trajectories share a batch, so results agree with
-      the default only to the solver tolerance (not bitwise across chunk sizes or device counts), and a
-      solver failure (not a non-finite trajectory) fails the whole shard.  Needs ``param_sampler=None``.
+      the default only to the solver tolerance (not bitwise across chunk sizes or device counts).  A member
+      that fails (or alone drags the shared step down) is integrated again alone, so only the members that
+      fail on their own are counted failed.  Needs ``param_sampler=None``.
     - `study_id`: an optional name of the study, added to the checkpoint fingerprint; needed only to
       checkpoint a study whose samplers or plant read objects that cannot be fingerprinted by
       content.
@@ -654,16 +652,7 @@ def monte_carlo(
         res.plot()
     """
     require_x64("obsjax.monte_carlo")
-    if not isinstance(plant, AbstractSystem):
-        raise ValueError(
-            f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}."
-        )
-    if not isinstance(observer, AbstractObserver):
-        raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
-    if noise is not None and not isinstance(noise, AbstractNoise):
-        raise ValueError(
-            f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}."
-        )
+    _validate.check_types(plant, observer, noise)
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"`n` (the number of trajectories) must be a positive integer, got {n!r}.")
     n = int(n)

@@ -20,7 +20,18 @@ class AbstractObserver(eqx.Module):
     Hybrid observers (covariance reset, windows) also override
 
     - ``reset_period`` (a property returning the period T, itself a differentiable leaf), and
-    - ``reset(t, z) -> z⁺``, the jump applied at t = t0 + kT.
+    - ``reset(t, z) -> z⁺``, the jump applied at t = t0 + kT (k ≥ 1, t < t1).
+
+    Sampled-data observers (a continuous–discrete Kalman filter, an observer corrected at measurement
+    instants) override
+
+    - ``event_times(t0, t1)``: the instants of their discrete updates on the horizon [t0, t1], and
+    - ``update(t, z, y, u) -> z⁺``, the update applied at each of them with the measurement y(t).
+
+    :func:`obsjax.simulate` integrates segment by segment between all breakpoints (reset instants, the
+    plant's ``jump_ts``, event times), so no solve ever steps across a discontinuity of the joint system.
+    At a breakpoint the reset comes first, then the event update; the state saved at a save time that
+    coincides with a breakpoint is the state after it (right-continuous).
 
     ``prepare()`` is called once per :func:`obsjax.simulate` before the solve; observers whose gains are
     derived from design parameters (poles → gain by :func:`obsjax.design.place`) compute them there, so the
@@ -54,6 +65,31 @@ class AbstractObserver(eqx.Module):
 
     def reset(self, t, z):
         """State just after a reset at time t (identity for smooth observers)."""
+        return z
+
+    def event_times(self, t0, t1):
+        """Instants of this observer's discrete updates on the horizon [t0, t1], or ``None`` (no events).
+
+        **Arguments:** `t0`, `t1`: the horizon (Python floats when the save times are concrete, traced
+        scalars inside ``jit``).
+
+        **Returns:** ``None`` or a 1-D array of non-decreasing times.  Its length must be known before
+        tracing (it sets the number of segments; with a traced horizon return a fixed number of times, those
+        past t1 are ignored).  Return NumPy values when the horizon is concrete: times known before tracing
+        let ``simulate`` use the fixed-step scan and size its save windows; traced times (JAX arrays, or
+        values that depend on traced leaves) are merged at run time by the diffrax back-end, whose segment
+        ends then follow them (differentiably).  Times outside [t0, t1] are ignored; an event at t0 is
+        applied right after ``init``, one at t1 before the last save; a time listed twice is applied twice.
+        """
+
+    def update(self, t, z, y, u):
+        """Discrete update z⁺ at an event time t (identity by default).
+
+        `y` is the measurement at t (h(t, x, u) plus band-limited noise; white noise has no pointwise
+        value, so under :class:`obsjax.noise.WhiteNoise` the update sees the noise-free output), `u` the
+        plant input at t (open loop plus ``controller(t, x̂)`` with x̂ from the state before the update).  Pure and jit/vmap/grad-safe, like
+        ``vector_field``.
+        """
         return z
 
     def prepare(self) -> "AbstractObserver":

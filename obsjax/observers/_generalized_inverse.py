@@ -453,15 +453,15 @@ class GeneralizedInverseODE(AbstractObserver):
     def __init__(self, model, F, G, T0=None, *, horizon=None, num_checks=201, rcond_min=1e-10):
         n, m = int(model.n), int(model.m)
         self.model = model
-        self.F = matrix(F, "F", (n, n))
+        self.F = require_finite(matrix(F, "F", (n, n)), "F")
         if callable(G):
             shape = tuple(jax.eval_shape(G, jnp.asarray(0.0)).shape)
             if shape != (n, m):
                 raise ValueError(f"`G(t)` must return shape ({n}, {m}), got {shape}.")
             self.G = G
         else:
-            self.G = matrix(G, "G", (n, m))
-        self.T0 = None if T0 is None else matrix(T0, "T0", (n, n))
+            self.G = require_finite(matrix(G, "G", (n, m)), "G")
+        self.T0 = None if T0 is None else require_finite(matrix(T0, "T0", (n, n)), "T0")
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rcond_min = float(rcond_min)

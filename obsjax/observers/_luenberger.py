@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, concrete_value, matrix, vector
+from .._checks import as_float_array, concrete_value, matrix, require_finite, vector
 from ..analysis._lti import is_observable
 from ..design._place import _check_poles, choose_reduction, observability_indices, place
 from ..systems._plants import LTI
@@ -48,7 +48,7 @@ class Luenberger(AbstractObserver):
         if (L is None) == (poles is None):
             raise ValueError("Luenberger needs exactly one of `L` (a gain) or `poles` (use from_poles).")
         self.model = model
-        self.L = None if L is None else matrix(L, "L", (model.n, model.m))
+        self.L = None if L is None else require_finite(matrix(L, "L", (model.n, model.m)), "L")
         self.poles = None if poles is None else _check_poles(poles, model.n)
         self.reduction = int(reduction)
 
@@ -138,12 +138,12 @@ class ReducedOrder(AbstractObserver):
             if Cv is None:
                 raise ValueError("`Dc` must be given when the model's C is traced.")
             Dc = _complement(Cv)
-        Dc = matrix(Dc, "Dc", (n - m, n))
+        Dc = require_finite(matrix(Dc, "Dc", (n - m, n)), "Dc")
         Mv = concrete_value(jnp.concatenate([model.C, Dc]))
         if Mv is not None and abs(np.linalg.det(Mv)) < 1e-12:
             raise ValueError("M = [C; Dc] must be nonsingular: `Dc` does not complete `C`.")
         self.model, self.Dc = model, Dc
-        self.G = None if G is None else matrix(G, "G", (n - m, m))
+        self.G = None if G is None else require_finite(matrix(G, "G", (n - m, m)), "G")
         self.poles = None if poles is None else _check_poles(poles, n - m)
 
     @classmethod
@@ -228,7 +228,7 @@ class FunctionalObserver(AbstractObserver):
         if A is None:
             raise ValueError("FunctionalObserver is designed from concrete model matrices (not under jit).")
         n, m = model.n, model.m
-        a = vector(a, "a", n)
+        a = require_finite(vector(a, "a", n), "a")
         nu = max(observability_indices(A, C))
         r = nu - 1
         poles = jnp.atleast_1d(jnp.asarray(poles))

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, concrete_value, positive, vector
+from .._checks import as_float_array, concrete_value, positive, require_finite, vector
 from ._adaptive_common import (
     adapt_mask,
     auxiliary_matrices,
@@ -119,8 +119,8 @@ class MinimalAdaptiveObserver(AbstractObserver):
         )
         self.lam = _positive_scalar(lam, "lam")
         self.Gamma = gain_array(Gamma, "Gamma", 2 * n)
-        self.a0 = jnp.zeros(n) if a0 is None else vector(a0, "a0", n)
-        self.b0 = jnp.zeros(n) if b0 is None else vector(b0, "b0", n)
+        self.a0 = jnp.zeros(n) if a0 is None else require_finite(vector(a0, "a0", n), "a0")
+        self.b0 = jnp.zeros(n) if b0 is None else require_finite(vector(b0, "b0", n), "b0")
         self.adapt = adapt_mask(adapt, 2 * n)
         self.cache = None
 

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import positive, vector
+from .._checks import positive, require_finite, vector
 from ._adaptive_common import (
     adapt_mask,
     check_gain,
@@ -112,8 +112,8 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
         )
         self.lam0 = _positive_scalar(lam0, "lam0")
         self.Gamma = gain_array(Gamma, "Gamma", 2 * n)
-        self.a0 = jnp.zeros(n) if a0 is None else vector(a0, "a0", n)
-        self.b0 = jnp.zeros(n) if b0 is None else vector(b0, "b0", n)
+        self.a0 = jnp.zeros(n) if a0 is None else require_finite(vector(a0, "a0", n), "a0")
+        self.b0 = jnp.zeros(n) if b0 is None else require_finite(vector(b0, "b0", n), "b0")
         self.adapt = adapt_mask(adapt, 2 * n)
         self.cache = None
 

@@ -14,16 +14,11 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import concrete_value
-
-
-def require_finite(x, name: str):
-    """``ValueError`` when the concrete value of `x` holds NaN or inf; traced values pass (see
-    :func:`traced_finite`)."""
-    v = concrete_value(x)
-    if v is not None and not np.all(np.isfinite(v)):
-        raise ValueError(f"`{name}` must be finite (no NaN or inf), got {np.asarray(v).tolist()}.")
-    return x
+from .._checks import (
+    concrete_value,
+    require_finite,  # the observers import the eager check from here
+)
+from .._checks import is_concrete as _tree_is_concrete
 
 
 def positive_scalar(x, name: str, what: str = ""):
@@ -68,7 +63,7 @@ def traced_spd(M, name: str, *, semi: bool, what: str = ""):
 
 
 def is_concrete(*xs) -> bool:
-    return all(concrete_value(x) is not None for x in xs)
+    return _tree_is_concrete(xs)
 
 
 def traced_finite(x, name: str):

@@ -17,12 +17,29 @@ Two models, both keyed (reproducible from a PRNG key) and vmappable over keys:
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
+import numpy as np
 
-from .._checks import as_float_array
+from .._checks import concrete_value, real_array, require_finite
+
+
+def _sigma(sigma):
+    """σ: a real scalar or vector of finite, non-negative intensities (checked when known)."""
+    arr = real_array(sigma, "sigma")
+    if arr.ndim > 1:
+        raise ValueError(
+            f"`sigma` must be a scalar or a vector (m,) (one intensity per output), got shape {tuple(arr.shape)}."
+        )
+    require_finite(arr, "sigma")
+    v = concrete_value(arr)
+    if v is not None and np.any(v < 0):
+        raise ValueError(f"`sigma` must be ≥ 0, got {v.tolist()}.")
+    return arr
 
 
 class AbstractNoise(eqx.Module):
@@ -30,25 +47,32 @@ class AbstractNoise(eqx.Module):
 
 
 class WhiteNoise(AbstractNoise):
-    """White measurement noise of intensity σ (per output, or one scalar for all)."""
+    """White measurement noise of intensity σ (per output, or one scalar for all).
+
+    `sigma`: a scalar or an (m,) vector, finite and ≥ 0; :func:`obsjax.simulate` checks its length against
+    the plant's m.
+    """
 
     sigma: jax.Array
 
     def __init__(self, sigma):
-        self.sigma = as_float_array(sigma, "sigma")
+        self.sigma = _sigma(sigma)
 
 
 class BandLimitedNoise(AbstractNoise):
-    """Band-limited measurement noise: N(0, σ²) samples every ``dt``, linearly interpolated."""
+    """Band-limited measurement noise: N(0, σ²) samples every ``dt``, linearly interpolated.
+
+    `sigma`: a scalar or an (m,) vector, finite and ≥ 0; `dt` > 0 finite.
+    """
 
     sigma: jax.Array
     dt: float = eqx.field(static=True)
 
     def __init__(self, sigma, dt=0.01):
-        self.sigma = as_float_array(sigma, "sigma")
+        self.sigma = _sigma(sigma)
         dt = float(dt)
-        if not dt > 0:
-            raise ValueError(f"`dt` of BandLimitedNoise must be > 0, got {dt}.")
+        if not (dt > 0 and math.isfinite(dt)):
+            raise ValueError(f"`dt` of BandLimitedNoise must be finite and > 0, got {dt}.")
         self.dt = dt
 
 
@@ -67,8 +91,6 @@ class SampledNoise(eqx.Module):
 
 
 def realise_band_limited(noise: BandLimitedNoise, key, t0, t1, m: int) -> SampledNoise:
-    import math
-
     span = float(t1) - float(t0)
     k = int(math.ceil(span / noise.dt)) + 2
     sigma = jnp.broadcast_to(noise.sigma, (m,))

@@ -4,10 +4,14 @@ Every plant is an :class:`equinox.Module` with
 
     ẋ = f(t, x, u),     y = h(t, x, u),
 
-``n`` states, ``m`` outputs and ``p`` inputs (static).  ``jump_ts`` lists known discontinuities in time
-(switching parameters); :func:`obsjax.simulate` passes them to diffrax's ``ClipStepSizeController`` so that
-the solver steps exactly onto them, which keeps gradients with respect to anything that moves the time grid
-(a reset period above all) correct.
+``n`` ≥ 1 states, ``m`` ≥ 1 outputs and ``p`` ≥ 0 inputs (static).  ``jump_ts`` lists known
+discontinuities in time (switching parameters).  :func:`obsjax.simulate` makes every declared jump a segment
+boundary of its integration: no solve ever steps across one (a solve ends one float before the jump and the
+next starts at it), so the vector field is smooth inside every solve and gradients with respect to anything
+that moves the time grid (a reset period above all) are those of smooth solves.
+
+Matrices are checked when the plant is built: real, finite, of consistent shapes (a ``ValueError`` names the
+matrix, the expected and the found value).  Float32 input is promoted to float64.
 """
 
 from __future__ import annotations
@@ -19,16 +23,34 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, matrix
+from .._checks import matrix, real_array, require_finite
 
 
 def _jump_ts(jump_ts):
     if jump_ts is None:
         return None
-    arr = np.sort(np.atleast_1d(np.asarray(jump_ts, dtype=float)))
+    try:
+        arr = np.atleast_1d(np.asarray(jump_ts, dtype=float))
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"`jump_ts` must be a 1-D sequence of real times: {e}") from None
     if arr.ndim != 1:
         raise ValueError(f"`jump_ts` must be a 1-D sequence of times, got shape {arr.shape}.")
-    return tuple(float(a) for a in arr)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"`jump_ts` must hold finite times, got {arr[~np.isfinite(arr)].tolist()}.")
+    return tuple(float(a) for a in np.sort(arr))
+
+
+def _dimension(value, name, minimum):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"`{name}` must be an integer ≥ {minimum}, got {value!r}.")
+    return int(value)
+
+
+def _real_finite(x, name):
+    """A real matrix with finite entries when its value is known (complex or NaN/inf is refused)."""
+    arr = real_array(x, name)
+    require_finite(arr, name)
+    return arr
 
 
 class AbstractSystem(eqx.Module):
@@ -58,10 +80,12 @@ class LTI(AbstractSystem):
     - `B`: (n, p) input matrix, or ``None`` for a free system (p = 0).
     - `C`: (m, n) output matrix.
     - `D`: (m, p) feedthrough, zero when ``None``.
-    - `jump_ts`: optional known discontinuity times of the inputs used with this plant.
+    - `jump_ts`: optional known discontinuity times (finite) of the inputs used with this plant; they become
+      segment boundaries of :func:`obsjax.simulate`.
 
     Shapes are checked: a wrong shape raises ``ValueError`` naming the matrix, the expected and the found
-    shape.  All matrices are leaves, so a plant can be batched with ``jax.vmap`` (model uncertainty) and
+    shape; complex or non-finite entries are refused the same way (when the values are known, i.e. outside
+    ``jit``).  All matrices are leaves, so a plant can be batched with ``jax.vmap`` (model uncertainty) and
     differentiated.
 
     **Example:** thesis example (2.8)::
@@ -76,13 +100,15 @@ class LTI(AbstractSystem):
     jump_ts: tuple[float, ...] | None = eqx.field(static=True, default=None)
 
     def __init__(self, A, B=None, C=None, D=None, jump_ts=None):
-        A = as_float_array(A, "A")
+        A = _real_finite(A, "A")
         if A.ndim != 2 or A.shape[0] != A.shape[1]:
             raise ValueError(f"`A` must be a square (n, n) matrix, got shape {tuple(A.shape)}.")
         n = A.shape[0]
+        if n < 1:
+            raise ValueError("`A` must have at least one state (n ≥ 1), got shape (0, 0).")
         if C is None:
             raise ValueError("`C` (the (m, n) output matrix) is required.")
-        C = as_float_array(C, "C")
+        C = _real_finite(C, "C")
         if C.ndim == 1 and C.shape[0] == n:
             raise ValueError(
                 f"`C` must be a 2-D (m, n) matrix, got a vector of shape {tuple(C.shape)}; "
@@ -90,10 +116,12 @@ class LTI(AbstractSystem):
             )
         C = matrix(C, "C", (None, n))
         m = C.shape[0]
+        if m < 1:
+            raise ValueError(f"`C` must have at least one output row (m ≥ 1), got shape {tuple(C.shape)}.")
         if B is None:
             B = jnp.zeros((n, 0), dtype=A.dtype)
         else:
-            B = as_float_array(B, "B")
+            B = _real_finite(B, "B")
             if B.ndim == 1:
                 raise ValueError(
                     f"`B` must be a 2-D (n, p) matrix, got a vector of shape {tuple(B.shape)}; "
@@ -101,7 +129,7 @@ class LTI(AbstractSystem):
                 )
             B = matrix(B, "B", (n, None))
         p = B.shape[1]
-        D = jnp.zeros((m, p), dtype=A.dtype) if D is None else matrix(D, "D", (m, p))
+        D = jnp.zeros((m, p), dtype=A.dtype) if D is None else matrix(_real_finite(D, "D"), "D", (m, p))
         self.A, self.B, self.C, self.D = A, B, C, D
         self.jump_ts = _jump_ts(jump_ts)
 
@@ -143,12 +171,14 @@ class LTI(AbstractSystem):
 
 
 def _shape_of(fn, name, t0=0.0):
+    """Shape of ``fn(t0)``, checking that its value is a real, finite matrix."""
     try:
-        out = jnp.asarray(fn(jnp.asarray(t0)))
+        out = jnp.asarray(fn(jnp.asarray(t0, dtype=jnp.result_type(float))))
     except Exception as e:  # noqa: BLE001
         raise ValueError(f"`{name}` must be a callable of t returning a matrix; calling it failed: {e}")
     if out.ndim != 2:
         raise ValueError(f"`{name}(t)` must return a 2-D matrix, got shape {tuple(out.shape)}.")
+    _real_finite(out, f"{name}(t) at t = {t0}")
     return out.shape
 
 
@@ -161,9 +191,10 @@ class LTV(AbstractSystem):
 
     - `A`, `C`, `B`: callables of t returning (n, n), (m, n) and (n, p) matrices (``B=None``: free system).
       They may be equinox modules with array leaves (then a plant family can be vmapped).
-    - `jump_ts`: times where A, B or C switch (piecewise-constant parameters); the solver steps onto them.
+    - `jump_ts`: times where A, B or C switch (piecewise-constant parameters); every solve of
+      :func:`obsjax.simulate` ends at them (segment boundaries), none steps across.
 
-    Shapes are checked by calling each callable at t = 0.
+    Shapes, realness and finiteness are checked by calling each callable at t = 0.
     """
 
     A_fn: Callable
@@ -178,12 +209,12 @@ class LTV(AbstractSystem):
         if not callable(A) or not callable(C) or (B is not None and not callable(B)):
             raise ValueError("`A`, `C` (and `B` if given) must be callables of t returning matrices.")
         sa = _shape_of(A, "A")
-        if sa[0] != sa[1]:
-            raise ValueError(f"`A(t)` must be square (n, n), got shape {sa}.")
+        if sa[0] != sa[1] or sa[0] < 1:
+            raise ValueError(f"`A(t)` must be square (n, n) with n ≥ 1, got shape {sa}.")
         n = sa[0]
         sc = _shape_of(C, "C")
-        if sc[1] != n:
-            raise ValueError(f"`C(t)` must have shape (m, {n}), got {sc}.")
+        if sc[1] != n or sc[0] < 1:
+            raise ValueError(f"`C(t)` must have shape (m, {n}) with m ≥ 1, got {sc}.")
         p = 0
         if B is not None:
             sb = _shape_of(B, "B")
@@ -215,8 +246,8 @@ class LTV(AbstractSystem):
 class Nonlinear(AbstractSystem):
     """Nonlinear (time-varying) plant ẋ = f(t, x, u), y = h(t, x, u) (Huang & Zhu (1)).
 
-    **Arguments:** `f`, `h` callables; `n` states, `m` outputs, `p` inputs (static); `jump_ts` optional.
-    ``f`` and ``h`` are checked once on zeros for their output shapes.
+    **Arguments:** `f`, `h` callables; `n` ≥ 1 states, `m` ≥ 1 outputs, `p` ≥ 0 inputs (static integers);
+    `jump_ts` optional (finite times).  ``f`` and ``h`` are checked once on zeros for their output shapes.
     """
 
     f_fn: Callable
@@ -229,10 +260,16 @@ class Nonlinear(AbstractSystem):
     def __init__(self, f, h, n, m, p=0, jump_ts=None):
         if not callable(f) or not callable(h):
             raise ValueError("`f` and `h` must be callables f(t, x, u) and h(t, x, u).")
-        n, m, p = int(n), int(m), int(p)
+        n, m, p = _dimension(n, "n", 1), _dimension(m, "m", 1), _dimension(p, "p", 0)
         x, u = jnp.zeros(n), jnp.zeros(p)
-        fx = jax.eval_shape(f, 0.0, x, u)
-        hx = jax.eval_shape(h, 0.0, x, u)
+        try:
+            fx = jax.eval_shape(f, 0.0, x, u)
+            hx = jax.eval_shape(h, 0.0, x, u)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(
+                f"`f(t, x, u)` and `h(t, x, u)` must accept x of shape ({n},) and u of shape ({p},); "
+                f"evaluating them failed: {e}"
+            ) from None
         if fx.shape != (n,):
             raise ValueError(f"`f(t, x, u)` must return shape ({n},), got {fx.shape}.")
         if hx.shape != (m,):

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float_array
+from .._checks import real_array, require_finite
 
 
 class Multisine(eqx.Module):
@@ -33,12 +33,14 @@ def multisine(amplitudes, frequencies, phases=None) -> Multisine:
     - `frequencies`: angular frequencies ω (rad/s), same shape as `amplitudes`.
     - `phases`: φ, same shape (zeros when ``None``).
 
+    All three must be real and finite (a ``ValueError`` names the argument otherwise).
+
     **Returns:** a callable ``u(t)`` of shape (p,) (p = 1 for 1-D amplitudes), vmappable and differentiable.
 
     **Example:** ``u = obsjax.signals.multisine([1., .5, .2], [.7, 1.9, 3.1])``
     """
-    a = as_float_array(amplitudes, "amplitudes")
-    w = as_float_array(frequencies, "frequencies")
+    a = require_finite(real_array(amplitudes, "amplitudes"), "amplitudes")
+    w = require_finite(real_array(frequencies, "frequencies"), "frequencies")
     if a.ndim == 0:
         a = a.reshape(1)
     if w.ndim == 0:
@@ -51,7 +53,15 @@ def multisine(amplitudes, frequencies, phases=None) -> Multisine:
         a, w = a[None], w[None]
     if a.ndim != 2:
         raise ValueError(f"`amplitudes` must be (k,) or (p, k), got shape {tuple(a.shape)}.")
-    ph = jnp.zeros_like(a) if phases is None else as_float_array(phases, "phases").reshape(a.shape)
+    if phases is None:
+        ph = jnp.zeros_like(a)
+    else:
+        ph = require_finite(real_array(phases, "phases"), "phases")
+        if ph.size != a.size:
+            raise ValueError(
+                f"`phases` must have the shape of `amplitudes` {tuple(a.shape)}, got {tuple(ph.shape)}."
+            )
+        ph = ph.reshape(a.shape)
     return Multisine(a, w, ph)
 
 
@@ -66,4 +76,4 @@ class Constant(eqx.Module):
 
 def constant(value) -> Constant:
     """A constant input of shape (p,)."""
-    return Constant(jnp.atleast_1d(as_float_array(value, "value")))
+    return Constant(jnp.atleast_1d(require_finite(real_array(value, "value"), "value")))

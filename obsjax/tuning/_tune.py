@@ -15,10 +15,8 @@ import optax
 
 from .._checks import as_float_array
 from .._config import require_x64
-from .._simulate import _check_ts, num_segments, simulate
-from ..observers._base import AbstractObserver
-from ..systems._noise import AbstractNoise
-from ..systems._plants import AbstractSystem
+from .._integrate import _validate
+from .._simulate import SUCCESS, _check_ts, num_segments, simulate
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
 BACKTRACK = 0.5
@@ -138,7 +136,7 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
                     f"got an array of shape {val.shape} and dtype {val.dtype}: reduce it (sum, "
                     "mean) to one number."
                 )
-            return jnp.where(traj.status == 0, val, jnp.nan)
+            return jnp.where(traj.status == SUCCESS, val, jnp.nan)
 
         losses = eqx.filter_vmap(one, in_axes=(plant_axis, 0, 0, 0))(plant, x0s, xhat0s, keys)
         return _sorted_weighted(losses, weights)
@@ -162,12 +160,8 @@ def _is_int(x) -> bool:
 def _check_types(
     observer, plant, where, loss, optimizer, steps, positive, rtol, patience, max_rejections
 ):
-    if not isinstance(observer, AbstractObserver):
-        raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
-    if not isinstance(plant, AbstractSystem):
-        raise ValueError(
-            f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}."
-        )
+    _validate.check_observer(observer)
+    _validate.check_plant(plant)
     if not callable(where):
         raise ValueError(
             f"`where` must be a callable selecting the tuned leaves (e.g. lambda o: o.poles), got "
@@ -222,14 +216,8 @@ def _check_data(plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_k
     for name, arr in (("x0s", x0s), ("xhat0s", xhat0s)):
         if not bool(jnp.all(jnp.isfinite(arr))):
             raise ValueError(f"`{name}` must be finite, got NaN or inf entries.")
-    ts = _check_ts(ts)
-    ts_np = np.asarray(ts, dtype=float)
-    if not np.all(np.isfinite(ts_np)):
-        raise ValueError("`ts` must be finite.")
-    if noise is not None and not isinstance(noise, AbstractNoise):
-        raise ValueError(
-            f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}."
-        )
+    ts_np = np.asarray(_check_ts(ts), dtype=float)  # finite and strictly increasing
+    _validate.check_noise(noise)
     if noise is not None and key is None:
         raise ValueError("`key` is required when `noise` is given.")
     if u is not None and not callable(u):

@@ -1,0 +1,179 @@
+"""The general back-end: one ``diffrax.diffeqsolve`` per segment of the schedule.
+
+Any diffrax solver (explicit, implicit, an SDE solver for white measurement noise), adaptive steps with
+:class:`GuardedController` (diffrax's PID controller with the early-stop and gradient guards of
+``_status.py``: a state that becomes non-finite ends the solve within a few steps) or constant steps, any
+adjoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import concrete_value
+from ..systems._noise import WhiteNoise
+from . import _segments, _system
+from ._schedule import Schedule
+from ._status import GuardedController, code_of, is_finite
+
+tmap = jax.tree_util.tree_map
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """How to integrate (what ``simulate`` resolved from its keyword arguments)."""
+
+    solver: diffrax.AbstractSolver
+    rtol: float | jax.Array
+    atol: float | jax.Array
+    dt0: float | jax.Array | None
+    adaptive: bool
+    max_steps: int | None
+    adjoint: diffrax.AbstractAdjoint | None
+    white_noise: WhiteNoise | None = None
+    key: jax.Array | None = None
+    span: tuple[float, float] | None = None  # concrete horizon (white noise needs it)
+
+
+def terms_of(opt: Options, m: int):
+    """The ODE term, or drift + white-noise diffusion driven by a virtual Brownian tree."""
+    drift = _system.for_check_mode(_system.drift)
+    if opt.white_noise is None:
+        return diffrax.ODETerm(drift)
+    t0c, t1c = opt.span
+    bm = diffrax.VirtualBrownianTree(t0c, t1c, tol=opt.dt0 / 2, shape=(m,), key=opt.key)
+    return diffrax.MultiTerm(
+        diffrax.ODETerm(drift), _system.MeasurementNoiseTerm(opt.white_noise.sigma, bm)
+    )
+
+
+def controller_of(opt: Options, t0, t1):
+    if opt.adaptive:
+        return GuardedController(opt.rtol, opt.atol, t0, t1)
+    return diffrax.ConstantStepSize()
+
+
+def steps_budget(opt: Options) -> int | None:
+    """max_steps, raised for constant steps to cover the horizon (per segment it is then always enough)."""
+    dt0 = concrete_value(opt.dt0) if opt.dt0 is not None else None
+    if opt.max_steps is None or opt.adaptive or opt.span is None or dt0 is None:
+        return opt.max_steps
+    t0c, t1c = opt.span
+    return max(opt.max_steps, math.ceil((t1c - t0c) / float(dt0)) + 16)
+
+
+def _finite_gradient_step(solver, terms, t0, t1, y0, args, solver_state, made_jump):
+    """``solver.step`` whose reverse-mode derivative is zero when the step's output is not finite.
+
+    An adaptive solve rejects a step whose candidate is not finite (a stage left the domain of the vector
+    field, typically a step across an undeclared discontinuity); its cotangent is zero, but the step's own
+    partial derivatives are NaN there and 0 × NaN poisons the whole gradient.  The gradient of such a step is
+    defined as zero instead (per trajectory, also under ``vmap``); finite steps are untouched.
+    """
+    diff, rest = eqx.partition((terms, t0, t1, y0, args, solver_state, made_jump), eqx.is_inexact_array)
+    arrs, static = eqx.partition(rest, eqx.is_array)
+
+    def run(d, a):
+        terms_, t0_, t1_, y0_, args_, state_, jump_ = eqx.combine(d, a, static)
+        y1, err, dense, state1, _ = solver.step(terms_, t0_, t1_, y0_, args_, state_, jump_)
+        return y1, err, dense, state1
+
+    @jax.custom_vjp
+    def call(d, a):
+        return run(d, a)
+
+    def fwd(d, a):
+        out, vjp = jax.vjp(lambda dd: run(dd, a), d)
+        return out, (vjp, is_finite(eqx.filter(out, eqx.is_inexact_array)), a)
+
+    def bwd(res, ct):
+        vjp, ok, a = res
+        (g,) = vjp(ct)
+        g = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), g)
+        return g, jax.tree_util.tree_map(lambda x: np.zeros(x.shape, jax.dtypes.float0), a)
+
+    call.defvjp(fwd, bwd)
+    y1, err, dense, state1 = call(diff, arrs)
+    return y1, err, dense, state1, diffrax.RESULTS.successful
+
+
+class FiniteGradientSolver(diffrax.AbstractWrappedSolver):
+    """An explicit Runge–Kutta solver whose non-finite (rejected) steps contribute a zero gradient
+    (:func:`_finite_gradient_step`); everything else is the wrapped solver's."""
+
+    solver: diffrax.AbstractSolver
+
+    @property
+    def term_structure(self):
+        return self.solver.term_structure
+
+    @property
+    def interpolation_cls(self):
+        return self.solver.interpolation_cls
+
+    @property
+    def term_compatible_contr_kwargs(self):
+        return self.solver.term_compatible_contr_kwargs
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def strong_order(self, terms):
+        return self.solver.strong_order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    def init(self, terms, t0, t1, y0, args):
+        return self.solver.init(terms, t0, t1, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        return _finite_gradient_step(self.solver, terms, t0, t1, y0, args, solver_state, made_jump)
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)
+
+
+def solver_of(opt: Options):
+    """The solver, wrapped by :class:`FiniteGradientSolver` when it is an explicit Runge–Kutta method
+    differentiated in reverse mode by the default adjoint (a ``custom_vjp`` has no forward mode)."""
+    adj = opt.adjoint
+    reverse = adj is None or type(adj) is diffrax.RecursiveCheckpointAdjoint
+    if reverse and isinstance(opt.solver, diffrax.AbstractERK) and opt.white_noise is None:
+        return FiniteGradientSolver(opt.solver)
+    return opt.solver
+
+
+def integrate(args: _system.Args, state0, ts, sched: Schedule, opt: Options):
+    """Integrate from `state0` = (x0, z0) over the schedule; returns ((xs, zs) at `ts`, status code)."""
+    terms = terms_of(opt, args.plant.m)
+    solver = solver_of(opt)
+    ctrl = controller_of(opt, sched.t0, sched.t1)
+    max_steps = steps_budget(opt)
+    adjoint = {} if opt.adjoint is None else {"adjoint": opt.adjoint}
+
+    def solve(s0, s1, state, save_ts):
+        sol = diffrax.diffeqsolve(
+            terms, solver, s0, s1, opt.dt0, state, args=args,
+            saveat=diffrax.SaveAt(ts=save_ts, t1=True), stepsize_controller=ctrl,
+            max_steps=max_steps, throw=False, **adjoint,
+        )
+        saved = tmap(lambda a: a[:-1], sol.ys)
+        return saved, code_of(sol.result), tmap(lambda a: a[-1], sol.ys)
+
+    act = functools.partial(_act, args, sched.has_reset, sched.has_event)
+    row = jax.eval_shape(lambda s: s, state0)
+    saved, code, _ = _segments.integrate(solve, act, state0, ts, sched, row)
+    return saved, code
+
+
+def _act(args, has_reset, has_event, t, state, do_reset, do_event):
+    return _system.act(args, t, state, do_reset, do_event, has_reset, has_event)

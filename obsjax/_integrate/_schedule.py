@@ -1,0 +1,257 @@
+"""The breakpoints of a simulation: where the state may jump or the vector field may be discontinuous.
+
+Three sources, merged into one sorted list:
+
+- (a) the observer's resets at t0 + kT, k = 1, 2, … while t0 + kT < t1 (T = ``observer.reset_period``, a
+  differentiable, possibly traced leaf: the reset instants move with it);
+- (b) the plant's declared ``jump_ts`` inside (t0, t1): a boundary and nothing else (a segment that ends at a
+  jump τ ends one float before it, the next starts at τ, so no stage of any solve sees both sides);
+- (c) the observer's ``event_times(t0, t1)`` in [t0, t1], where ``observer.update`` is applied.
+
+The back-ends integrate segment by segment between consecutive breakpoints, so no solve ever steps across a
+discontinuity.  Segment k ≥ 1 starts at breakpoint k − 1 and applies its jump there (reset first, then
+update).  A save time belongs to the segment that starts at or before it, with a tolerance of
+1e-9·max(1, t1 − t0): a save time at a breakpoint sees the state after the jump (right-continuous).
+
+Number of segments.  The reset count is ⌈(t1 − t0)/T⌉ when T and the horizon are concrete, else
+``max_segments``; more than :data:`MAX_RESET_SEGMENTS` is refused (a reset period far below the horizon
+would otherwise build millions of segments).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import concrete_value
+
+MAX_RESET_SEGMENTS = 100_000
+
+
+def tolerance(span) -> float:
+    """Time tolerance of the schedule: save times this close to a breakpoint are taken at it."""
+    return 1e-9 * max(1.0, abs(float(span)))
+
+
+def num_segments(T, t0, t1) -> int | None:
+    """ceil((t1 − t0)/T) for concrete values (a relative slack of 1e-9 absorbs rounding), else ``None``."""
+    Tv, a, b = concrete_value(T), concrete_value(t0), concrete_value(t1)
+    if Tv is None or a is None or b is None:
+        return None
+    Tv = float(np.asarray(Tv).reshape(()))
+    if not Tv > 0 or not math.isfinite(Tv):
+        raise ValueError(f"the reset period `T` must be finite and > 0, got {Tv}.")
+    r = (float(b) - float(a)) / Tv
+    if r > MAX_RESET_SEGMENTS:
+        raise ValueError(
+            f"the reset period T = {Tv:g} gives {math.ceil(r)} reset segments on [{float(a):g}, {float(b):g}]; "
+            f"obsjax.simulate integrates at most {MAX_RESET_SEGMENTS} (T ≥ (t1 − t0)/{MAX_RESET_SEGMENTS} = "
+            f"{(float(b) - float(a)) / MAX_RESET_SEGMENTS:.3g}). Raise T or shorten the horizon."
+        )
+    return max(1, math.ceil(r - 1e-9 * max(1.0, r)))
+
+
+def reset_segments(T, ts, ts_np, max_segments) -> int:
+    """Number of reset segments (resets + 1): from `max_segments` when given, else from concrete T and ts."""
+    if max_segments is not None:
+        if isinstance(max_segments, bool) or not isinstance(max_segments, (int, np.integer)):
+            raise ValueError(f"`max_segments` must be a positive integer, got {max_segments!r}.")
+        if not 1 <= max_segments <= MAX_RESET_SEGMENTS:
+            raise ValueError(
+                f"`max_segments` must be in [1, {MAX_RESET_SEGMENTS}], got {max_segments}."
+            )
+        n = int(max_segments)
+        if ts_np is not None:  # a concrete period must be covered by the bound
+            need = num_segments(T, ts_np[0], ts_np[-1])
+            if need is not None and need > n:
+                raise ValueError(
+                    f"`max_segments` = {n} does not cover the horizon: the reset period needs {need} segments."
+                )
+        return n
+    n = None if ts_np is None else num_segments(T, ts_np[0], ts_np[-1])
+    if n is None:
+        raise ValueError(
+            "The number of reset segments ceil((ts[-1] − ts[0]) / T) cannot be computed because the reset "
+            "period T or the save times ts are traced (inside jit): pass `max_segments` (≥ (t1 − t0)/T) to "
+            "obsjax.simulate."
+        )
+    return n
+
+
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+    """Sorted breakpoints (Nb,) with what happens at each, and where the save times fall.
+
+    - `t0`, `t1`: the horizon; `times`: (Nb,) breakpoints in [t0, t1] (differentiable in T);
+    - `reset`, `event`, `jump`: (Nb,) bool, what the breakpoint is;
+    - `first_save`: (Nb + 2,) int, index of the first save time of segment k (k = 0 … Nb), then len(ts);
+    - `window`: the largest number of save times in one segment (len(ts) when not known before tracing);
+    - `has_reset`, `has_event`: whether any breakpoint is a reset / an event (static);
+    - `concrete`: NumPy copies (times, reset, event, jump) when every breakpoint is known before tracing
+      (the fixed-step grid needs them), else ``None``.
+    """
+
+    t0: jax.Array
+    t1: jax.Array
+    times: jax.Array
+    reset: jax.Array
+    event: jax.Array
+    jump: jax.Array
+    first_save: jax.Array
+    window: int
+    has_reset: bool
+    has_event: bool
+    concrete: tuple | None
+
+    @property
+    def size(self) -> int:
+        return int(self.times.shape[0])
+
+
+def _events(event_times, t0, t1, ts_np):
+    """The observer's event times: (a 1-D float array, its concrete value or None), or None."""
+    if ts_np is not None:
+        raw = event_times(float(ts_np[0]), float(ts_np[-1]))
+    else:
+        raw = event_times(t0, t1)
+    if raw is None:
+        return None
+    v = concrete_value(raw)
+    ev = jnp.asarray(raw, dtype=jnp.result_type(float))
+    if ev.ndim != 1:
+        raise ValueError(f"`observer.event_times(t0, t1)` must return a 1-D array, got shape {ev.shape}.")
+    if v is not None:
+        v = np.asarray(v, dtype=np.float64)
+        if not np.all(np.isfinite(v)):
+            raise ValueError("`observer.event_times(t0, t1)` must return finite times.")
+        if np.any(np.diff(v) < 0):
+            raise ValueError("`observer.event_times(t0, t1)` must return non-decreasing times.")
+    elif ev.shape[0] >= 1:
+        ev = eqx.error_if(
+            ev, jnp.any(jnp.diff(ev) < 0) | jnp.any(~jnp.isfinite(ev)),
+            "`observer.event_times(t0, t1)` must return finite, non-decreasing times.",
+        )
+    return ev, v
+
+
+@dataclasses.dataclass(frozen=True)
+class _Part:
+    kind: str  # "reset" | "jump" | "event"
+    times: jax.Array  # clipped to [t0, t1]
+    active: jax.Array  # bool: the breakpoint lies inside the horizon and acts
+    values: np.ndarray | None  # the times, when known before tracing (then every entry is active)
+
+
+def build(ts, ts_np, T, n_reset, jumps, event_times) -> Schedule:
+    """Merge resets (n_reset − 1 of them), plant jumps and observer events into a :class:`Schedule`."""
+    tol = tolerance(ts_np[-1] - ts_np[0]) if ts_np is not None else None
+    tol_rt = tol if tol is not None else 1e-9 * jnp.maximum(1.0, ts[-1] - ts[0])
+    if T is not None and (ts_np is None or concrete_value(T) is None):
+        # A traced period must be covered by the bound (n_reset segments of length T reach t1), or the last
+        # resets would silently be dropped: checked under jit.
+        Tt = jnp.asarray(T, dtype=ts.dtype)
+        ts = eqx.error_if(
+            ts, ~(ts[0] + n_reset * Tt >= ts[-1] - tol_rt),
+            f"the reset period T (traced) needs more than `max_segments` = {n_reset} reset segments to "
+            "cover [ts[0], ts[-1]] (max_segments·T < t1 − t0, or T is not finite and > 0): raise "
+            "`max_segments`.",
+        )
+    parts = [
+        _resets(ts, ts_np, T, n_reset, tol, tol_rt),
+        _jumps(ts, ts_np, jumps, tol, tol_rt),
+        _event_part(ts, ts_np, event_times, tol, tol_rt),
+    ]
+    return _merge(ts, ts_np, tol, tol_rt, [p for p in parts if p is not None])
+
+
+def _resets(ts, ts_np, T, n_reset, tol, tol_rt):
+    if T is None or n_reset <= 1:
+        return None
+    t0, t1 = ts[0], ts[-1]
+    k = np.arange(1, n_reset)
+    r = t0 + jnp.asarray(k, ts.dtype) * jnp.asarray(T, dtype=ts.dtype)
+    Tv = concrete_value(T)
+    if ts_np is not None and Tv is not None:
+        # concrete instants (NumPy, so also inside jit): drop those on or after t1
+        rv = ts_np[0] + k * float(np.asarray(Tv).reshape(()))
+        keep = rv < ts_np[-1] - tol
+        if not np.any(keep):
+            return None
+        return _Part("reset", r[np.flatnonzero(keep)], jnp.ones(int(keep.sum()), bool), rv[keep])
+    # A reset on or after t1 (a bound larger than needed) is clipped to t1 and not applied; the tie resolves
+    # to the fixed t1, so the end of the horizon carries no T-derivative.
+    return _Part("reset", jnp.where(r < t1, r, t1), r < t1 - tol_rt, None)
+
+
+def _jumps(ts, ts_np, jumps, tol, tol_rt):
+    if jumps is None or not len(jumps):
+        return None
+    jv = np.asarray(jumps, dtype=float)
+    if ts_np is not None:
+        jv = jv[(jv > ts_np[0] + tol) & (jv < ts_np[-1] - tol)]
+        if not jv.size:
+            return None
+        return _Part("jump", jnp.asarray(jv, ts.dtype), jnp.ones(jv.shape, bool), jv)
+    j = jnp.asarray(jv, ts.dtype)
+    t0, t1 = ts[0], ts[-1]
+    return _Part("jump", jnp.clip(j, t0, t1), (j > t0 + tol_rt) & (j < t1 - tol_rt), None)
+
+
+def _event_part(ts, ts_np, event_times, tol, tol_rt):
+    t0, t1 = ts[0], ts[-1]
+    got = _events(event_times, t0, t1, ts_np)
+    if got is None or not got[0].shape[0]:
+        return None
+    ev, evv = got
+    if ts_np is not None and evv is not None:
+        keep = (evv >= ts_np[0] - tol) & (evv <= ts_np[-1] + tol)
+        if not np.any(keep):
+            return None
+        vals = np.clip(evv[keep], ts_np[0], ts_np[-1])
+        return _Part("event", jnp.clip(ev[np.flatnonzero(keep)], t0, t1), jnp.ones(vals.shape, bool), vals)
+    return _Part("event", jnp.clip(ev, t0, t1), (ev >= t0 - tol_rt) & (ev <= t1 + tol_rt), None)
+
+
+def _merge(ts, ts_np, tol, tol_rt, parts) -> Schedule:
+    t0, t1 = ts[0], ts[-1]
+    N = ts.shape[0]
+    has_reset = any(p.kind == "reset" for p in parts)
+    has_event = any(p.kind == "event" for p in parts)
+    if not parts:
+        no = jnp.zeros((0,), bool)
+        concrete = None if ts_np is None else (np.zeros(0), *(np.zeros(0, bool),) * 3)
+        first = jnp.asarray([0, N], jnp.int32)
+        return Schedule(t0, t1, jnp.zeros((0,), ts.dtype), no, no, no, first, N, False, False, concrete)
+    times = jnp.concatenate([p.times for p in parts])
+    flags = [
+        jnp.concatenate([p.active if p.kind == kind else jnp.zeros(p.active.shape, bool) for p in parts])
+        for kind in ("reset", "event", "jump")
+    ]
+    if ts_np is not None and all(p.values is not None for p in parts):
+        vals = np.concatenate([p.values for p in parts])
+        order = np.argsort(vals, kind="stable")
+        np_flags = [
+            np.concatenate([np.full(p.values.shape, p.kind == kind) for p in parts])[order]
+            for kind in ("reset", "event", "jump")
+        ]
+        vals = vals[order]
+        first = np.concatenate([[0], np.searchsorted(ts_np, vals - tol, side="left"), [N]])
+        window = max(1, int(np.max(np.diff(first))))
+        first_save = jnp.asarray(first, jnp.int32)
+        concrete = (vals, *np_flags)
+        order = jnp.asarray(order)
+    else:
+        order = jnp.argsort(jax.lax.stop_gradient(times), stable=True)
+        starts = jax.lax.stop_gradient(times[order])
+        inner = jnp.searchsorted(ts, starts - tol_rt, side="left").astype(jnp.int32)
+        first_save = jnp.concatenate([jnp.zeros(1, jnp.int32), inner, jnp.full(1, N, jnp.int32)])
+        window, concrete = N, None
+    reset, event, jump = (f[order] for f in flags)
+    return Schedule(
+        t0, t1, times[order], reset, event, jump, first_save, window, has_reset, has_event, concrete
+    )

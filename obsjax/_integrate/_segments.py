@@ -1,0 +1,87 @@
+"""The segmented scan: one solve per segment between consecutive breakpoints of a :class:`Schedule`.
+
+``integrate(solve, act, carry0, ts, schedule)`` runs a ``lax.scan`` over the Nb + 1 segments
+[t0, b1], [b1, b2], …, [b_Nb, t1].  Segment k ≥ 1 first applies ``act`` (the reset and/or update of
+breakpoint k) to the carried state, then calls ``solve`` on [s0, s1] with its save times.  A segment that
+ends at a plant jump τ ends at the float just below τ (diffrax's ``prevbefore``), so no stage of the solve
+evaluates the vector field on the far side of the discontinuity; the next segment starts at τ.
+
+Save times are handled in windows: segment k saves the ``schedule.window`` save times starting at its first
+one (clipped into [s0, s1]; the ones beyond its own are discarded), so the cost of saving is
+O(segments × window) rather than O(segments × len(ts)); the window is the largest number of save times that
+fall into one segment (len(ts) when the breakpoints are traced).
+
+The segment ends move with the reset period T (and with traced event times), so the derivative with respect
+to them flows into diffrax's derivative with respect to t0 and t1 of each solve; the save times are fixed and
+carry no T-derivative (their clip uses ``stop_gradient`` bounds).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ._schedule import Schedule
+from ._status import SUCCESS, first_failure
+
+tmap = jax.tree_util.tree_map
+
+
+def segment_bounds(sched: Schedule):
+    """(starts, ends) of the Nb + 1 segments; ends before a jump are one float below it."""
+    t0 = jnp.reshape(sched.t0, (1,))
+    t1 = jnp.reshape(sched.t1, (1,))
+    starts = jnp.concatenate([t0, sched.times])
+    nxt = jnp.concatenate([sched.times, t1])
+    before = jnp.nextafter(jax.lax.stop_gradient(nxt), jnp.asarray(-jnp.inf, nxt.dtype))
+    ends = jnp.where(jnp.concatenate([sched.jump, jnp.zeros(1, bool)]), before, nxt)
+    # ties (two breakpoints at one instant) give zero-length segments, never negative ones
+    ends = jnp.where(ends > starts, ends, starts)
+    return starts, ends
+
+
+def integrate(solve, act, carry0, ts, sched: Schedule, row):
+    """Run every segment; returns (the solution at `ts` with leading axis len(ts), the first failure code,
+    the carry at t1).
+
+    - `row`: the pytree structure of one saved row (``jax.ShapeDtypeStruct`` leaves or arrays).
+
+    - `solve(s0, s1, carry, save_ts) -> (saved, code, carry_end)`: `saved` a pytree with leading axis
+      len(save_ts); `code` an int status (0 ok).
+    - `act(t, carry, do_reset, do_event) -> carry`: the jump at a breakpoint.
+    """
+    if sched.size == 0:
+        return solve(sched.t0, sched.t1, carry0, ts)
+    starts, ends = segment_bounds(sched)
+    W, N = sched.window, ts.shape[0]
+    ts_pad = jnp.concatenate([ts, jnp.broadcast_to(ts[-1], (W,))])
+    no = jnp.zeros(1, bool)
+    xs = (
+        starts,
+        ends,
+        jnp.concatenate([no, sched.reset]),
+        jnp.concatenate([no, sched.event]),
+        sched.first_save[:-1],
+        jnp.diff(sched.first_save),
+    )
+    buf0 = tmap(lambda s: jnp.zeros((N + W,) + tuple(s.shape), s.dtype), row)
+
+    def body(carry, x):
+        state, buf, code = carry
+        s0, s1, do_reset, do_event, i0, count = x
+        state = act(s0, state, do_reset, do_event)
+        lo, hi = jax.lax.stop_gradient(s0), jax.lax.stop_gradient(s1)
+        save_ts = jnp.clip(jax.lax.dynamic_slice_in_dim(ts_pad, i0, W), lo, hi)
+        saved, c, state = solve(s0, s1, state, save_ts)
+        inside = jnp.arange(W) < count
+
+        def put(b, v):
+            old = jax.lax.dynamic_slice_in_dim(b, i0, W)
+            new = jnp.where(inside.reshape((W,) + (1,) * (v.ndim - 1)), v, old)
+            return jax.lax.dynamic_update_slice_in_dim(b, new, i0, axis=0)
+
+        return (state, tmap(put, buf, saved), first_failure(code, c)), None
+
+    init = (carry0, buf0, jnp.asarray(SUCCESS, jnp.int32))
+    (end, buf, code), _ = jax.lax.scan(body, init, xs)
+    return tmap(lambda b: b[:N], buf), code, end

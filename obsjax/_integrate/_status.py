@@ -1,0 +1,135 @@
+"""Status codes of a trajectory, and the guards that let a solve stop early instead of burning ``max_steps``.
+
+``Trajectory.status``:
+
+- ``SUCCESS`` (0): the solve reached the end of the horizon and every saved x, z, x̂, y is finite, and so is
+  Σ‖x̃‖² over the save grid (an error norm that overflows is not a success).
+- ``SOLVER_FAILED`` (1): the solver did not reach the end of the horizon with finite values: ``max_steps``
+  reached, or an implicit solver's Newton iteration failed.
+- ``NONFINITE`` (2): the plant or observer state, the estimate, the measurement or the error became
+  non-finite or overflowed (including a NaN initial state or gain), i.e. the trajectory diverged.
+
+Every back-end (``_diffrax.py``, ``_fixed_step.py``, ``_lockstep.py``, ``_adaptive_rk.py``) and every study
+(``monte_carlo``, ``tune``) uses these codes.
+
+Early stop.  A solve whose state becomes non-finite would make diffrax reject every further step (its error
+estimate is NaN) until ``max_steps``.  :class:`GuardedController` prevents that.  It rejects a non-finite
+candidate like any other (a too-long step may leave the domain of the vector field; "non-finite" means Σ y²
+is NaN/inf, which includes an overflowing norm), but the step size never goes below a floor of 64 ulp of the
+horizon's end, max(|t0|, |t1|), and a step at the floor is accepted whatever its error, as diffrax's
+``dtmin`` does.  If that step's candidate is not finite (a NaN gain, a state overflowing) the controller ends
+the solve with ``RESULTS.dt_min_reached``, mapped to ``NONFINITE``: a few dozen steps instead of
+``max_steps``.  A solve that starts from a non-finite state (a NaN x0, or the state carried from an earlier
+segment that diverged) starts at the floor and ends after one step.  A finite-time escape of the solution,
+or a stiffness an explicit solver cannot follow, is stepped through at the floor until it overflows
+(``NONFINITE``) or ``max_steps`` is reached; a tolerance below the rounding error of the state
+(rtol ≈ 1e-13) costs a few steps at the floor instead of a failure.  (The guard lives in the controller, not
+in a diffrax ``Event``: it costs a few scalar operations per step and works under every adjoint.)  With
+constant steps (no controller) a non-finite solve runs to its end and the status comes from the saved
+values.
+
+Gradients.  :class:`GuardedController` stops the gradient of the proposed step size: the time grid moves
+with the start of the solve (and of each segment) but does not depend on the state, so the derivative is
+that of a fixed grid, the consistent discretisation of the true sensitivity (the solution's derivative does
+not depend on the step choice).  A rejected step whose stages left the domain of the vector field would still
+poison reverse-mode derivatives (its cotangent is zero, its partial derivatives NaN); ``_diffrax.py`` gives
+such steps a zero gradient.
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+SUCCESS = 0
+SOLVER_FAILED = 1
+NONFINITE = 2
+
+# The smallest step: this many ulp of max(|t0|, |t1|) of the horizon.
+COLLAPSE_ULPS = 64.0
+
+
+def sum_of_squares(tree):
+    """Σ of squares over every leaf (inf when it overflows, NaN when a value is NaN)."""
+    leaves = jax.tree_util.tree_leaves(tree)
+    return sum(jnp.sum(jnp.square(leaf)) for leaf in leaves)
+
+
+def is_finite(tree):
+    """True when Σ y² over the pytree is finite: no NaN/inf and no overflow of the squared norm."""
+    return jnp.isfinite(sum_of_squares(tree))
+
+
+def code_of(result):
+    """diffrax ``RESULTS`` → SUCCESS / SOLVER_FAILED / NONFINITE (``dt_min_reached`` is the stop of
+    :class:`GuardedController` on a non-finite state; its inner PID controller has no ``dtmin``)."""
+    ok = result == diffrax.RESULTS.successful
+    diverged = result == diffrax.RESULTS.dt_min_reached
+    return jnp.where(ok, SUCCESS, jnp.where(diverged, NONFINITE, SOLVER_FAILED)).astype(jnp.int32)
+
+
+def first_failure(code, new):
+    """Combine segment codes: the first non-zero code wins."""
+    return jnp.where(code == SUCCESS, new, code)
+
+
+class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
+    """diffrax's ``PIDController`` with two guards (see the module docstring): steps never go below
+    ``dt_floor``, a step at the floor is accepted and ends the solve (``RESULTS.dt_min_reached``) when its
+    candidate is not finite; and the proposed step size carries no gradient."""
+
+    inner: diffrax.PIDController
+    dt_floor: jax.Array
+
+    def __init__(self, rtol, atol, t0, t1, norm=None):
+        kw = {} if norm is None else {"norm": norm}
+        self.inner = diffrax.PIDController(rtol=rtol, atol=atol, **kw)
+        scale = jnp.maximum(jnp.abs(t0), jnp.abs(t1))
+        self.dt_floor = jax.lax.stop_gradient(COLLAPSE_ULPS * jnp.finfo(jnp.result_type(scale)).eps * scale)
+
+    @property
+    def rtol(self):
+        return self.inner.rtol
+
+    @property
+    def atol(self):
+        return self.inner.atol
+
+    @property
+    def norm(self):
+        return self.inner.norm
+
+    def wrap(self, direction):
+        return eqx.tree_at(lambda c: c.inner, self, self.inner.wrap(direction))
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        # (diffrax's PID init already stops the gradient of its initial step: t0 + dt0 moves with t0)
+        tnext, state = self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
+        # a non-finite vector field at t0 gives a NaN first step: start small, the guard below takes over;
+        # a non-finite initial state starts at the floor (its first step ends the solve)
+        ok = jnp.isfinite(tnext) & (tnext > t0)
+        tnext = jnp.where(ok, tnext, t0 + jax.lax.stop_gradient(1e-6 * (t1 - t0)))
+        return jnp.where(is_finite(y0), tnext, t0 + self.dt_floor), state
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        keep, next_t0, next_t1, jump, state, result = self.inner.adapt_step_size(
+            t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
+        )
+        dt = jax.lax.stop_gradient(next_t1 - next_t0)
+        # A step already at the floor is accepted whatever its error (diffrax's ``dtmin``): a finite one lets
+        # the solve go on, a non-finite one (the state is kept, so later segments start from it) ends it.
+        at_floor = jax.lax.stop_gradient(t1 - t0) <= self.dt_floor
+        finite = is_finite(y1_candidate)
+        keep = (keep & finite) | at_floor
+        next_t0 = jnp.where(at_floor, t1, next_t0)
+        low = at_floor | (dt < self.dt_floor)
+        next_t1 = jnp.where(low, next_t0 + self.dt_floor, next_t1)
+        result = diffrax.RESULTS.where(at_floor & ~finite, diffrax.RESULTS.dt_min_reached, result)
+        return keep, next_t0, frozen(next_t1, next_t0), jump, state, result
+
+
+def frozen(t_next, t_start):
+    """``t_next`` (bit for bit) whose derivative is that of ``t_start``: the step length carries no gradient."""
+    return t_next - (t_next - jax.lax.stop_gradient(t_next)) + (t_start - jax.lax.stop_gradient(t_start))
