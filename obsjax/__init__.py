@@ -73,3 +73,4 @@ from ._data._estimate import Estimate as Estimate
 from ._data._estimate import estimate as estimate
 from .observers._cd_kalman import ContinuousDiscreteKalman as ContinuousDiscreteKalman
 from .observers._cd_kalman import ContinuousDiscreteKalmanState as ContinuousDiscreteKalmanState
+from .tuning._tune_data import tune_on_data as tune_on_data

@@ -244,22 +244,26 @@ def _breakpoints(observer, data, save_ts, ts_np, max_segments, at_samples):
     return sched
 
 
+def _vector_field(t, z, args):
+    # everything the field reads comes in through `args` (a closure over the observer's gains would hide
+    # them from the custom derivative of the solver's steps)
+    observer, hold, k, m = args
+    v = hold(t, k)
+    return observer.vector_field(t, z, v[:m], v[m:])
+
+
 def _solver_fn(observer, hold, opt, sched, m):
     solver = _diffrax.solver_of(opt)
     ctrl = _diffrax.controller_of(opt, sched.t0, sched.t1) if opt.adaptive else diffrax.ConstantStepSize()
     event = _diffrax._event_of(opt.adjoint)
     adjoint = {} if opt.adjoint is None else {"adjoint": opt.adjoint}
 
-    def vf(t, z, k):
-        v = hold(t, k)
-        return observer.vector_field(t, z, v[:m], v[m:])
-
-    term = diffrax.ODETerm(vf)
+    term = diffrax.ODETerm(_vector_field)
 
     def solve(s0, s1, carry, save_ts):
         z, k, zm = carry
         sol = diffrax.diffeqsolve(
-            term, solver, s0, s1, opt.dt0, z, args=k, saveat=diffrax.SaveAt(ts=save_ts, t1=True),
+            term, solver, s0, s1, opt.dt0, z, args=(observer, hold, k, m), saveat=diffrax.SaveAt(ts=save_ts, t1=True),
             stepsize_controller=ctrl, max_steps=opt.max_steps, throw=False, event=event, **adjoint,
         )
         zs = tmap(lambda a: a[:-1], sol.ys)
