@@ -204,6 +204,7 @@ def estimate(
 
 def _estimate_one(observer, data, xhat0, *, ts, solver, rtol, atol, dt0, adaptive, max_steps, max_segments,
                   adjoint, throw):
+    """Validate (eagerly), then run the compiled driver :func:`_run` (one compilation per problem structure)."""
     xhat0 = real_array(xhat0, "xhat0")
     if xhat0.ndim != 1:
         raise ValueError(f"`xhat0` must be a vector (n̂,), got shape {tuple(xhat0.shape)}.")
@@ -211,37 +212,47 @@ def _estimate_one(observer, data, xhat0, *, ts, solver, rtol, atol, dt0, adaptiv
     save_ts, ts_np, at_samples = _check_save_times(ts, data)
     observer = observer.prepare()
     _check_dimensions(observer, data, xhat0)
-    sched = _breakpoints(observer, data, save_ts, ts_np, max_segments, at_samples)
-    hold = _Hold.of(data)
     if solver is not None and not isinstance(solver, diffrax.AbstractSolver):
         raise ValueError(f"`solver` must be a diffrax solver, got {type(solver).__name__}.")
     pick = getattr(observer, "recommended_solver", None)
     solver = solver if solver is not None else (pick(ts_np) if pick is not None else diffrax.Tsit5())
-    opt = _diffrax.Options(solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=bool(adaptive),
-                           max_steps=max_steps, adjoint=adjoint)
+    T = observer.reset_period
+    n_reset = 1 if T is None else _schedule.reset_segments(T, save_ts, ts_np, max_segments)
+    window = 1 if at_samples else _window(observer, data, save_ts, ts_np, n_reset)
+    static = (solver, bool(adaptive), max_steps, adjoint, n_reset, window, at_samples, bool(throw))
+    return _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static)
+
+
+def _window(observer, data, save_ts, ts_np, n_reset):
+    """The largest number of save times in one segment, from the concrete schedule (else len(ts))."""
+    if ts_np is None or concrete_value(data.ts) is None:
+        return int(save_ts.shape[0])
+    sched = _schedule.build(save_ts, ts_np, observer.reset_period, n_reset, None, lambda t0, t1: np.asarray(data.ts))
+    return sched.window
+
+
+@eqx.filter_jit
+def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
+    """The driver: breakpoints at every sample (and reset), one solve per segment, the outputs."""
+    solver, adaptive, max_steps, adjoint, n_reset, window, at_samples, throw = static
+    opt = _diffrax.Options(solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive, max_steps=max_steps,
+                           adjoint=adjoint)
+    # every sample is an event breakpoint; the observer's resets are merged in; the save window is known
+    # from the structure (one save time per segment at the samples), also when the samples are traced
+    sched = _schedule.build(save_ts, None, observer.reset_period, n_reset, None, lambda t0, t1: data.ts)
+    sched = dataclasses.replace(sched, window=window)
+    hold = _Hold.of(data)
     t0 = save_ts[0]
     tol = 1e-9 * jnp.maximum(1.0, save_ts[-1] - t0)
     k0 = jnp.searchsorted(data.ts, t0 - tol, side="left").astype(jnp.int32) - 1
     y0u0 = hold(t0, jnp.maximum(k0, 0))
     z0 = observer.init(t0, xhat0, y0u0[: data.m])
     saved, code, _ = _segments.integrate(
-        _solver_fn(observer, hold, opt, sched, data.m), _act_fn(observer, data, sched), (z0, k0, z0), save_ts, sched,
-        jax.eval_shape(lambda: (z0, z0, k0)),
+        _solver_fn(observer, hold, opt, sched, data.m), _act_fn(observer, data, sched), (z0, k0, z0), save_ts,
+        sched, jax.eval_shape(lambda: (z0, z0, k0)),
     )
     est = _assemble(observer, data, hold, save_ts, saved, code, at_samples)
     return _raise_if(est, throw)
-
-
-def _breakpoints(observer, data, save_ts, ts_np, max_segments, at_samples):
-    """Every sample is an event breakpoint; the observer's resets are merged in (``_schedule.build``)."""
-    T = observer.reset_period
-    n_reset = 1 if T is None else _schedule.reset_segments(T, save_ts, ts_np, max_segments)
-    sched = _schedule.build(save_ts, ts_np, T, n_reset, None, lambda t0, t1: data.ts)
-    if at_samples:
-        # every save time is a sample, hence a breakpoint: a segment holds at most one save time, also
-        # when the samples are traced (a vmapped batch), where the schedule cannot count them itself
-        sched = dataclasses.replace(sched, window=1)
-    return sched
 
 
 def _vector_field(t, z, args):

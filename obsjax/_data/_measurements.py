@@ -265,6 +265,9 @@ class Measurements(eqx.Module):
         """(y(t), u(t)) as the observer sees them (right-continuous for the zero-order hold)."""
         if self.batched:
             raise ValueError("`evaluate` works on one experiment: index or vmap a stacked Measurements first.")
+        t = jnp.asarray(t, self.ts.dtype)
+        if t.ndim:
+            return jax.vmap(self.evaluate)(t)
         if self.hold == "zoh":
             k = jnp.clip(jnp.searchsorted(self.ts, t, side="right") - 1, 0, self.K - 1)
             v = self._values()[k]
