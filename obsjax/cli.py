@@ -24,6 +24,7 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "huang-zhu": ("huang_zhu",),
     "tlo": ("huang_zhu",),
     "byrski-fuksa": ("byrski_fuksa",),
+    "data": ("recorded_data",),
 }
 #: the order of ``--all`` for the documents' modules (others found in obsjax/_reproduce follow)
 DOCUMENT_MODULES = (
