@@ -89,6 +89,12 @@ def test_continuous_discrete_kalman_in_simulate_samples_the_plant_at_its_period(
         obsjax.simulate(MODEL, obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0), x0, xh0, ts)
     with pytest.raises(ValueError, match=r"`period` \(the sampling interval\) must be finite and > 0"):
         obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0, period=-1.0)
+    with pytest.raises(ValueError, match=r"`times` \(the sampling instants\) must be finite and strictly increasing"):
+        obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0, times=[0.0, 0.2, 0.2])
+    with pytest.raises(ValueError, match=r"give `period` .* or `times` .*, not both"):
+        obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0, period=0.1, times=[0.0, 0.2])
+    irregular = obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0, times=[0.0, 0.3, 0.35, 1.2])
+    np.testing.assert_array_equal(irregular.event_times(0.0, 1.0), [0.0, 0.3, 0.35, 1.2])
     with pytest.raises(ValueError, match=r"`Rv` must be positive definite"):
         obsjax.ContinuousDiscreteKalman(MODEL, QW, -RV, P0)
 

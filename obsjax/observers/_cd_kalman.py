@@ -25,6 +25,15 @@ class ContinuousDiscreteKalmanState(NamedTuple):
     P: jax.Array
 
 
+def _times(times):
+    if times is None:
+        return None
+    v = np.asarray(times, dtype=float).reshape(-1)
+    if v.size == 0 or not np.all(np.isfinite(v)) or np.any(np.diff(v) <= 0):
+        raise ValueError(f"`times` (the sampling instants) must be finite and strictly increasing, got {v.tolist()}.")
+    return tuple(float(t) for t in v)
+
+
 def _period(period):
     if period is None:
         return None
@@ -56,7 +65,8 @@ class ContinuousDiscreteKalman(AbstractObserver):
     exponential, to 1e-8).  The first update is at the first sample (x̂0, P0 is the prior at t0).
 
     In :func:`obsjax.estimate` the updates happen at the data's samples; in :func:`obsjax.simulate` every
-    `period` from t0 (the plant sampled at 1/`period`), so `period` is needed there only.
+    `period` from t0 (the plant sampled at 1/`period`) or at the given `times` (the reset mechanism's period T
+    generalised to given event times), so `period` or `times` is needed there only.
 
     **Arguments:**
 
@@ -66,6 +76,8 @@ class ContinuousDiscreteKalman(AbstractObserver):
     - `P0`: (n, n) prior covariance at t0, symmetric positive definite (differentiable leaf).
     - `period`: sampling interval h > 0 for :func:`obsjax.simulate` (a concrete float: it sets the number of
       updates), or ``None``.
+    - `times`: or the sampling instants themselves (irregular sampling in :func:`obsjax.simulate`), a
+      strictly increasing sequence of floats; those outside the horizon are ignored.
 
     **Example:**::
 
@@ -80,8 +92,9 @@ class ContinuousDiscreteKalman(AbstractObserver):
     Rv: jax.Array
     P0: jax.Array
     period: float | None = eqx.field(static=True, default=None)
+    times: tuple[float, ...] | None = eqx.field(static=True, default=None)
 
-    def __init__(self, model, Qw, Rv, P0, period=None):
+    def __init__(self, model, Qw, Rv, P0, period=None, times=None):
         _check_model(model)
         n, m = model.n, model.m
         self.model = model
@@ -89,6 +102,9 @@ class ContinuousDiscreteKalman(AbstractObserver):
         self.Rv = _spd(Rv, "Rv", m)
         self.P0 = _spd(P0, "P0", n)
         self.period = _period(period)
+        self.times = _times(times)
+        if period is not None and times is not None:
+            raise ValueError("give `period` (regular sampling) or `times` (given instants), not both.")
 
     def check(self) -> ContinuousDiscreteKalman:
         """Qw finite symmetric PSD, Rv and P0 finite symmetric positive definite: ``ValueError`` for
@@ -141,10 +157,12 @@ class ContinuousDiscreteKalman(AbstractObserver):
         return ContinuousDiscreteKalmanState(xhat, 0.5 * (P + P.T))
 
     def event_times(self, t0, t1):
-        """The sampling instants t0 + k·period in [t0, t1] (for :func:`obsjax.simulate`)."""
+        """The sampling instants t0 + k·period in [t0, t1], or the given `times` (for :func:`obsjax.simulate`)."""
+        if self.times is not None:
+            return np.asarray(self.times)
         if self.period is None:
             raise ValueError(
-                "ContinuousDiscreteKalman needs `period` (the sampling interval) to run in obsjax.simulate; "
+                "ContinuousDiscreteKalman needs `period` (the sampling interval) or `times` to run in obsjax.simulate; "
                 "obsjax.estimate updates it at the recorded samples instead."
             )
         a, b = concrete_value(t0), concrete_value(t1)
