@@ -173,7 +173,7 @@ def main(long=100_000, batch=1000, samples_per=1000, subset=20):
 
     lines = [
         "| problem | obsjax first call (s) | obsjax best (s) | obsjax median (s) | NumPy/SciPy loop (s) | "
-        "filterpy (s) | NumPy vectorised over experiments (s) | max |x̂ − x̂_NumPy|: obsjax, filterpy, vectorised |",
+        "filterpy (s) | NumPy vectorised over experiments (s) | largest difference to the NumPy loop: obsjax, filterpy, vectorised |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for (label, first, best, med, t_np, scaled, t_fp, t_vec, do, df, dv) in rows:
