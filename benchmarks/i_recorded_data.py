@@ -122,7 +122,6 @@ def timed(fn, *args):
 def main(long=100_000, batch=1000, samples_per=1000, subset=20):
     load = C.Load()
     import equinox as eqx
-    import jax
     import jax.numpy as jnp
     import numpy as np
 

@@ -287,7 +287,7 @@ def _solver_fn(observer, hold, opt, sched, m):
 
 
 def _act_fn(observer, data, sched):
-    K, m = data.K, data.m
+    K = data.K
 
     def act(t, carry, do_reset, do_event):
         z, k, _ = carry

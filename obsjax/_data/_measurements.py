@@ -297,7 +297,7 @@ class Measurements(eqx.Module):
                     )
             return np.stack([np.asarray(columns[c], dtype=float) for c in cols], axis=1), tuple(cols)
 
-        tv, _ = take("t", t if isinstance(t, str) else t)
+        tv, _ = take("t", t)
         if tv.shape[1] != 1:
             raise ValueError(f"`t` must name one column, got {t!r}.")
         yv, yn = take("y", y)

@@ -156,7 +156,7 @@ def study(outdir: str):
 
     import obsjax
 
-    train_csv, train_truth = write_csv(outdir, 1, "train")
+    train_csv, _ = write_csv(outdir, 1, "train")
     val_csv, val_truth = write_csv(outdir, 2, "validation")
     train, val = load(train_csv, tacho=True), load(val_csv)
     truth_val = np.loadtxt(val_truth, delimiter=",", skiprows=1)
