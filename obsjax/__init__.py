@@ -68,3 +68,9 @@ from .observers._finite_window import FiniteWindowLTV as FiniteWindowLTV
 from .observers._finite_window import delay_closed_loop as delay_closed_loop
 from .design._tlc import TrajectoryLinearizationController as TrajectoryLinearizationController
 from .design._tlc import dynamic_inversion as dynamic_inversion
+from ._data._measurements import Measurements as Measurements
+from ._data._estimate import Estimate as Estimate
+from ._data._estimate import estimate as estimate
+from .observers._cd_kalman import ContinuousDiscreteKalman as ContinuousDiscreteKalman
+from .observers._cd_kalman import ContinuousDiscreteKalmanState as ContinuousDiscreteKalmanState
+from .tuning._tune_data import tune_on_data as tune_on_data

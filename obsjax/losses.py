@@ -1,4 +1,4 @@
-"""Losses on a simulated trajectory, for :func:`obsjax.tune`.
+"""Losses on a simulated trajectory, for :func:`obsjax.tune`, and on an estimate from recorded data.
 
 Each loss maps one :class:`obsjax.Trajectory` to a scalar; :func:`obsjax.tune` averages it over a batch of
 initial conditions (and of noise realisations or sampled plants).  All are differentiable with respect to
@@ -8,6 +8,11 @@ every gain of the observer, through the diffrax solve.
 - `itae`: integral of time-weighted absolute error ∫ (t − t0) ‖x̃(t)‖ dt.
 - `terminal`: squared terminal error ‖x̃(t_end)‖².
 - `peak`: smooth maximum of ‖x̃(t)‖ over the save grid.
+
+On recorded data (an :class:`obsjax.Estimate`, for :func:`obsjax.tune_on_data`):
+
+- `output_error`: mean of ‖y_k − ŷ_k‖² over the samples (or ∫ ‖y − ŷ‖² dt), padding ignored.
+- `state_error`: mean of ‖x̂_k − x_ref,k‖² over the states measured for validation.
 
 The integrals use the trapezoid rule on the save grid ``ts``, so a finer grid gives a more accurate loss.
 
@@ -30,6 +35,8 @@ from .tuning._losses import ise as ise
 from .tuning._losses import itae as itae
 from .tuning._losses import peak as peak
 from .tuning._losses import terminal as terminal
+from .tuning._losses import output_error as output_error
+from .tuning._losses import state_error as state_error
 
 # Every public name imported above (keep this line last: names added above it are exported too).
 __all__ = [

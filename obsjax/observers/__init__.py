@@ -12,3 +12,5 @@ from ._luders_narendra import LudersNarendra as LudersNarendra
 from ._luders_narendra import luders_narendra_form as luders_narendra_form
 from ._minimal_adaptive import MinimalAdaptiveObserver as MinimalAdaptiveObserver
 from ._nonminimal_adaptive import NonMinimalAdaptiveObserver as NonMinimalAdaptiveObserver
+from ._cd_kalman import ContinuousDiscreteKalman as ContinuousDiscreteKalman
+from ._cd_kalman import ContinuousDiscreteKalmanState as ContinuousDiscreteKalmanState

@@ -32,3 +32,43 @@ def peak(traj, sharpness: float = 50.0) -> jnp.ndarray:
     top = jnp.max(nrm)
     scale = sharpness / jnp.maximum(top, 1e-12)
     return top + jnp.log(jnp.mean(jnp.exp(scale * (nrm - top)))) / scale + jnp.log(nrm.shape[0]) / scale
+
+
+def _valid_mean(values, valid):
+    w = valid.astype(values.dtype)
+    return jnp.sum(w * values) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def output_error(est, integral: bool = False, weight=None) -> jnp.ndarray:
+    """Output prediction error of an :class:`obsjax.Estimate` on recorded data.
+
+    Default: the mean over the valid samples of ‖y_k − ŷ_k‖², ŷ_k = h(t_k, x̂⁻_k, u_k) the prediction
+    before the update at t_k (for a sampled-data filter the one-step prediction error, whose minimisation
+    is the prediction-error method of system identification, Ljung, *System Identification: Theory for the
+    User*, 2nd ed., Prentice Hall, 1999, §7.2); padding (``est.valid`` False) is ignored, so experiments of
+    different lengths batch.  ``integral=True``: ∫ ‖y − ŷ‖² dt by the trapezoid rule over the save grid
+    (valid rows only).  `weight`: optional (m,) weights w_i of ‖e‖² = Σ w_i e_i² (e.g. 1/σ_i² to put outputs
+    in different units on one scale).
+    """
+    if est.innovation is None:
+        raise ValueError(
+            "`output_error` needs the predicted output ŷ, but this estimate has none (the observer has no "
+            "output model: an adaptive or functional observer); use `state_error` with validation states."
+        )
+    w_out = 1.0 if weight is None else jnp.asarray(weight)
+    sq = jnp.sum(w_out * est.innovation**2, axis=-1)
+    if integral:
+        w = (est.valid[1:] & est.valid[:-1]).astype(sq.dtype)
+        return jnp.sum(w * 0.5 * (sq[1:] + sq[:-1]) * jnp.diff(est.ts))
+    return _valid_mean(sq, est.valid)
+
+
+def state_error(est) -> jnp.ndarray:
+    """Mean over the valid samples of ‖x̂_k[x_index] − x_ref,k‖²: the error on the states that were measured
+    for validation (``x_ref`` of :class:`obsjax.Measurements`)."""
+    if est.state_error is None:
+        raise ValueError(
+            "`state_error` needs validation states: build the Measurements with `x_ref` and `x_index`, and "
+            "save at the samples (ts=None)."
+        )
+    return _valid_mean(jnp.sum(est.state_error**2, axis=-1), est.valid)

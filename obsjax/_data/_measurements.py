@@ -1,0 +1,415 @@
+"""Sampled measurements y(t_k), u(t_k) of an experiment, and how an observer sees them between samples."""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import concrete_value, real_array
+
+#: how the continuous-time observer sees the samples between two sampling instants
+HOLDS = ("zoh", "linear", "cubic")
+MISSING = ("raise", "skip")
+
+
+def _check_choice(value, name, choices):
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"`{name}` must be one of {', '.join(map(repr, choices))}, got {value!r}.")
+    return value
+
+
+def check_times(ts, name="ts"):
+    """Sample times: real, 1-D, at least 2, finite, strictly increasing (eagerly; ``eqx.error_if`` traced)."""
+    v = concrete_value(ts)
+    ts = real_array(ts, name)
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(f"`{name}` must be a 1-D array of at least 2 sample times, got shape {tuple(ts.shape)}.")
+    if v is None:
+        return eqx.error_if(
+            ts, ~jnp.all(jnp.diff(ts) > 0) | ~jnp.all(jnp.isfinite(ts)),
+            f"`{name}` must hold finite, strictly increasing sample times.",
+        )
+    v = np.asarray(v, dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(v))
+    if bad.size:
+        raise ValueError(f"`{name}` must hold finite times, got {v[bad[0]]} at sample {bad[0]}.")
+    d = np.diff(v)
+    if np.any(d <= 0):
+        i = int(np.flatnonzero(d <= 0)[0])
+        what = "a duplicate time" if d[i] == 0 else "a time that goes backwards"
+        raise ValueError(
+            f"`{name}` must be strictly increasing, got {what}: {name}[{i}] = {float(v[i])!r}, "
+            f"{name}[{i + 1}] = {float(v[i + 1])!r}."
+        )
+    return ts
+
+
+def _samples(x, name, K, what):
+    """(K,) or (K, k) samples -> (K, k), naming the argument on a wrong shape."""
+    arr = real_array(x, name)
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2:
+        raise ValueError(f"`{name}` must have shape (K, {what}) (one row per sample), got {tuple(arr.shape)}.")
+    if arr.shape[0] != K:
+        raise ValueError(
+            f"`{name}` has {arr.shape[0]} samples but `ts` has {K}: the lengths must agree (one row per time)."
+        )
+    return arr
+
+
+def _finite_rows(arrays, ts, missing):
+    """Rows whose samples are all finite; ``missing="raise"`` refuses any NaN/inf, naming the argument."""
+    keep = np.ones(len(ts), bool)
+    for name, a in arrays:
+        v = concrete_value(a)
+        if v is None:
+            if missing == "skip":
+                raise ValueError(
+                    f"`missing='skip'` needs concrete samples (it drops rows): `{name}` is traced (inside jit)."
+                )
+            continue
+        ok = np.all(np.isfinite(v), axis=1)
+        if missing == "raise" and not np.all(ok):
+            i = int(np.flatnonzero(~ok)[0])
+            raise ValueError(
+                f"`{name}` holds non-finite samples ({int((~ok).sum())} of them), the first at sample {i} "
+                f"(t = {float(ts[i])!r}): clean the data, or pass missing='skip' to drop those samples."
+            )
+        keep &= ok
+    return keep
+
+
+def _traced_finite(a, name):
+    if concrete_value(a) is not None:
+        return a
+    return eqx.error_if(a, ~jnp.all(jnp.isfinite(a)), f"`{name}` must hold finite samples (no NaN or inf).")
+
+
+def hermite_slopes(ts, v):
+    """Slopes at the samples for the cubic hold: the derivative of the parabola through three neighbouring
+    samples (second-order accurate on irregular grids; one-sided at the ends, the secant for two samples)."""
+    h = jnp.diff(ts)[:, None]
+    delta = jnp.diff(v, axis=0) / h
+    if ts.shape[0] == 2:
+        return jnp.concatenate([delta, delta])
+    h0, h1, d0, d1 = h[:-1], h[1:], delta[:-1], delta[1:]
+    inner = (h1 * d0 + h0 * d1) / (h0 + h1)
+    first = ((2 * h0[:1] + h1[:1]) * d0[:1] - h0[:1] * d1[:1]) / (h0[:1] + h1[:1])
+    last = ((2 * h1[-1:] + h0[-1:]) * d1[-1:] - h1[-1:] * d0[-1:]) / (h0[-1:] + h1[-1:])
+    return jnp.concatenate([first, inner, last])
+
+
+def hermite_coefficients(ts, v):
+    """(d, c, b, a), each (K − 1, k): the cubic Hermite pieces a + b s + c s² + d s³, s = t − t_k, in the
+    layout of ``diffrax.CubicInterpolation``."""
+    m = hermite_slopes(ts, v)
+    h = jnp.diff(ts)[:, None]
+    delta = jnp.diff(v, axis=0) / h
+    m0, m1 = m[:-1], m[1:]
+    c = (3 * delta - 2 * m0 - m1) / h
+    d = (m0 + m1 - 2 * delta) / h**2
+    return d, c, m0, v[:-1]
+
+
+class Measurements(eqx.Module):
+    r"""Sampled outputs and inputs of one experiment (or a batch of them, see :meth:`stack`).
+
+    Samples y_k = y(t_k) (K, m) and u_k = u(t_k) (K, p) at strictly increasing, possibly irregular times
+    t_0 < … < t_{K−1}, and how a continuous-time observer sees them between samples (`hold`):
+
+    - ``"zoh"``: zero-order hold, y(t) = y_k on [t_k, t_{k+1}) (causal; first order in the sampling
+      interval h: |y(t) − y_true(t)| ≤ h max|ẏ|);
+    - ``"linear"``: the straight line between y_k and y_{k+1} (second order, error ≤ h²/8 max|ÿ|;
+      ``diffrax.LinearInterpolation``);
+    - ``"cubic"``: the cubic Hermite piece whose slopes at the samples are those of the parabola through
+      three neighbouring samples (third order; ``diffrax.CubicInterpolation``).
+
+    The linear and cubic holds use the next sample: they suit recorded (offline) data, not a causal
+    filter.  A discrete-time update (:class:`obsjax.observers.ContinuousDiscreteKalman`) sees the samples
+    themselves.
+
+    **Arguments:**
+
+    - `ts`: (K,) sample times, K ≥ 2, finite and strictly increasing (a duplicate time is refused).
+    - `y`: (K, m) sampled outputs ((K,) for one output).
+    - `u`: (K, p) sampled inputs, or ``None`` (p = 0).
+    - `hold`: ``"zoh"`` (default), ``"linear"`` or ``"cubic"``.
+    - `missing`: ``"raise"`` (default) refuses a NaN/inf sample, naming the argument and the first
+      sample; ``"skip"`` drops every sample (row) where y, u or `x_ref` is not finite (the hold then
+      bridges the gap; needs concrete values).
+    - `x_ref`: optional (K, q) states measured for validation only (a tachometer in the lab), never fed to
+      the observer; `x_index` (q integers) says which states of x they are.  :func:`obsjax.estimate` then
+      returns ``state_error`` and :func:`obsjax.losses.state_error` can tune on it.
+    - `mask`: optional (K,) booleans; False marks padding (:meth:`stack`): the observer runs over it, but
+      discrete updates and the losses ignore it.
+
+    Bad data raise ``ValueError`` naming the argument: non-increasing or duplicate times, NaN samples,
+    lengths that disagree.  Values that are traced (a ``Measurements`` built inside ``jit``) are checked
+    with ``eqx.error_if``.
+
+    **Example:**::
+
+        data = obsjax.Measurements(ts, y, u, hold="linear")
+        data = obsjax.Measurements.from_csv("run1.csv", t="time", y=["theta"], u=["volts"])
+        est = obsjax.estimate(obs, data, jnp.zeros(3))
+    """
+
+    ts: jax.Array
+    y: jax.Array
+    u: jax.Array
+    mask: jax.Array
+    x_ref: jax.Array | None
+    x_index: tuple[int, ...] | None = eqx.field(static=True)
+    hold: str = eqx.field(static=True)
+    names: tuple | None = eqx.field(static=True)
+
+    def __init__(
+        self, ts, y, u=None, *, hold="zoh", missing="raise", x_ref=None, x_index=None, mask=None,
+        names=None,
+    ):
+        self.hold = _check_choice(hold, "hold", HOLDS)
+        _check_choice(missing, "missing", MISSING)
+        tv = concrete_value(ts)
+        ts_arr = real_array(ts, "ts")
+        if ts_arr.ndim != 1:
+            raise ValueError(f"`ts` must be a 1-D array of sample times, got shape {tuple(ts_arr.shape)}.")
+        K = ts_arr.shape[0]
+        y = _samples(y, "y", K, "m")
+        if y.shape[1] < 1:
+            raise ValueError("`y` must hold at least one output (m ≥ 1), got shape (K, 0).")
+        u = jnp.zeros((K, 0), y.dtype) if u is None else _samples(u, "u", K, "p")
+        x_ref, x_index = self._validation_states(x_ref, x_index, K)
+        if tv is not None and np.any(~np.isfinite(np.asarray(tv, dtype=float))):
+            bad = int(np.flatnonzero(~np.isfinite(np.asarray(tv, dtype=float)))[0])
+            raise ValueError(f"`ts` must hold finite times, got {tv[bad]} at sample {bad}.")
+        checked = [("y", y), ("u", u)] + ([("x_ref", x_ref)] if x_ref is not None else [])
+        keep = _finite_rows(checked, np.asarray(tv) if tv is not None else np.zeros(K), missing)
+        if mask is not None:
+            mask = jnp.asarray(mask, bool)
+            if mask.shape != (K,):
+                raise ValueError(f"`mask` must have shape ({K},) (one flag per sample), got {tuple(mask.shape)}.")
+        if not np.all(keep):
+            idx = np.flatnonzero(keep)
+            ts_arr, y, u = ts_arr[idx], y[idx], u[idx]
+            x_ref = None if x_ref is None else x_ref[idx]
+            mask = None if mask is None else mask[idx]
+        self.ts = check_times(ts_arr)
+        self.y = _traced_finite(y, "y")
+        self.u = _traced_finite(u, "u")
+        self.x_ref = x_ref
+        self.x_index = x_index
+        self.mask = jnp.ones(self.ts.shape, bool) if mask is None else mask
+        self.names = None if names is None else tuple(tuple(n) if n is not None else None for n in names)
+
+    @staticmethod
+    def _validation_states(x_ref, x_index, K):
+        if x_ref is None:
+            if x_index is not None:
+                raise ValueError("`x_index` is given but `x_ref` (the measured states) is not.")
+            return None, None
+        x_ref = _samples(x_ref, "x_ref", K, "q")
+        if x_index is None:
+            raise ValueError("`x_index` (which states `x_ref` holds, e.g. (1,)) is required with `x_ref`.")
+        idx = tuple(int(i) for i in np.atleast_1d(x_index))
+        if len(idx) != x_ref.shape[1] or any(i < 0 for i in idx):
+            raise ValueError(
+                f"`x_index` must list {x_ref.shape[1]} non-negative state indices (one per column of `x_ref`), "
+                f"got {idx}."
+            )
+        return x_ref, idx
+
+    # ------------------------------------------------------------------------------------------------
+    # sizes
+
+    @property
+    def K(self) -> int:
+        """Number of samples (including padding)."""
+        return int(self.ts.shape[-1])
+
+    @property
+    def m(self) -> int:
+        """Number of outputs."""
+        return int(self.y.shape[-1])
+
+    @property
+    def p(self) -> int:
+        """Number of inputs."""
+        return int(self.u.shape[-1])
+
+    @property
+    def batched(self) -> bool:
+        """True for a batch of experiments made by :meth:`stack` (leading axis on every array)."""
+        return self.ts.ndim == 2
+
+    # ------------------------------------------------------------------------------------------------
+    # the held signals
+
+    def _values(self):
+        return jnp.concatenate([self.y, self.u], axis=-1)
+
+    def path(self):
+        """The held signal t ↦ [y(t); u(t)] as a diffrax path (``LinearInterpolation`` or
+        ``CubicInterpolation``; ``None`` for the zero-order hold, which :meth:`evaluate` handles)."""
+        v = self._values()
+        if self.hold == "linear":
+            return diffrax.LinearInterpolation(self.ts, v)
+        if self.hold == "cubic":
+            return diffrax.CubicInterpolation(self.ts, hermite_coefficients(self.ts, v))
+        return None
+
+    def evaluate(self, t):
+        """(y(t), u(t)) as the observer sees them (right-continuous for the zero-order hold)."""
+        if self.batched:
+            raise ValueError("`evaluate` works on one experiment: index or vmap a stacked Measurements first.")
+        t = jnp.asarray(t, self.ts.dtype)
+        if t.ndim:
+            return jax.vmap(self.evaluate)(t)
+        if self.hold == "zoh":
+            k = jnp.clip(jnp.searchsorted(self.ts, t, side="right") - 1, 0, self.K - 1)
+            v = self._values()[k]
+        else:
+            v = self.path().evaluate(t)
+        return v[..., : self.m], v[..., self.m :]
+
+    # ------------------------------------------------------------------------------------------------
+    # constructors
+
+    @classmethod
+    def from_columns(cls, columns, *, t, y, u=None, x=None, x_index=None, source="the data", **kwargs):
+        """Build from a mapping column name → 1-D values (used by :meth:`from_csv` and
+        :meth:`from_dataframe`); a missing column raises ``ValueError`` listing those available."""
+        names = list(columns)
+
+        def take(arg, cols):
+            if cols is None:
+                return None, None
+            cols = [cols] if isinstance(cols, str) else list(cols)
+            if not cols:
+                raise ValueError(f"`{arg}` must name at least one column, got an empty list.")
+            for c in cols:
+                if c not in columns:
+                    raise ValueError(
+                        f"column {c!r} (argument `{arg}`) is not in {source}; available columns: {names}."
+                    )
+            return np.stack([np.asarray(columns[c], dtype=float) for c in cols], axis=1), tuple(cols)
+
+        tv, _ = take("t", t)
+        if tv.shape[1] != 1:
+            raise ValueError(f"`t` must name one column, got {t!r}.")
+        yv, yn = take("y", y)
+        uv, un = take("u", u)
+        xv, _ = take("x", x)
+        return cls(tv[:, 0], yv, uv, x_ref=xv, x_index=x_index, names=(yn, un), **kwargs)
+
+    @classmethod
+    def from_csv(cls, path, *, t, y, u=None, x=None, x_index=None, hold="zoh", missing="raise", delimiter=","):
+        """Read a CSV file with a header row (no pandas needed).
+
+        **Arguments:** `path`; `t` the name of the time column; `y` (and `u`, `x`) the names of the output
+        (input, validation-state) columns, a string or a list; `x_index` which states `x` holds; `hold`,
+        `missing` as for :class:`Measurements`; `delimiter`.  An empty field reads as NaN (see `missing`).
+
+        **Returns:** a :class:`Measurements`.
+        """
+        import csv
+
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh, delimiter=delimiter))
+        if not rows:
+            raise ValueError(f"`path` {path!r} is empty: expected a header row and samples.")
+        header = [h.strip() for h in rows[0]]
+        body = [r for r in rows[1:] if any(f.strip() for f in r)]
+        for i, r in enumerate(body):
+            if len(r) != len(header):
+                raise ValueError(
+                    f"`path` {path!r}: line {i + 2} has {len(r)} fields but the header has {len(header)}."
+                )
+
+        def num(f, i, j):
+            f = f.strip()
+            if not f:
+                return np.nan
+            try:
+                return float(f)
+            except ValueError:
+                raise ValueError(
+                    f"`path` {path!r}: line {i + 2}, column {header[j]!r} is not a number: {f!r}."
+                ) from None
+
+        cols = {h: np.array([num(r[j], i, j) for i, r in enumerate(body)]) for j, h in enumerate(header)}
+        return cls.from_columns(
+            cols, t=t, y=y, u=u, x=x, x_index=x_index, hold=hold, missing=missing, source=f"{path!r}"
+        )
+
+    @classmethod
+    def from_dataframe(cls, df, *, t, y, u=None, x=None, x_index=None, hold="zoh", missing="raise"):
+        """Build from a pandas ``DataFrame`` (or any mapping of column names to 1-D values); ``t`` may be
+        ``"index"`` to use the frame's index as the time.  pandas itself is not required by obsjax.
+
+        **Returns:** a :class:`Measurements`.
+        """
+        cols = {str(c): np.asarray(df[c], dtype=float) for c in list(getattr(df, "columns", df))}
+        if t == "index":
+            cols["index"] = np.asarray(df.index, dtype=float)
+        return cls.from_columns(cols, t=t, y=y, u=u, x=x, x_index=x_index, hold=hold, missing=missing,
+                                source="the data frame")
+
+    def to_dataframe(self):
+        """A pandas ``DataFrame`` with columns t, the outputs and the inputs (names kept from the source;
+        y0, y1, … and u0, … otherwise).  Imports pandas (an optional dependency)."""
+        import pandas as pd
+
+        if self.batched:
+            raise ValueError("`to_dataframe` works on one experiment: index a stacked Measurements first.")
+        yn, un = self.names if self.names is not None else (None, None)
+        yn = yn or tuple(f"y{i}" for i in range(self.m))
+        un = un or tuple(f"u{i}" for i in range(self.p))
+        data = {"t": np.asarray(self.ts)}
+        data.update({n: np.asarray(self.y[:, i]) for i, n in enumerate(yn)})
+        data.update({n: np.asarray(self.u[:, i]) for i, n in enumerate(un)})
+        return pd.DataFrame(data)
+
+    @classmethod
+    def stack(cls, datasets) -> Measurements:
+        """A batch of experiments of possibly different lengths, padded to the longest.
+
+        Each experiment is padded at its end by repeating its last sample at times continuing with its
+        last sampling interval; ``mask`` is False on the padding.  Every array gains a leading axis of
+        length len(datasets), so ``jax.vmap``/``eqx.filter_vmap`` maps :func:`obsjax.estimate` over it
+        and the losses ignore the padding.
+
+        **Arguments:** `datasets`: a non-empty sequence of :class:`Measurements` with the same hold, m, p
+        and validation states.
+
+        **Returns:** a batched :class:`Measurements`.
+        """
+        datasets = list(datasets)
+        if not datasets or not all(isinstance(d, Measurements) and not d.batched for d in datasets):
+            raise ValueError("`datasets` must be a non-empty sequence of (unbatched) obsjax.Measurements.")
+        first = datasets[0]
+        for i, d in enumerate(datasets):
+            if (d.hold, d.m, d.p, d.x_index) != (first.hold, first.m, first.p, first.x_index):
+                raise ValueError(
+                    f"`datasets`[{i}] has hold={d.hold!r}, m={d.m}, p={d.p}, x_index={d.x_index} but `datasets`[0] "
+                    f"has hold={first.hold!r}, m={first.m}, p={first.p}, x_index={first.x_index}: they must agree."
+                )
+        K = max(d.K for d in datasets)
+        padded = [d._padded(K) for d in datasets]
+        return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *padded)
+
+    def _padded(self, K):
+        extra = K - self.K
+        dt = self.ts[-1] - self.ts[-2]
+        ts = jnp.concatenate([self.ts, self.ts[-1] + dt * jnp.arange(1, extra + 1)])
+
+        def rep(a):
+            return None if a is None else jnp.concatenate([a, jnp.broadcast_to(a[-1], (extra,) + a.shape[1:])])
+
+        mask = jnp.concatenate([self.mask, jnp.zeros(extra, bool)])
+        return Measurements(
+            ts, rep(self.y), rep(self.u), hold=self.hold, x_ref=rep(self.x_ref), x_index=self.x_index, mask=mask
+        )

@@ -1,0 +1,154 @@
+"""The continuous–discrete Kalman filter against the discrete Kalman filter of the exactly discretised model
+(matrix exponential, a NumPy loop), in estimate and in simulate; the gradient of output_error against finite
+differences; tune_on_data on a held-out experiment."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+import scipy.linalg
+
+import obsjax
+
+A = np.array([[0.0, 1.0], [-2.0, -0.5]])
+B = np.array([[0.0], [1.0]])
+C = np.array([[1.0, 0.0]])
+QW = np.diag([1e-2, 5e-2])
+RV = np.array([[4e-2]])
+P0 = np.eye(2)
+H = 0.05
+MODEL = obsjax.LTI(A, B, C)
+
+
+def discretise(A, B, Qw, h):
+    """Exact ZOH discretisation: Ad = e^{Ah}, Bd = ∫ e^{Aτ} dτ B, Qd = ∫ e^{Aτ} Qw e^{Aᵀτ} dτ (Van Loan,
+    "Computing integrals involving the matrix exponential", IEEE TAC 23(3), 1978)."""
+    n, p = B.shape
+    F = scipy.linalg.expm(np.block([[A, B], [np.zeros((p, n + p))]]) * h)
+    V = scipy.linalg.expm(np.block([[-A, Qw], [np.zeros((n, n)), A.T]]) * h)
+    return F[:n, :n], F[:n, n:], V[n:, n:].T @ V[:n, n:]
+
+
+def discrete_kalman(y, u, x0, P0, Ad, Bd, Qd, C, Rv):
+    """Filtered means and covariances x̂_k|k, P_k|k (the prior at the first sample is x0, P0)."""
+    x, P, xs, Ps = x0.copy(), P0.copy(), [], []
+    for k in range(len(y)):
+        S = C @ P @ C.T + Rv
+        K = np.linalg.solve(S, C @ P).T
+        x = x + K @ (y[k] - C @ x)
+        P = (np.eye(len(x)) - K @ C) @ P @ (np.eye(len(x)) - K @ C).T + K @ Rv @ K.T
+        xs.append(x.copy())
+        Ps.append(P.copy())
+        x, P = Ad @ x + Bd @ u[k], Ad @ P @ Ad.T + Qd
+    return np.array(xs), np.array(Ps)
+
+
+def experiment(K, seed, h=H):
+    """Noisy samples of the discretised plant (process and measurement noise), with a random ZOH input."""
+    rng = np.random.default_rng(seed)
+    Ad, Bd, Qd = discretise(A, B, np.diag([4e-4, 1e-2]) / h, h)
+    x, ys, us = np.zeros(2), [], rng.normal(size=(K, 1))
+    Lq = np.linalg.cholesky(Qd)
+    for k in range(K):
+        ys.append(C @ x + 0.05 * rng.normal(size=1))
+        x = Ad @ x + Bd @ us[k] + Lq @ rng.normal(size=2)
+    return obsjax.Measurements(h * np.arange(K), np.array(ys), us)
+
+
+def test_continuous_discrete_equals_discrete_kalman_of_the_exact_discretisation():
+    data = experiment(61, 0)
+    kf = obsjax.observers.ContinuousDiscreteKalman(MODEL, QW, RV, P0)
+    xh0 = np.array([0.3, -0.2])
+    est = obsjax.estimate(kf, data, xh0, solver=diffrax.Dopri8(), rtol=1e-12, atol=1e-13)
+    xs, Ps = discrete_kalman(np.asarray(data.y), np.asarray(data.u), xh0, P0, *discretise(A, B, QW, H), C, RV)
+    np.testing.assert_allclose(np.asarray(est.xhat), xs, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(np.asarray(est.z.P), Ps, rtol=0, atol=1e-8)
+    # the innovation is the one-step prediction error y_k − C x̂_k|k−1 (before the update)
+    prior = np.concatenate([xh0[None], np.asarray(est.xhat[:-1]) @ discretise(A, B, QW, H)[0].T
+                            + np.asarray(data.u[:-1]) @ discretise(A, B, QW, H)[1].T])
+    np.testing.assert_allclose(np.asarray(est.innovation), np.asarray(data.y) - prior @ C.T, atol=1e-8)
+
+
+def test_continuous_discrete_kalman_in_simulate_samples_the_plant_at_its_period():
+    # simulate with a sampling period and estimate on the plant's samples are the same filter: the plant
+    # is free (u = 0), so the samples are exact and the two drivers must agree to the solver tolerance
+    kf = obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0, period=0.1)
+    ts = np.linspace(0.0, 2.0, 21)
+    x0, xh0 = jnp.array([1.0, -1.0]), jnp.zeros(2)
+    tr = obsjax.simulate(MODEL, kf, x0, xh0, ts, rtol=1e-11, atol=1e-12)
+    data = obsjax.Measurements(ts, np.asarray(tr.y), np.zeros((21, 1)))
+    est = obsjax.estimate(kf, data, xh0, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(est.xhat), np.asarray(tr.xhat), atol=1e-8)
+    # and both equal the NumPy filter on the samples
+    xs, _ = discrete_kalman(np.asarray(tr.y), np.zeros((21, 1)), np.zeros(2), P0, *discretise(A, B, QW, 0.1), C, RV)
+    np.testing.assert_allclose(np.asarray(tr.xhat), xs, atol=1e-8)
+    with pytest.raises(ValueError, match="needs `period`"):
+        obsjax.simulate(MODEL, obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0), x0, xh0, ts)
+    with pytest.raises(ValueError, match=r"`period` \(the sampling interval\) must be finite and > 0"):
+        obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0, period=-1.0)
+    with pytest.raises(ValueError, match=r"`times` \(the sampling instants\) must be finite and strictly increasing"):
+        obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0, times=[0.0, 0.2, 0.2])
+    with pytest.raises(ValueError, match=r"give `period` .* or `times` .*, not both"):
+        obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0, period=0.1, times=[0.0, 0.2])
+    irregular = obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0, times=[0.0, 0.3, 0.35, 1.2])
+    np.testing.assert_array_equal(irregular.event_times(0.0, 1.0), [0.0, 0.3, 0.35, 1.2])
+    with pytest.raises(ValueError, match=r"`Rv` must be positive definite"):
+        obsjax.ContinuousDiscreteKalman(MODEL, QW, -RV, P0)
+
+
+@pytest.fixture(scope="module")
+def runs():
+    return experiment(80, 1), experiment(60, 2), experiment(100, 3)
+
+
+def test_output_error_gradient_matches_finite_differences(runs):
+    data = runs[0]
+    kf = obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0)
+
+    @eqx.filter_jit
+    def J(qw, rv):
+        k = eqx.tree_at(lambda o: (o.Qw, o.Rv), kf, (qw, rv))
+        est = obsjax.estimate(k, data, jnp.zeros(2), rtol=1e-10, atol=1e-12)
+        return obsjax.losses.output_error(est) + 0.1 * obsjax.losses.output_error(est, integral=True)
+
+    q, r = jnp.asarray(QW), jnp.asarray(RV)
+    gq, gr = jax.grad(J, argnums=(0, 1))(q, r)
+    eps = 1e-6
+    E = [jnp.zeros((2, 2)).at[i, i].set(eps) for i in range(2)]
+    fd_q = [(J(q + e, r) - J(q - e, r)) / (2 * eps) for e in E]
+    fd_r = (J(q, r + eps) - J(q, r - eps)) / (2 * eps)
+    np.testing.assert_allclose(np.diag(np.asarray(gq)), np.asarray(fd_q), rtol=1e-5)
+    np.testing.assert_allclose(float(gr[0, 0]), float(fd_r), rtol=1e-5)
+    assert abs(float(gq[1, 1])) > 1e-6 and abs(float(gr[0, 0])) > 1e-6
+
+
+def test_tune_on_data_improves_a_held_out_experiment(runs):
+    train = [runs[0], runs[1]]  # different lengths: padded and masked
+    held_out = runs[2]
+    kf = obsjax.ContinuousDiscreteKalman(MODEL, Qw=1e-4 * np.eye(2), Rv=np.array([[1.0]]), P0=np.eye(2))
+    res = obsjax.tune_on_data(kf, train, where=lambda o: (o.Qw, o.Rv), xhat0=jnp.zeros(2),
+                              optimizer=optax.adam(0.3), steps=12, progress=False)
+    assert res.history["loss"][res.history["best_step"]] < 0.8 * res.history["loss"][0]
+    Qw = np.asarray(res.observer.Qw)
+    assert Qw[0, 1] == 0.0 and np.all(np.diag(Qw) > 0)  # structural zeros stay zero
+    val = lambda o: float(obsjax.losses.output_error(obsjax.estimate(o, held_out, jnp.zeros(2))))
+    before, after = val(kf), val(res.observer)
+    print(before, after)
+    assert after < 0.8 * before, (before, after)
+
+
+def test_tune_on_data_checks_its_arguments(runs):
+    kf = obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0)
+    with pytest.raises(ValueError, match=r"`datasets` must be an obsjax.Measurements or a non-empty list"):
+        obsjax.tune_on_data(kf, [], where=lambda o: o.Rv, xhat0=jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"`xhat0` must be \(n,\) or \(2, n\)"):
+        obsjax.tune_on_data(kf, list(runs[:2]), where=lambda o: o.Rv, xhat0=jnp.zeros((3, 2)))
+    with pytest.raises(ValueError, match=r"`estimate_kwargs` must not contain 'throw'"):
+        obsjax.tune_on_data(kf, runs[0], where=lambda o: o.Rv, xhat0=jnp.zeros(2), estimate_kwargs={"throw": True})
+    with pytest.raises(ValueError, match=r"`where` must be a callable"):
+        obsjax.tune_on_data(kf, runs[0], where="Rv", xhat0=jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"`state_error` needs validation states"):
+        obsjax.losses.state_error(obsjax.estimate(kf, runs[1], jnp.zeros(2)))

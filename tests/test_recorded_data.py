@@ -1,0 +1,236 @@
+"""Observers on recorded data: Measurements (holds, readers, bad data), estimate against simulate, batches of
+experiments of different lengths, vmap over initial estimates, reset observers on data."""
+
+import csv
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import obsjax
+
+PLANT = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+OBS = obsjax.Luenberger.from_poles(PLANT, [-3.0, -4.0])
+X0, XH0 = jnp.array([1.0, -1.0]), jnp.zeros(2)
+SPAN = 4.0
+
+
+def _u(t):
+    return jnp.array([jnp.sin(2.0 * t) + 0.5 * jnp.cos(0.7 * t)])
+
+
+@pytest.fixture(scope="module")
+def truth():
+    """simulate on the finest grid (every coarser sample grid is a subset of it)."""
+    ts = np.linspace(0.0, SPAN, 81)
+    tr = obsjax.simulate(PLANT, OBS, X0, XH0, ts, u=_u, rtol=1e-11, atol=1e-12)
+    return ts, np.asarray(tr.y), np.asarray(jax.vmap(_u)(ts)), np.asarray(tr.xhat)
+
+
+_est = eqx.filter_jit(lambda obs, data, xh0: obsjax.estimate(obs, data, xh0, rtol=1e-11, atol=1e-12))
+
+
+@pytest.mark.parametrize("hold,order", [("zoh", 1), ("linear", 2), ("cubic", 3)])
+def test_estimate_agrees_with_simulate_to_the_interpolation_error_of_the_hold(truth, hold, order):
+    ts, y, u, xhat = truth
+    # two sample rates (every 4th and every 2nd point of the fine grid) in one stacked, masked batch
+    runs = [(slice(None, None, 4), 4), (slice(None, None, 2), 2)]
+    data = obsjax.Measurements.stack([obsjax.Measurements(ts[s], y[s], u[s], hold=hold) for s, _ in runs])
+    est = _est(OBS, data, XH0)
+    assert est.xhat.shape == (2, 41, 2) and not bool(est.valid[0, 21:].any())
+    errs = []
+    for b, (s, _) in enumerate(runs):
+        K = len(ts[s])
+        assert int(est.status[b]) == 0 and bool(est.valid[b, :K].all())
+        errs.append(float(np.max(np.abs(np.asarray(est.xhat[b, :K]) - xhat[s]))))
+    h = SPAN / 20
+    # the error is of the size of the hold's interpolation error ...
+    bound = {"zoh": 3.0 * h, "linear": 0.5 * h**2, "cubic": 0.5 * h**3}[hold]
+    assert errs[0] < bound, (errs, bound)
+    # ... and shrinks at the hold's order when the sampling interval halves
+    rate = np.log2(errs[0] / errs[1])
+    assert order - 0.3 < rate < order + 1.3, (errs, rate)
+
+
+def test_vmap_over_initial_estimates_and_jit(truth):
+    ts, y, u, _ = truth
+    data = obsjax.Measurements(ts[::4], y[::4], u[::4], hold="linear")
+    xh0s = jnp.array([[0.0, 0.0], [1.0, -1.0], [2.0, 3.0]])
+    f = eqx.filter_jit(lambda x: obsjax.estimate(OBS, data, x))
+    batch = jax.vmap(f)(xh0s)
+    for i in range(3):
+        one = f(xh0s[i])
+        np.testing.assert_allclose(np.asarray(batch.xhat[i]), np.asarray(one.xhat), rtol=1e-10, atol=1e-12)
+    # x̂0 = x0 and noise-free data: the Luenberger estimate stays on the true state up to the hold's error
+    assert float(jnp.max(jnp.abs(batch.xhat[1, :, 0] - data.y[:, 0]))) < 0.02
+    # the innovation is y − C x̂ at the samples
+    np.testing.assert_allclose(np.asarray(batch.innovation[2]), np.asarray(data.y - batch.xhat[2][:, :1]), atol=1e-12)
+
+
+def test_experiments_of_different_lengths_batch_with_a_mask(truth):
+    ts, y, u, _ = truth
+    a = obsjax.Measurements(ts[::4], y[::4], u[::4], hold="cubic")
+    b = obsjax.Measurements(ts[:41:2], y[:41:2], u[:41:2], hold="cubic")  # 21 samples on [0, 2]
+    data = obsjax.Measurements.stack([a, b])
+    assert data.ts.shape == (2, 21) and data.batched
+    bb = obsjax.Measurements.stack([b, b, a])  # shapes equal, padding irrelevant here
+    est = obsjax.estimate(OBS, data, jnp.stack([XH0, XH0 + 1.0]))
+    for i, d in enumerate((a, b)):
+        one = obsjax.estimate(OBS, d, XH0 + float(i))
+        np.testing.assert_allclose(np.asarray(est.xhat[i, : d.K]), np.asarray(one.xhat), rtol=1e-9, atol=1e-10)
+    # the loss ignores padding: masked mean equals the unbatched value
+    l_batch = jax.vmap(obsjax.losses.output_error)(est)
+    for i, d in enumerate((a, b)):
+        one = obsjax.estimate(OBS, d, XH0 + float(i))
+        assert abs(float(l_batch[i]) - float(obsjax.losses.output_error(one))) < 1e-12
+    assert bb.ts.shape == (3, 21)
+
+
+def test_reset_observer_on_data_agrees_with_simulate():
+    plant = obsjax.chen_yen_example()
+    obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.9)
+    x0, xh0 = jnp.zeros(2), jnp.array([5.0, -5.0])
+    ts = np.linspace(0.0, 3.0, 61)
+    tr = obsjax.simulate(plant, obs, x0 + 1.0, xh0, ts, rtol=1e-10, atol=1e-12)
+    data = obsjax.Measurements(ts, np.asarray(tr.y), hold="cubic")
+    est = obsjax.estimate(obs, data, xh0, rtol=1e-10, atol=1e-12)
+    assert int(est.status) == 0
+    err = np.max(np.abs(np.asarray(est.xhat) - np.asarray(tr.xhat)))
+    assert err < 1e-2, err  # C(t) has cos √t: the hold is coarse near t = 0
+    # the resets happened: Φ is back to I right after t = 0.9 (a save time at the reset is right-continuous)
+    i = int(np.argmin(np.abs(ts - 1.8)))
+    np.testing.assert_allclose(np.asarray(est.z.Phi[i]), np.eye(2), atol=1e-9)
+
+
+# ------------------------------------------------------------------------------------------------ bad data
+
+
+def _ok(K=5):
+    ts = np.linspace(0.0, 1.0, K)
+    return ts, np.sin(ts)[:, None], np.cos(ts)[:, None]
+
+
+@pytest.mark.parametrize(
+    "ts_fix, match",
+    [
+        (lambda t: t[[0, 1, 1, 2, 3]], r"`ts` must be strictly increasing, got a duplicate time: ts\[1\]"),
+        (lambda t: t[[0, 2, 1, 3, 4]], r"`ts` must be strictly increasing, got a time that goes backwards"),
+        (lambda t: np.where(np.arange(5) == 2, np.nan, t), r"`ts` must hold finite times, got nan at sample 2"),
+        (lambda t: t[:1], r"`ts` must be a 1-D array of at least 2 sample times"),
+        (lambda t: t.reshape(5, 1), r"`ts` must be a 1-D array"),
+    ],
+)
+def test_bad_times_are_refused(ts_fix, match):
+    ts, y, u = _ok()
+    K = np.asarray(ts_fix(ts)).reshape(-1).shape[0]
+    with pytest.raises(ValueError, match=match):
+        obsjax.Measurements(ts_fix(ts), y[:K] if K <= 5 else y, u[:K] if K <= 5 else u)
+
+
+def test_nan_samples_are_refused_or_skipped():
+    ts, y, u = _ok(6)
+    y[3, 0] = np.nan
+    with pytest.raises(ValueError, match=r"`y` holds non-finite samples \(1 of them\), the first at sample 3"):
+        obsjax.Measurements(ts, y, u)
+    u2 = u.copy()
+    u2[1, 0] = np.inf
+    with pytest.raises(ValueError, match=r"`u` holds non-finite samples .* sample 1"):
+        obsjax.Measurements(ts, np.sin(ts), u2)
+    d = obsjax.Measurements(ts, y, u2, missing="skip")
+    assert d.K == 4 and np.all(np.isfinite(np.asarray(d.y))) and 3 not in np.flatnonzero(np.isin(ts, d.ts))
+    with pytest.raises(ValueError, match=r"`missing` must be one of 'raise', 'skip', got 'drop'"):
+        obsjax.Measurements(ts, y, u, missing="drop")
+
+
+def test_lengths_holds_and_shapes_are_checked():
+    ts, y, u = _ok()
+    with pytest.raises(ValueError, match=r"`y` has 4 samples but `ts` has 5"):
+        obsjax.Measurements(ts, y[:4], u)
+    with pytest.raises(ValueError, match=r"`u` has 6 samples but `ts` has 5"):
+        obsjax.Measurements(ts, y, np.zeros((6, 1)))
+    with pytest.raises(ValueError, match=r"`hold` must be one of 'zoh', 'linear', 'cubic', got 'foh'"):
+        obsjax.Measurements(ts, y, u, hold="foh")
+    with pytest.raises(ValueError, match=r"`x_index` \(which states `x_ref` holds"):
+        obsjax.Measurements(ts, y, u, x_ref=y)
+    d = obsjax.Measurements(ts, y)  # no input, but the observer's model has one
+    with pytest.raises(ValueError, match=r"`data` has p = 0 inputs but the observer's model has p = 1"):
+        obsjax.estimate(OBS, d, XH0)
+    with pytest.raises(ValueError, match=r"`data` has m = 2 outputs but the observer's model has m = 1"):
+        obsjax.estimate(OBS, obsjax.Measurements(ts, np.hstack([y, y]), u), XH0)
+    with pytest.raises(ValueError, match=r"`xhat0` must have shape \(2,\)"):
+        obsjax.estimate(OBS, obsjax.Measurements(ts, y, u), jnp.zeros(3))
+    with pytest.raises(ValueError, match=r"`ts` must lie within the data's sample times"):
+        obsjax.estimate(OBS, obsjax.Measurements(ts, y, u), XH0, ts=np.linspace(0.0, 2.0, 5))
+    with pytest.raises(ValueError, match=r"`data` must be an obsjax.Measurements, got dict"):
+        obsjax.estimate(OBS, {"ts": ts}, XH0)
+    with pytest.raises(ValueError, match=r"`datasets`\[1\] has hold='linear'"):
+        obsjax.Measurements.stack([obsjax.Measurements(ts, y, u), obsjax.Measurements(ts, y, u, hold="linear")])
+
+
+def test_traced_bad_times_fail_under_jit():
+    ts, y, u = _ok()
+    bad = ts[[0, 1, 1, 2, 3]]
+    f = jax.jit(lambda t: obsjax.Measurements(t, y, u).ts)
+    with pytest.raises(Exception, match="strictly increasing sample times"):
+        jax.block_until_ready(f(bad))
+    g = jax.jit(lambda yy: obsjax.Measurements(ts, yy, u).y)
+    with pytest.raises(Exception, match=r"`y` must hold finite samples"):
+        jax.block_until_ready(g(np.where(np.arange(5)[:, None] == 2, np.nan, y)))
+
+
+def _write_csv(path, header, rows):
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows(rows)
+
+
+def test_from_csv_and_from_dataframe(tmp_path):
+    ts, y, u = _ok(6)
+    p = tmp_path / "run.csv"
+    _write_csv(p, ["time", "theta", "volts", "omega"], np.hstack([ts[:, None], y, u, 2 * y]).tolist())
+    d = obsjax.Measurements.from_csv(p, t="time", y="theta", u=["volts"], x=["omega"], x_index=[1], hold="linear")
+    np.testing.assert_array_equal(np.asarray(d.ts), ts)
+    np.testing.assert_array_equal(np.asarray(d.u), u)
+    assert d.hold == "linear" and d.x_index == (1,) and d.names == (("theta",), ("volts",))
+    with pytest.raises(ValueError, match=r"column 'speed' \(argument `y`\) is not in .*available columns: "
+                                         r"\['time', 'theta', 'volts', 'omega'\]"):
+        obsjax.Measurements.from_csv(p, t="time", y=["speed"])
+    with pytest.raises(ValueError, match=r"column 'tt' \(argument `t`\)"):
+        obsjax.Measurements.from_csv(p, t="tt", y=["theta"])
+    # an empty field reads as NaN: refused, or skipped
+    rows = np.hstack([ts[:, None], y, u, y]).astype(object)
+    rows[2, 1] = ""
+    _write_csv(p, ["time", "theta", "volts", "omega"], rows.tolist())
+    with pytest.raises(ValueError, match=r"`y` holds non-finite samples .* sample 2"):
+        obsjax.Measurements.from_csv(p, t="time", y=["theta"], u=["volts"])
+    assert obsjax.Measurements.from_csv(p, t="time", y=["theta"], u=["volts"], missing="skip").K == 5
+    rows[3, 2] = "n/a"
+    _write_csv(p, ["time", "theta", "volts", "omega"], rows.tolist())
+    with pytest.raises(ValueError, match=r"line 5, column 'volts' is not a number: 'n/a'"):
+        obsjax.Measurements.from_csv(p, t="time", y=["theta"], u=["volts"])
+    # any mapping of columns works as a data frame (pandas itself is optional)
+    frame = {"t": ts, "y": y[:, 0], "u": u[:, 0]}
+    d2 = obsjax.Measurements.from_dataframe(frame, t="t", y=["y"], u=["u"])
+    np.testing.assert_array_equal(np.asarray(d2.y), y)
+    pd = pytest.importorskip("pandas")
+    df = pd.DataFrame(frame)
+    d3 = obsjax.Measurements.from_dataframe(df, t="t", y=["y"], u=["u"])
+    np.testing.assert_array_equal(np.asarray(d3.to_dataframe()["y"]), y[:, 0])
+
+
+def test_holds_evaluate_through_diffrax_interpolation():
+    ts = np.array([0.0, 0.1, 0.25, 0.3, 0.5, 0.8])  # irregular
+    y = np.sin(3 * ts)
+    for hold in ("linear", "cubic"):
+        d = obsjax.Measurements(ts, y, hold=hold)
+        np.testing.assert_allclose(np.asarray(d.evaluate(ts)[0][:, 0]), y, atol=1e-14)  # interpolates
+    d = obsjax.Measurements(ts, y, hold="zoh")
+    assert float(d.evaluate(0.29)[0][0]) == y[2] and float(d.evaluate(0.3)[0][0]) == y[3]  # right-continuous
+    # the cubic hold reproduces quadratics exactly (the three-point slopes are exact for them)
+    q = 1.0 + 2.0 * ts - 3.0 * ts**2
+    dq = obsjax.Measurements(ts, q, hold="cubic")
+    tt = np.linspace(0.0, 0.8, 17)
+    np.testing.assert_allclose(np.asarray(dq.evaluate(tt)[0][:, 0]), 1.0 + 2.0 * tt - 3.0 * tt**2, atol=1e-13)
