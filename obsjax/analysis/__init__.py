@@ -1,7 +1,11 @@
 """Analysis: observability, transition matrices, gramians, persistence of excitation, bounds, rates."""
 
+from ._lti import ObservabilityStaircase as ObservabilityStaircase
+from ._lti import balance_pair as balance_pair
 from ._lti import is_observable as is_observable
+from ._lti import observability_staircase as observability_staircase
 from ._lti import obsv as obsv
+from ._lti import pbh_margin as pbh_margin
 from ._ltv import PersistentExcitation as PersistentExcitation
 from ._ltv import UniformObservability as UniformObservability
 from ._ltv import chen_yen_bound as chen_yen_bound

@@ -41,6 +41,7 @@ import numpy as np
 
 from .._checks import concrete_value
 from .._config import require_x64
+from ..analysis._lti import DEFAULT_TOL, lexicographic_step
 
 __all__ = [
     "LTVCanonicalForm",
@@ -180,31 +181,33 @@ def ltv_observability_matrix(A: Callable, C: Callable, t) -> jax.Array:
     return _lie_stack(A, C, n - 1)(_as_time(t)).reshape(n * m, n)
 
 
-def _indices_from_Q(Qs: np.ndarray, tol: float) -> tuple[int, ...] | None:
-    """Luenberger search c_1, …, c_m, 𝓛c_1, …, 𝓛c_m, … keeping independent rows (lexicographic)."""
+def _indices_from_Q(Qs: np.ndarray, tol: float, a_norm: float = 0.0) -> tuple[int, ...] | None:
+    """Lexicographic search c_1, …, c_m, 𝓛c_1, …, 𝓛c_m, … keeping independent rows.
+
+    The rank decisions are those of the LTI staircase (:func:`obsjax.analysis._lti.lexicographic_step`):
+    a row is independent when its component outside the rows kept so far exceeds ``tol`` times the
+    scale ρ_k of its level, ρ_0 = max_i ‖c_i‖ and ρ_k = max(max_i ‖𝓛^k c_i‖, ‖A(t)‖ ρ_{k−1}).  Every
+    threshold is relative to its own level, so the decisions do not change when time is rescaled
+    (A → cA, 𝓛 → c𝓛) or the outputs are (C → dC)."""
     depth1, m, n = Qs.shape
-    scale = max(float(np.max(np.abs(Qs))), 1.0)
-    active = [True] * m
+    basis: list = []
+    alive = [True] * m
     p = [0] * m
-    rows: list[np.ndarray] = []
+    rho = 0.0
     for j in range(depth1):
-        for i in range(m):
-            if not active[i]:
-                continue
-            cand = np.vstack(rows + [Qs[j, i]])
-            sv = np.linalg.svd(cand, compute_uv=False)
-            if sv[-1] > tol * scale:
-                rows.append(Qs[j, i])
-                p[i] += 1
-            else:
-                active[i] = False
-        if len(rows) == n:
+        rho = max(float(np.max(np.linalg.norm(Qs[j], axis=1))), a_norm * rho)
+        if rho == 0.0:
             break
-    return tuple(p) if len(rows) == n else None
+        res = lexicographic_step(basis, Qs[j], alive, [tol * rho] * m)
+        for i in range(m):
+            p[i] += bool(np.any(res[i]))
+        if len(basis) == n or not any(alive):
+            break
+    return tuple(p) if len(basis) == n else None
 
 
 def ltv_observability_indices(
-    A: Callable, C: Callable, ts, *, tol: float = 1e-9
+    A: Callable, C: Callable, ts, *, tol: float = DEFAULT_TOL
 ) -> tuple[int, ...]:
     """Observability indices p_1, …, p_m of the LTV pair (8) (fixed lexicographic basis).
 
@@ -217,7 +220,10 @@ def ltv_observability_indices(
 
     - `A`, `C`: callables of t returning (n, n) and (m, n) matrices.
     - `ts`: a time or a 1-D array of times (concrete values).
-    - `tol`: relative singular-value threshold for independence.
+    - `tol`: relative threshold of the independence decisions (the mechanism of the LTI staircase,
+      :func:`obsjax.analysis.observability_staircase`): a row is kept when its component outside the
+      rows kept before exceeds ``tol`` times the scale of its level (so the indices do not change when
+      time or the outputs are rescaled).
 
     **Returns:** the tuple (p_1, …, p_m).
 
@@ -230,10 +236,13 @@ def ltv_observability_indices(
     require_x64("ltv_observability_indices")
     tsv = _concrete_times(ts, "observability indices are static")
     n, _ = _dims(A, C, tsv[0])
+    if not tol > 0:
+        raise ValueError(f"`tol` must be > 0, got {tol}.")
     stack = jax.jit(_lie_stack(A, C, n - 1))
     found = None
     for tk in tsv:
-        p = _indices_from_Q(np.asarray(stack(_as_time(tk))), tol)
+        a_norm = float(np.linalg.norm(np.asarray(A(_as_time(tk))), 2))
+        p = _indices_from_Q(np.asarray(stack(_as_time(tk))), tol, a_norm)
         if p is None:
             raise ValueError(
                 f"The pair (A, C) is not observable at t = {float(tk):.6g}: the observability matrix "
