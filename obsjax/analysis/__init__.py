@@ -1,7 +1,6 @@
 """Analysis: observability, transition matrices, gramians, persistence of excitation, bounds, rates."""
 
 from ._lti import ObservabilityStaircase as ObservabilityStaircase
-from ._lti import balance_pair as balance_pair
 from ._lti import is_observable as is_observable
 from ._lti import observability_staircase as observability_staircase
 from ._lti import obsv as obsv

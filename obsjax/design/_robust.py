@@ -38,7 +38,7 @@ import numpy as np
 from ._poles import Block
 
 _MAXITER = 60
-_GTOL = 1e-13
+_GTOL = 1e-12
 _LOCAL = 1e-4
 
 
@@ -49,7 +49,8 @@ class Layout(NamedTuple):
       with Im > 0 for both rows of a pair).
     - `flag` (n,): 0 real row, 1 first row of a pair (Re x), 2 second row (−Im x).
     - `partner` (n,): the other row of a pair (itself for a real row).
-    - `nxt` (n,), `has_next` (n,): the row of the next element of its Jordan chain.
+    - `nxt` (n,), `has_next` (n,): the row of the next element of its Jordan chain; `prv`, `has_prev`
+      the previous one.
     - `fixed` (n,): basis index l of a fixed row (a cluster of m simple copies), −1 otherwise.
     - `block` (n,): chain id (scale and phase symmetries, normalisation); `group` (n,): row group of φ
       (the two rows of a pair element share one); `gw` (n,): weight of each group id (0 if unused).
@@ -68,6 +69,8 @@ class Layout(NamedTuple):
     group: jax.Array
     gw: jax.Array
     nnull: jax.Array
+    prv: jax.Array
+    has_prev: jax.Array
 
 
 def make_layout(blocks: tuple[Block, ...], n_poles: int) -> tuple[Layout, int]:
@@ -108,6 +111,11 @@ def make_layout(blocks: tuple[Block, ...], n_poles: int) -> tuple[Layout, int]:
         if b.fixed:
             fixed_count[b.cluster] = fixed_count.get(b.cluster, 0) + 1
         r0 += b.kind * b.length
+    prv = np.arange(n, dtype=np.int32)
+    has_prev = np.zeros(n)
+    for r in range(n):
+        if has_next[r]:
+            prv[nxt[r]], has_prev[nxt[r]] = r, 1.0
     nnull = 0
     for c in members:
         cb = [b for b in blocks if b.cluster == c]
@@ -129,13 +137,20 @@ def make_layout(blocks: tuple[Block, ...], n_poles: int) -> tuple[Layout, int]:
         jnp.asarray(group),
         jnp.asarray(gw),
         jnp.asarray(nnull),
+        jnp.asarray(prv),
+        jnp.asarray(has_prev),
     )
     return lay, max(b.length for b in blocks)
 
 
-def _init(n: int, m: int) -> np.ndarray:
-    """Deterministic start: one fixed pseudo-random direction per parameter."""
-    return np.random.default_rng(20261122 + 97 * n + m).standard_normal(n * m)
+#: Newton is started from this many fixed pseudo-random points; the minimiser kept is the one with the
+#: least φ + log‖L‖ (Tits-Yang local minima of nearly equal φ can differ several-fold in gain).
+_STARTS = 4
+
+
+def _init(n: int, m: int, starts: int = _STARTS) -> np.ndarray:
+    """Deterministic starts (starts, n·m): fixed pseudo-random directions."""
+    return np.random.default_rng(20261122 + 97 * n + m).standard_normal((starts, n * m))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -177,37 +192,40 @@ def _bases_projected(A, C, lam, a, c, N0):
 
 
 def _assemble(lay: Layout, N, P, m: int, depth: int):
-    """K (n·m, n, n) and T_fix (n, n) with T = Σ_k x_k K_k + T_fix (x_{r·m+q}: parameter q of row r).
+    """T as a linear function of the parameters x (x_{r·m+q}: parameter q of row r):
+    T = T_fix + Σ_k Σ_j x_k e_{R[k, j]} K[k, j] -- each parameter moves a few rows R[k, :] of T
+    (compact K (n·m, 2·depth, n), rows R (n·m, 2·depth)).
 
-    Per pair element x = (h₁ − i h₂) V, rows (Re x, −Im x); a chain element adds the previous one
-    times P (x_i = x_{i+1} P + h_i V_i)."""
+    Per pair element x = (h₁ − i h₂) V, rows (Re x, −Im x); a chain element adds the next one times P
+    (x_i = x_{i+1} P + h_i V, going up the chain through `prv`)."""
     n = N.shape[0]
     V = N[:, :, :n]  # (n, m, n) complex row bases
     free = (lay.fixed < 0).astype(V.real.dtype)
     sgn = jnp.where(lay.flag == 2, -1.0, 1.0)
-    eye = jnp.eye(n)
-    # own part: K[(r, q), r] = Re V_r[q];  K[(partner r, q), r] = ± Im V_r[q]
-    own_re = jnp.einsum("rqb,rs->rqsb", jnp.real(V) * free[:, None, None], eye)
-    own_im = jnp.einsum("rqb,rs->rqsb", jnp.imag(V) * (free * sgn)[:, None, None], eye)
-    own_im = jnp.zeros_like(own_im).at[lay.partner].add(own_im)
-    Kown = own_re + own_im  # (param row, q, T row, col)
-    K = Kown
+    rows = jnp.repeat(jnp.arange(n), m)  # the parameter's own row
+    part = lay.partner[rows]
+    Vr = (jnp.real(V) * free[:, None, None]).reshape(n * m, n)
+    Vi = (jnp.imag(V) * free[:, None, None]).reshape(n * m, n) * sgn[part][:, None]
+    slots_r, slots_v = [rows, part], [Vr, Vi]
     Pre, Pim = jnp.real(P), jnp.imag(P)
+    ra, rb, va, vb = rows, part, Vr, Vi
     for _ in range(depth - 1):
-        Kn = K[:, :, lay.nxt, :]  # the next element's rows
-        Kp = K[:, :, lay.partner[lay.nxt], :]
-        term = jnp.einsum("pqrb,rbc->pqrc", Kn, Pre) + jnp.einsum(
-            "pqrb,rbc,r->pqrc", Kp, Pim, sgn
-        )
-        K = Kown + term * lay.has_next[None, None, :, None]
-    K = K.reshape(n * m, n, n)
+        ra2, rb2 = lay.prv[ra], lay.prv[rb]
+        ma, mb = lay.has_prev[ra][:, None], lay.has_prev[rb][:, None]
+        va2 = (jnp.einsum("pb,pbc->pc", va, Pre[ra2]) + sgn[ra2][:, None] * jnp.einsum("pb,pbc->pc", vb, Pim[ra2])) * ma
+        vb2 = (jnp.einsum("pb,pbc->pc", vb, Pre[rb2]) + sgn[rb2][:, None] * jnp.einsum("pb,pbc->pc", va, Pim[rb2])) * mb
+        ra, rb, va, vb = ra2, rb2, va2, vb2
+        slots_r += [ra, rb]
+        slots_v += [va, vb]
+    K = jnp.stack(slots_v, axis=1)
+    R = jnp.stack(slots_r, axis=1)
     lsafe = jnp.maximum(lay.fixed, 0)
     Vl = V[jnp.arange(n), lsafe]  # (n, n)
     Tfix = jnp.where(lay.flag == 2, -1.0, 1.0)[:, None] * jnp.where(
         (lay.flag == 2)[:, None], jnp.imag(Vl), jnp.real(Vl)
     )
     Tfix = Tfix * (lay.fixed >= 0)[:, None]
-    return K, Tfix
+    return (K, R), Tfix
 
 
 def _F(lay: Layout, lre, lim):
@@ -224,7 +242,8 @@ def _F(lay: Layout, lre, lim):
 
 
 def _T(x, K, Tfix):
-    return jnp.einsum("p,pab->ab", x, K) + Tfix
+    Kc, R = K
+    return Tfix.at[R].add(x[:, None, None] * Kc)
 
 
 def _groups(lay: Layout, T):
@@ -238,30 +257,32 @@ def _phi(x, K, Tfix, lay):
 
 
 def _grad(x, K, Tfix, lay):
-    T = _T(x, K, Tfix)
-    n = T.shape[0]
-    coef = (2.0 * lay.gw / _groups(lay, T))[lay.group]  # per row: 2 w_g / s_g
-    Kf = K.reshape(K.shape[0], n * n)
-    U = Kf @ (T * coef[:, None]).reshape(n * n)  # Σ_r coef_r ⟨t_r, K_p,r⟩
-    return U - Kf @ jnp.linalg.inv(T).T.reshape(n * n)  # − tr(T⁻¹ K_p)
+    return _hess(x, K, Tfix, lay, with_grad=True)[0]
 
 
 def _hess(x, K, Tfix, lay, with_grad=False):
+    """Gradient and Hessian of φ = Σ_g w_g log s_g − log|det T| (s_g: squared norm of row group g), with
+    T linear in x: ∂_k log|det T| = tr(T⁻¹K_k), ∂_k∂_l = −tr(T⁻¹K_k T⁻¹K_l)."""
+    Kc, R = K
     T = _T(x, K, Tfix)
-    n, p = T.shape[0], K.shape[0]
+    n = T.shape[0]
     s = _groups(lay, T)
-    coef = (2.0 * lay.gw / s)[lay.group]
-    Kf = K.reshape(p, n * n)
-    Hn = (Kf * jnp.repeat(coef, n)[None, :]) @ Kf.T
-    U = jax.ops.segment_sum((K * T[None]).sum(axis=2).T, lay.group, num_segments=n)  # (groups, p)
-    Hn = Hn - (U.T * (4.0 * lay.gw / s**2)[None, :]) @ U
+    coef = (2.0 * lay.gw / s)[lay.group]  # per row: 2 w_g / s_g
     Ti = jnp.linalg.inv(T)
-    Y = jnp.matmul(Ti[None], K)  # T⁻¹ K_p
-    Hd = Y.reshape(p, n * n) @ jnp.swapaxes(Y, 1, 2).reshape(p, n * n).T  # tr(Y_p Y_q)
+    W = jnp.einsum("pjb,bs->pjs", Kc, Ti)  # W[k, j, s] = K[k, j] · T⁻¹[:, s]
+    inner = jnp.sum(T[R] * Kc, axis=2)  # ⟨t_{R[k,j]}, K[k, j]⟩
+    cols = jnp.arange(Kc.shape[0])[None, :]
+    U = jnp.zeros((n, Kc.shape[0])).at[lay.group[R].T, cols].add(inner.T)  # (groups, k)
+    G = jnp.einsum("pjb,qlb->pjql", Kc, Kc) * (R[:, :, None, None] == R[None, None, :, :])
+    Hn = jnp.einsum("pjql,pj->pq", G, coef[R]) - (U.T * (4.0 * lay.gw / s**2)[None, :]) @ U
+    Wg = W[:, :, R]  # Wg[k, j, l, i] = W[k, j, R[l, i]]
+    Hd = jnp.einsum("pjql,qlpj->pq", Wg, Wg)
+    H = Hn + Hd
     if not with_grad:
-        return Hn + Hd
-    g = Kf @ (T * coef[:, None]).reshape(n * n) - jnp.einsum("paa->p", Y)
-    return g, Hn + Hd
+        return H
+    tr = jnp.sum(jnp.take_along_axis(W, R[:, :, None], axis=2)[:, :, 0], axis=1)  # tr(T⁻¹ K_k)
+    g = jnp.sum(coef[R] * inner, axis=1) - tr
+    return g, H
 
 
 def _param_rows(lay: Layout, m: int):
@@ -276,21 +297,27 @@ def _normalise(x, lay: Layout, m: int):
 
 
 def _newton(x0, K, Tfix, lay, m, maxiter):
-    """Newton on φ with the absolute-value-regularised Hessian and a best-of backtracking search."""
+    """Newton on φ with the absolute-value-regularised Hessian and a best-of backtracking search.
+
+    Stops when the gradient vanishes, when no step decreases φ, or near the minimiser when the Newton
+    decrement −gᵀd (the decrease the step promises) is at the rounding level of φ."""
     alphas = 2.0 ** -jnp.arange(10.0)
     fixed = jnp.repeat((lay.fixed >= 0).astype(x0.dtype), m)
 
     def cond(state):
-        _, it, gn, stalled = state
-        return (it < maxiter) & (gn > _GTOL) & ~stalled
+        _, it, gn, done = state
+        return (it < maxiter) & (gn > _GTOL) & ~done
 
     def body(state):
         x, it, _, _ = state
         g, H = _hess(x, K, Tfix, lay, with_grad=True)
         g = g * (1.0 - fixed)
         w, V = jnp.linalg.eigh(H)
-        aw = jnp.maximum(jnp.abs(w), 1e-10 * jnp.max(jnp.abs(w)))
-        d = -V @ ((V.T @ g) / aw) * (1.0 - fixed)
+        # saddle-free Newton: |eigenvalues|; directions of (numerically) zero curvature are the
+        # symmetries of φ (scales, phases), along which nothing is to be gained: left out
+        aw = jnp.abs(w)
+        keep = aw > 1e-9 * jnp.max(aw)
+        d = -V @ jnp.where(keep, (V.T @ g) / jnp.where(keep, aw, 1.0), 0.0) * (1.0 - fixed)
         f0 = _phi(x, K, Tfix, lay)
         vals = jax.vmap(lambda a: _phi(x + a * d, K, Tfix, lay))(alphas)
         vals = jnp.where(jnp.isfinite(vals), vals, jnp.inf)
@@ -302,7 +329,8 @@ def _newton(x0, K, Tfix, lay, m, maxiter):
         better = vals[k] < f0
         step = jnp.where(local, 1.0, alphas[k])
         xn = jnp.where(local | better, _normalise(x + step * d, lay, m), x)
-        return xn, it + 1, gn, ~(local | better)
+        done = ~(local | better) | (local & (-(g @ d) < 1e-13 * (1.0 + jnp.abs(f0))))
+        return xn, it + 1, gn, done
 
     init = (x0, jnp.asarray(0), jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(False))
     x, it, gn, _ = jax.lax.while_loop(cond, body, init)
@@ -337,13 +365,20 @@ def forward(lay: Layout, A, C, pr, pi, *, m: int, depth: int, maxiter: int = _MA
     qr = jax.vmap(_bases_qr, in_axes=(None, None, 0, None, None))
     N, P, piv = qr(A, C, lre + 1j * lim, a, c)
     K, Tfix = _assemble(lay, N, P, m, depth)
-    x0 = _normalise(jnp.asarray(_init(n, m), A.dtype), lay, m)
-    if m == 1:  # nothing to choose: the eigenvectors (and chains) are unique up to scale
-        x, it, gn = x0, jnp.asarray(0), jnp.asarray(0.0, A.dtype)
-    else:
-        x, it, gn = _newton(x0, K, Tfix, lay, m, maxiter)
-    T = _T(x, K, Tfix)
     F = _F(lay, lre, lim)
+    if m == 1:  # nothing to choose: the eigenvectors (and chains) are unique up to scale
+        x = _normalise(jnp.asarray(_init(n, m, 1)[0], A.dtype), lay, m)
+        it, gn = jnp.asarray(0), jnp.asarray(0.0, A.dtype)
+    else:
+        x0s = jax.vmap(lambda x: _normalise(x, lay, m))(jnp.asarray(_init(n, m), A.dtype))
+        xs, its, gns = jax.vmap(lambda x0: _newton(x0, K, Tfix, lay, m, maxiter))(x0s)
+        Ls = jax.vmap(lambda x: _gain(A, C, _T(x, K, Tfix), F))(xs)
+        score = jax.vmap(lambda x: _phi(x, K, Tfix, lay))(xs) + jnp.log(jnp.linalg.norm(Ls, axis=(1, 2)))
+        score = jnp.where(jnp.isfinite(score), score, jnp.inf)
+        converged = its < maxiter  # a start still running at maxiter is used only if all are
+        k = jnp.argmin(jnp.where(converged | ~jnp.any(converged), score, jnp.inf))
+        x, it, gn = xs[k], its[k], gns[k]
+    T = _T(x, K, Tfix)
     L = _gain(A, C, T, F)
     info = {"iterations": it, "gradient": gn, "pivot": jnp.min(piv), "F": F}
     return L, T, x, N, (a, c), info
