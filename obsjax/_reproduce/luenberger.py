@@ -198,7 +198,7 @@ def _section_3_2(outdir, plt):
     err = np.abs(s_hat - s_true)
     ax[1].semilogy(ts, np.maximum(err, 1e-16), label="|x̂2 + x̂4 − (x2 + x4)| obsjax")
     ax[1].semilogy(ts, np.maximum(np.abs(s_hat - s_hat_thesis), 1e-16), label="|obsjax − (3.7)|")
-    ax[1].semilogy(ts, err[0] * np.exp(-3 * ts), "k:", label="|x̃2(0) + x̃4(0)| e^{−3t} (A22 − G A12 = −3I)")
+    ax[1].semilogy(ts, err[0] * np.exp(-3 * ts), "k:", label=r"$|\tilde x_2(0) + \tilde x_4(0)|\,e^{-3t}$ (A22 − G A12 = −3I)")
     ax[1].set_xlabel("t")
     ax[1].set_title("two single-output observers (Fig. 3.4)")
     ax[1].legend(fontsize=8)

@@ -87,7 +87,10 @@ class Luenberger(AbstractObserver):
     differentiable leaf (``tune(..., where=lambda o: o.poles)``).  A conjugate pair a ± ib is stored as
     the two real numbers a (at the position of a + ib) and b > 0 (at that of a − ib), so that no complex
     leaf reaches diffrax and sign-preserving tuning keeps the pair stable and complex; :attr:`spectrum`
-    gives the complex poles.
+    gives the complex poles.  `method` (``"robust"`` or ``"canonical"``) and `tol` are those of
+    :func:`obsjax.design.place`; the observability of the model and the Jordan structure of repeated
+    poles are decided at construction on the concrete model (a warning names poles that need Jordan
+    chains); `structure` (:func:`obsjax.design.pole_structure`) declares the pattern of traced poles.
 
     **Example:** thesis example (2.8)::
 
