@@ -1,7 +1,7 @@
-"""Run the benchmarks (a)-(e) and (m) (a two-process study on localhost), each in its own process, each
-writing benchmarks/results/<name>.md.
+"""Run the benchmarks (a)-(e), (g), (h) and (m) (a two-process study on localhost), each in its own process,
+each writing benchmarks/results/<name>.md.
 
-Usage: ``python benchmarks/run_all.py [a b c d e m] [--large N]`` (``obsjax bench`` calls this).  ``--large N`` also
+Usage: ``python benchmarks/run_all.py [a b c d e g h m] [--large N]`` (``obsjax bench`` calls this).  ``--large N`` also
 runs the N-trajectory sharded study of (d) (10⁶ takes a few minutes on 2 cores with the lock-step kernel).
 """
 
@@ -21,6 +21,8 @@ BENCHMARKS = {
     "e": "e_lti_python_control.py",
     "f": "f_placement.py",
     "m": "multihost_local.py",
+    "g": "g_numba_dopri5.py",
+    "h": "h_first_call.py",
 }
 
 

@@ -15,6 +15,7 @@ from . import design as design
 from . import losses as losses
 from . import noise as noise
 from . import signals as signals
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._simulate import Trajectory as Trajectory
 from ._simulate import simulate as simulate
 from ._simulate_batch import simulate_batch as simulate_batch
@@ -27,6 +28,7 @@ from .systems._plants import LTV as LTV
 from .systems._plants import AbstractSystem as AbstractSystem
 from .systems._plants import Nonlinear as Nonlinear
 from .tuning._tune import TuneResult as TuneResult
+from .tuning._tune import TuneWarning as TuneWarning
 from .tuning._tune import risk_measure as risk_measure
 from .tuning._tune import risk_weights as risk_weights
 from .tuning._tune import tune as tune
@@ -46,6 +48,9 @@ from .observers._luders_narendra import luders_narendra_form as luders_narendra_
 from .observers._kudva_narendra import KudvaNarendra as KudvaNarendra
 from .observers._kudva_narendra import ErrorModel1 as ErrorModel1
 from .observers._kudva_narendra import ErrorModel2 as ErrorModel2
+from .observers._ls_identifier import LeastSquaresIdentifier as LeastSquaresIdentifier
+from .observers._minimal_adaptive import MinimalAdaptiveObserver as MinimalAdaptiveObserver
+from .observers._nonminimal_adaptive import NonMinimalAdaptiveObserver as NonMinimalAdaptiveObserver
 from .observers._finite_window import FiniteWindow as FiniteWindow
 from .observers._least_squares import LeastSquaresReset as LeastSquaresReset
 from .observers._least_squares import LeastSquaresState as LeastSquaresState
@@ -57,3 +62,9 @@ from .montecarlo import MonteCarloResult as MonteCarloResult
 from .montecarlo import monte_carlo as monte_carlo
 
 __version__ = "0.1.0"
+from .observers._generalized_inverse import GeneralizedInverseODE as GeneralizedInverseODE
+from .observers._minmax import minmax_sum_initial_state as minmax_sum_initial_state
+from .observers._finite_window import FiniteWindowLTV as FiniteWindowLTV
+from .observers._finite_window import delay_closed_loop as delay_closed_loop
+from .design._tlc import TrajectoryLinearizationController as TrajectoryLinearizationController
+from .design._tlc import dynamic_inversion as dynamic_inversion

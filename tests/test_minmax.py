@@ -235,3 +235,81 @@ def test_combination_record_too_short():
     obs = obsjax.MinMaxLuenberger(A_comb, B_comb, C_comb, F_comb, window=5)
     with pytest.raises(ValueError, match="more than window"):
         obs.run(np.zeros((4, 4)), np.zeros((3, 1)))
+
+
+# --- the slides' basic cost (1): a sum over k of ∞-norms ----------------------------------------------
+
+
+def _cost1(ybar, psi, x, m):
+    r = (ybar - psi @ x).reshape(-1, m)
+    return np.abs(r).max(axis=1).sum()
+
+
+def test_cost1_single_output_is_least_absolute_deviations_by_enumeration():
+    """m = 1: cost (1) is Σ_k |ȳ(k) − ψ(k) x0|, minimised at a vertex through n samples (enumerated)."""
+    As, us, _xs, ys = data(8, noise=0.05, seed=5)
+    ybar, psi = window_regression(As, B_mm, C_mm, ys, us)
+    r, n = psi.shape
+    best, x_best = np.inf, None
+    for rows in itertools.combinations(range(r), n):
+        M = psi[list(rows)]
+        if abs(np.linalg.det(M)) < 1e-12:
+            continue
+        x = np.linalg.solve(M, ybar[list(rows)])
+        c = _cost1(ybar, psi, x, 1)
+        if c < best:
+            best, x_best = c, x
+    x1, c1 = obsjax.minmax_sum_initial_state(As, B_mm, C_mm, ys, us, eps=0.0)
+    assert c1 == pytest.approx(best, rel=1e-8)
+    assert _cost1(ybar, psi, x1, 1) == pytest.approx(c1, rel=1e-9)
+    np.testing.assert_allclose(x1, x_best, atol=1e-6 * np.abs(x_best).max())
+
+
+def test_cost1_eps_adds_N_plus_1_eps_and_keeps_the_estimate():
+    As, us, _xs, ys = data(10, noise=0.05, seed=2)
+    _x0, c0 = obsjax.minmax_sum_initial_state(As, B_mm, C_mm, ys, us, eps=0.0)
+    x1, c1 = obsjax.minmax_sum_initial_state(As, B_mm, C_mm, ys, us, eps=0.02)
+    assert c1 == pytest.approx(c0 + 11 * 0.02, abs=1e-8)
+    ybar, psi = window_regression(As, B_mm, C_mm, ys, us)
+    assert _cost1(ybar, psi, x1, 1) == pytest.approx(c0, abs=1e-8)
+
+
+def test_cost1_two_outputs_is_a_global_minimum_of_the_written_cost():
+    """m = 2: the LP optimum is not beaten by any of 4000 perturbations of the cost evaluated directly
+    (the cost is convex, so a local minimum is global), and differs from the stacked cost (2)."""
+    C2 = np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 0.0]])
+    N = 9
+    us = np.sin(0.5 * np.arange(N))[:, None]
+    _xs, ys = simulate(A_mm, B_mm, C2, X0, us)
+    ys = ys + np.random.default_rng(8).uniform(-0.05, 0.05, ys.shape)
+    As = np.stack([A_mm(k) for k in range(N)])
+    ybar, psi = window_regression(As, B_mm, C2, ys, us)
+    x1, c1 = obsjax.minmax_sum_initial_state(As, B_mm, C2, ys, us)
+    assert _cost1(ybar, psi, x1, 2) == pytest.approx(c1, rel=1e-9)
+    rng = np.random.default_rng(0)
+    for scale in (1e-6, 1e-3, 1e-1, 3.0):
+        xs = x1 + scale * rng.normal(size=(1000, 4))
+        costs = np.array([_cost1(ybar, psi, x, 2) for x in xs])
+        assert costs.min() >= c1 - 1e-10
+    x2, _ = obsjax.minmax_initial_state(As, B_mm, C2, ys, us)
+    assert _cost1(ybar, psi, x2, 2) > c1 + 1e-6
+
+
+def test_cost1_ignores_an_outlier_that_cost2_balances():
+    """One corrupted sample: the sum of ∞-norms (1) still passes through the clean data (x0 exact), the
+    stacked ∞-norm (2) spreads the outlier over the estimate."""
+    As, us, _xs, ys = data(16)
+    ys = ys.copy()
+    ys[5] += 3.0
+    x1, _ = obsjax.minmax_sum_initial_state(As, B_mm, C_mm, ys, us)
+    x2, _ = obsjax.minmax_initial_state(As, B_mm, C_mm, ys, us)
+    np.testing.assert_allclose(x1, X0, atol=1e-6)
+    assert np.abs(x2 - X0).max() > 0.1
+
+
+def test_cost1_bad_inputs():
+    As, us, _xs, ys = data(6)
+    with pytest.raises(ValueError, match="`eps` must be >= 0"):
+        obsjax.minmax_sum_initial_state(As, B_mm, C_mm, ys, us, eps=-1.0)
+    with pytest.raises(ValueError, match="rank"):
+        obsjax.minmax_sum_initial_state(As[:1], B_mm, C_mm, ys[:2], us[:1])

@@ -83,21 +83,65 @@ def test_chunk_size_does_not_change_result(base):
 
 
 def test_convergence_time_closed_form():
-    # ‖x̃(t)‖ = ‖x̃0‖ e^{−λ t}: it stays below 5 % of ‖x̃0‖ from t* = ln(20)/λ on, i.e. from the first
-    # save time ≥ t*; a decay too slow for the horizon never converges (inf).
-    ts = np.linspace(0.0, 4.0, 81)
+    # ‖x̃(t)‖ = ‖x̃0‖ e^{−λ t}: it stays below 5 % of ‖x̃0‖ from t* = ln(20)/λ on.  The crossing is
+    # interpolated log-linearly between save times, which is exact for an exponential: t* on any
+    # grid, not the next save time; a decay too slow for the horizon never converges (inf).
     lam = np.array([1.0, 2.0, 0.5])
-    norms = np.exp(-np.outer(lam, ts)) * np.array([[3.0], [1.0], [2.0]])
+    for num in (81, 9, 5):  # fine and coarse grids give the same t*
+        ts = np.linspace(0.0, 4.0, num)
+        norms = np.exp(-np.outer(lam, ts)) * np.array([[3.0], [1.0], [2.0]])
+        res = summarise(ts, norms, np.zeros(3, dtype=int), conv_tol=0.05)
+        tstar = np.log(20.0) / lam
+        np.testing.assert_allclose(res.convergence_time[:2], tstar[:2], rtol=1e-12)
+        assert np.isinf(res.convergence_time[2])  # ln 20 / 0.5 = 6 > 4
+        # absolute threshold
+        res_abs = summarise(ts, norms, np.zeros(3, dtype=int), conv_tol=0.1, conv_relative=False)
+        t_abs = np.log(np.array([3.0, 1.0, 2.0]) / 0.1) / lam
+        np.testing.assert_allclose(res_abs.convergence_time[:2], t_abs[:2], rtol=1e-12)
+        assert np.isinf(res_abs.convergence_time[2])  # ln 20 / 0.5 = 6 > 4
+
+
+def test_convergence_time_is_the_last_crossing():
+    """A norm that dips below the threshold and rises again converges at its last crossing; one
+    never above the threshold converges at 0; a row still above at the end never converges."""
+    ts = np.array([0.0, 1.0, 2.0, 3.0, 4.0])
+    norms = np.array(
+        [
+            [1.0, 0.01, 0.2, 0.02, 0.01],  # below 0.05 at t = 1, above at t = 2, below from t = 3
+            [0.0, 0.0, 0.0, 0.0, 0.0],  # no error at all
+            [1.0, 0.5, 0.2, 0.1, 0.06],  # still above 5 % at t = 4
+        ]
+    )
     res = summarise(ts, norms, np.zeros(3, dtype=int), conv_tol=0.05)
-    tstar = np.log(20.0) / lam
-    expect = np.array([ts[np.argmax(ts >= t - 1e-12)] if t <= ts[-1] else np.inf for t in tstar])
-    np.testing.assert_allclose(res.convergence_time, expect)
-    assert np.isinf(res.convergence_time[2])  # ln 20 / 0.5 = 6 > 4
-    # absolute threshold
-    res_abs = summarise(ts, norms, np.zeros(3, dtype=int), conv_tol=0.1, conv_relative=False)
-    t_abs = np.log(np.array([3.0, 1.0, 2.0]) / 0.1) / lam
-    expect = np.array([ts[np.argmax(ts >= t - 1e-12)] if t <= ts[-1] else np.inf for t in t_abs])
-    np.testing.assert_allclose(res_abs.convergence_time, expect)
+    # log-linear between (2, 0.2) and (3, 0.02): 0.2·10^(−(t − 2)) = 0.05 at t = 2 + log10(4)
+    assert res.convergence_time[0] == pytest.approx(2.0 + np.log10(4.0), rel=1e-12)
+    assert res.convergence_time[1] == 0.0
+    assert np.isinf(res.convergence_time[2])
+
+
+def test_overflowing_error_counts_as_failed_even_with_status_zero():
+    """Defence in depth: a row whose ‖x̃‖ overflows (inf, NaN, or an ISE beyond float64) is a
+    failure (status 2) in the result, whatever the solver reported; every statistic stays finite."""
+    ts = np.linspace(0.0, 2.0, 5)
+    good = np.exp(-np.outer([1.0, 2.0, 3.0], ts))
+    blowup = [1.0, 1e10, 1e300, np.inf, np.inf]
+    nan = [1.0, np.nan, 1.0, 1.0, 1.0]
+    ise_overflow = [1.0, 1e200, 1e200, 1e200, 1e200]  # finite norms, ∫‖x̃‖² beyond float64
+    rows = np.vstack([good, blowup, nan, ise_overflow])
+    status = np.array([0, 0, 1, 0, 0, 0])
+    res = summarise(ts, rows, status)
+    np.testing.assert_array_equal(res.status, [0, 0, 1, 2, 2, 2])
+    assert res.n_failed == 4 and res.failure_fraction == pytest.approx(4 / 6)
+    np.testing.assert_array_equal(res.ok, [True, True, False, False, False, False])
+    assert np.all(np.isfinite(res.bands))
+    np.testing.assert_allclose(res.bands, np.quantile(good[:2], res.quantiles, axis=0))
+    s = res.summary()
+    for k in ("final_median", "final_p95", "ise_mean", "ise_cvar95", "conv_median", "conv_p95"):
+        assert np.isfinite(s[k]), k
+    assert s["failed"] == 4
+    assert s["ise_mean"] == pytest.approx(np.nanmean(res.ise[:2]))
+    assert np.all(np.isnan(res.ise[2:])) and np.all(np.isnan(res.convergence_time[2:]))
+    assert "failed=4" in repr(res)
 
 
 def test_resume_after_interruption_equals_uninterrupted(base, tmp_path):

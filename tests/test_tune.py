@@ -1,6 +1,7 @@
 """Gradient tuning: finite-difference gradients of every tunable leaf, the noise trade-off, robustness."""
 
 import functools
+import warnings
 
 import diffrax
 import equinox as eqx
@@ -95,11 +96,16 @@ def test_tune_skips_nonfinite_steps_and_returns_best():
         v = obsjax.losses.ise(traj)
         return jnp.where(v < 0.8 * 1.1, jnp.nan, v)
 
-    r = obsjax.tune(obs, PLANT, where=lambda o: o.poles, loss=loss, x0s=X0S[:2], xhat0s=XH0S[:2],
-                    ts=TS, steps=12, optimizer=optax.sgd(0.5), progress=False)
-    assert r.history["skipped"] > 0
-    assert np.isfinite(r.history["loss"][r.history["best_step"]])
+    with pytest.warns(obsjax.TuneWarning, match="rejected .the loss is not finite"):
+        r = obsjax.tune(obs, PLANT, where=lambda o: o.poles, loss=loss, x0s=X0S[:2],
+                        xhat0s=XH0S[:2], ts=TS, steps=12, optimizer=optax.sgd(0.5), progress=False)
+    h = r.history
+    assert h["skipped"] > 0 and h["skipped"] == int(np.sum(~h["accepted"]))
+    assert np.isfinite(h["loss"][h["best_step"]])
+    assert h["loss"][h["best_step"]] == np.nanmin(h["loss"])
     assert np.all(np.isfinite(np.asarray(r.observer.poles)))
+    # a rejected point is never evaluated again: every evaluated point is new
+    assert len({tuple(p) for p in h["params"][0]}) == len(h["params"][0])
 
 
 def test_tune_over_sampled_plants_with_risk_measures():
@@ -273,3 +279,311 @@ def test_tune_eps_robustly_matches_a_grid_search():
     # risk aversion moves the optimum (here to a gentler gain: the worst scenarios peak hardest)
     assert tuned["worst"][1] > tuned["mean"][1]
     assert tuned["worst"][0] > 1.1 * tuned["mean"][0]
+
+
+# -- tune's guarantees: validated arguments, backtracking across validity boundaries, a stopping rul
+
+from obsjax._checks import concrete_value  # noqa: E402
+
+SCALAR = obsjax.LTI([[-1.0]], None, [[1.0]])
+TS1 = jnp.linspace(0.0, 1.0, 11)
+X0_1, XH0_1 = jnp.ones((1, 1)), jnp.zeros((1, 1))
+
+
+class _Gain(obsjax.AbstractObserver):
+    """x̂' = −x̂ + k (y − x̂) for the plant ẋ = −x, y = x: the error obeys e' = −(1 + k) e, so
+    ‖x̃(t)‖ = e^{−(1 + k) t} from x0 = 1, x̂0 = 0.  Valid (a decaying error) for k > −1 only."""
+
+    k: jax.Array
+
+    def init(self, t0, xhat0, y0):
+        return jnp.asarray(xhat0)
+
+    def vector_field(self, t, z, y, u):
+        return -z + self.k * (y - z)
+
+    def estimate(self, t, z, y):
+        return z
+
+    def check(self):
+        v = concrete_value(self.k)
+        if v is not None and not float(v) > -1.0:
+            raise ValueError(f"`k` must be > -1 (a decaying error), got {float(v)}.")
+        return self
+
+
+WHERE_K = lambda o: o.k  # noqa: E731
+
+
+def _terminal_target(target):
+    def loss(traj):
+        return (jnp.sqrt(jnp.sum(traj.error[-1] ** 2)) - target) ** 2
+
+    return loss
+
+
+LOSS_09 = _terminal_target(0.9)  # optimum 1 + k = −ln 0.9: k* = −0.8946, near the boundary k = −1
+
+
+def LOSS_05(traj):  # optimum k* = ln 2 − 1, minimum 0.1 (so that relative changes mean something)
+    return _terminal_target(0.5)(traj) + 0.1
+
+
+
+def _tune_k(k0, loss, **kw):
+    kw.setdefault("progress", False)
+    kw.update(x0s=X0_1, xhat0s=XH0_1, ts=TS1, positive=False)
+    return obsjax.tune(_Gain(jnp.asarray(k0)), SCALAR, where=WHERE_K, loss=loss, **kw)
+
+
+def test_a_step_across_a_validity_boundary_is_rejected_and_backtracked():
+    """sgd with a large rate steps k below −1 (check() fails): the step is halved until the point is
+    valid; the run goes on, warns, never evaluates a point twice and returns the best observer."""
+    match = r"rejected \(the observer is invalid: `k` must be > -1"
+    with pytest.warns(obsjax.TuneWarning, match=match):
+        r = _tune_k(1.0, LOSS_09, optimizer=optax.sgd(20.0), steps=12)
+    h = r.history
+    assert h["skipped"] >= 2 and len(h["rejections"]) == h["skipped"]
+    assert list(h["step_scale"][:4]) == [1.0, 1.0, 0.5, 0.25]  # two rejections, accepted at 1/4
+    assert list(h["accepted"][:4]) == [True, False, False, True]
+    assert all("`k` must be > -1" in why for _, why in h["rejections"])
+    k = h["params"][0]
+    assert len(np.unique(k)) == len(k)  # no point evaluated twice
+    assert np.all(k[h["accepted"]] > -1.0) and np.any(k[~h["accepted"]] <= -1.0)
+    assert np.all(np.isnan(h["loss"][~h["accepted"]]))
+    assert np.all(np.isfinite(h["loss"][h["accepted"]]))
+    assert float(r.observer.k) > -1.0 and float(r.observer.k) == k[h["best_step"]]
+    assert h["loss"][h["best_step"]] == np.nanmin(h["loss"]) < h["loss"][0]
+    assert r.steps_taken == 12 and r.stop_reason == "steps" and not r.converged
+
+
+def test_consecutive_rejections_stop_the_run_with_the_best_observer():
+    def loss(traj):  # finite only at the initial point: every step is rejected
+        v = LOSS_09(traj)
+        return jnp.where(jnp.abs(traj.error[-1, 0] + np.exp(-2.0)) < 1e-6, v, jnp.nan)
+
+    with pytest.warns(obsjax.TuneWarning, match="3 consecutive rejections: stopping"):
+        r = _tune_k(1.0, loss, optimizer=optax.sgd(0.5), steps=50, max_rejections=3)
+    assert r.stop_reason == "rejections" and not r.converged and r.steps_taken == 4
+    assert r.history["best_step"] == 0 and float(r.observer.k) == 1.0
+    np.testing.assert_array_equal(r.history["step_scale"], [1.0, 1.0, 0.5, 0.25])
+    assert "the loss is not finite" in r.history["rejections"][0][1]
+
+
+def test_an_invalid_initial_point_raises():
+    def loss(traj):
+        return jnp.nan * LOSS_09(traj)
+
+    with pytest.raises(ValueError, match="cannot be tuned from: the loss is not finite"):
+        _tune_k(1.0, loss, steps=3)
+    with pytest.raises(ValueError, match="`k` must be > -1"):
+        _tune_k(-2.0, LOSS_09, steps=3)
+
+
+def test_stopping_rule_converges_to_the_closed_form_optimum():
+    """‖x̃(1)‖ = e^{−(1+k)}: (‖x̃(1)‖ − 1/2)² is minimal at k* = ln 2 − 1.  With rtol the run stops
+    once the loss stalls, well before the budget; without it, the whole budget runs."""
+    rtol, patience = 1e-10, 3
+    r = _tune_k(0.0, LOSS_05, optimizer=optax.sgd(1.0), steps=400, rtol=rtol, patience=patience)
+    assert r.converged and r.stop_reason == "converged" and r.steps_taken < 100
+    assert float(r.observer.k) == pytest.approx(np.log(2.0) - 1.0, abs=1e-4)
+    # the rule: the last `patience` accepted losses did not beat the reference by more than rtol
+    acc = r.history["loss"][r.history["accepted"]]
+    ref = [acc[0]]
+    for v in acc[1:]:
+        ref.append(v if v < ref[-1] - rtol * abs(ref[-1]) else ref[-1])
+    assert len(set(ref[-patience - 1 :])) == 1 and ref[-patience - 2] != ref[-patience - 1]
+    full = _tune_k(0.0, LOSS_05, optimizer=optax.sgd(1.0), steps=30)
+    assert full.stop_reason == "steps" and full.steps_taken == 30 and not full.converged
+    assert len(full.history["loss"]) == 30 and full.history["skipped"] == 0
+
+
+def test_rejected_steps_do_not_retrace():
+    traces = []
+
+    def loss(traj):
+        traces.append(1)
+        return LOSS_09(traj)
+
+    with pytest.warns(obsjax.TuneWarning):
+        r = _tune_k(1.0, loss, optimizer=optax.sgd(20.0), steps=8)
+    assert r.history["skipped"] >= 2 and len(traces) == 1
+
+
+# -- bad arguments: each named, before anything is traced ------------------------------------------
+
+
+def _bad_call(**overrides):
+    traces = []
+
+    def loss(traj):
+        traces.append(1)
+        return obsjax.losses.ise(traj)
+
+    kw = dict(where=lambda o: o.poles, loss=loss, x0s=X0S[:2], xhat0s=XH0S[:2], ts=TS, steps=2,
+              progress=False)  # fmt: skip
+    obs = overrides.pop("observer", obsjax.Luenberger.from_poles(PLANT, [-1.0, -2.0]))
+    plant = overrides.pop("plant", PLANT)
+    kw.update(overrides)
+    try:
+        obsjax.tune(obs, plant, **kw)
+    finally:
+        assert not traces  # refused before the loss was ever traced
+    raise AssertionError("tune accepted a bad argument")
+
+
+@pytest.mark.parametrize(
+    "overrides,match",
+    [
+        (dict(observer=PLANT), "`observer` must be an obsjax observer"),
+        (dict(plant="plant"), "`plant` must be an obsjax plant"),
+        (dict(where="poles"), "`where` must be a callable"),
+        (dict(loss=3.0), "`loss` must be a callable"),
+        (dict(optimizer="adam"), "`optimizer` must be an optax.GradientTransformation"),
+        (dict(steps=10.0), r"`steps` .* must be an integer >= 1, got 10.0 \(float\)"),
+        (dict(steps=True), "`steps`"),
+        (dict(steps=0), "`steps`"),
+        (dict(positive="yes"), "`positive`"),
+        (dict(rtol=-1e-3), "`rtol`"),
+        (dict(patience=0), "`patience`"),
+        (dict(max_rejections=0), "`max_rejections`"),
+        (dict(x0s=X0S[:2, :1]), r"`x0s` must be \(batch, 2\)"),
+        (dict(x0s=X0S[:2].at[0, 0].set(jnp.nan)), "`x0s` must be finite"),
+        (dict(ts=TS[::-1]), "`ts` must be strictly increasing"),
+        (dict(noise=NOISE), "`key` is required"),
+        (dict(noise="white"), "`noise` must be an obsjax noise model"),
+        (dict(u=1.0), "`u` must be a callable"),
+        (dict(simulate_kwargs={"throw": True}), "must not contain 'throw'"),
+        (dict(simulate_kwargs=[("rtol", 1e-3)]), "`simulate_kwargs` must be a dict"),
+        (dict(plant_batched=True), "`plant_batched=True` needs a leading axis"),
+        (dict(risk="median"), "`risk` must be"),
+        (dict(where=lambda o: o.L), "`where` selects None"),
+        (dict(where=lambda o: o.gain), "derived property such as `gain`"),
+        (dict(where=lambda o: (o.poles, o.observer_matrix)), "`where` entry 1 selects"),
+        (dict(where=lambda o: o.gamma), "`where` failed on the observer: AttributeError"),
+        (dict(observer=obsjax.Luenberger(PLANT, L=[[0.0], [4.0]]), where=lambda o: o.L), "zero"),
+    ],
+)
+def test_bad_argument_is_named_before_tracing(overrides, match):
+    with pytest.raises(ValueError, match=match):
+        _bad_call(**overrides)
+
+
+def test_where_selecting_a_method_is_refused():
+    kb = obsjax.KalmanBucy(PLANT, Qw=0.1 * jnp.eye(2), Rv=0.01 * jnp.eye(1), P0=jnp.eye(2))
+    with pytest.raises(ValueError, match="selects a method that is not an array leaf"):
+        _bad_call(observer=kb, where=lambda o: o.gain)
+
+
+def test_vector_valued_loss_is_refused_at_trace_time():
+    with pytest.raises(ValueError, match=r"`loss` must map a trajectory to a real scalar.*\(11,\)"):
+        _tune_k(1.0, lambda traj: traj.error_norm, steps=2)
+
+
+# -- kinks: save times at reset instants -----------------------------------------------------------
+
+
+class _ResettingGain(obsjax.AbstractObserver):
+    """x̂' = a x̂ + k(t)(y − x̂), k' = −k, k(jT⁺) = k0: x̂ continuous, its slope jumping at resets."""
+
+    a: jax.Array
+    k0: jax.Array
+    T: jax.Array
+
+    def init(self, t0, xhat0, y0):
+        return (jnp.asarray(xhat0), self.k0)
+
+    def vector_field(self, t, z, y, u):
+        xh, k = z
+        return (self.a * xh + k * (y - xh), -k)
+
+    def estimate(self, t, z, y):
+        return z[0]
+
+    @property
+    def reset_period(self):
+        return self.T
+
+    def reset(self, t, z):
+        return (z[0], self.k0)
+
+
+RESETTING = _ResettingGain(jnp.array(0.5), jnp.array(4.0), jnp.array(0.5))
+PLANT_R = obsjax.LTI([[0.5]], None, [[1.0]])
+TS_R = jnp.linspace(0.0, 1.8, 19)  # a 0.1 grid: 0.5, 1.0, 1.5 (multiples of T = 0.5) are save times
+WHERE_T = lambda o: o.T  # noqa: E731
+WHERE_K0 = lambda o: o.k0  # noqa: E731
+
+
+def test_reset_coincidences():
+    from obsjax.tuning._tune import reset_coincidences
+
+    hits = reset_coincidences(2.3, np.linspace(0.0, 10.0, 101))
+    np.testing.assert_allclose(hits, [2.3, 4.6, 6.9, 9.2])
+    assert reset_coincidences(2.31, np.linspace(0.0, 10.0, 101)) == []
+    assert reset_coincidences(0.5, TS_R) == pytest.approx([0.5, 1.0, 1.5])
+    assert reset_coincidences(0.5, np.linspace(0.0, 2.0, 21)) == pytest.approx([0.5, 1.0, 1.5, 2.0])
+
+
+def test_kink_in_T_at_a_save_time_is_one_sided_and_tune_warns():
+    """With save times on the reset instants the ISE has a kink in T: autodiff returns the
+    derivative from one side (here the left: a slightly shorter period puts the reset before the
+    save time), which differs from the other side's.  tune warns when T is tuned, and is silent
+    when only k0 is."""
+
+    def J(T):
+        obs = eqx.tree_at(WHERE_T, RESETTING, T)
+        tr = obsjax.simulate(PLANT_R, obs, jnp.ones(1), jnp.zeros(1), TS_R, rtol=1e-11, atol=1e-13,
+                             max_segments=8)  # fmt: skip
+        return obsjax.losses.ise(tr)
+
+    g = float(jax.jit(jax.grad(J))(0.5))
+    Jj = jax.jit(J)
+    h = 1e-4  # second-order one-sided differences
+    f0, fl1, fl2, fr1, fr2 = (float(Jj(0.5 + d)) for d in (0.0, -h, -2 * h, h, 2 * h))
+    left = (3 * f0 - 4 * fl1 + fl2) / (2 * h)
+    right = (-3 * f0 + 4 * fr1 - fr2) / (2 * h)
+    assert g == pytest.approx(left, rel=1e-5)
+    assert abs(right - left) > 0.05 * abs(left)  # a genuine kink, not rounding
+    # off the grid the derivative is two-sided and autodiff matches central differences
+    g2 = float(jax.jit(jax.grad(J))(0.53))
+    assert g2 == pytest.approx((float(Jj(0.53 + h)) - float(Jj(0.53 - h))) / (2 * h), rel=1e-5)
+
+    kw = dict(loss=obsjax.losses.ise, x0s=jnp.ones((1, 1)), xhat0s=jnp.zeros((1, 1)), ts=TS_R)
+    kw.update(steps=1, progress=False)
+    match = r"save times 0\.5, 1, 1\.5 coincide with reset instants"
+    with pytest.warns(obsjax.TuneWarning, match=match):
+        obsjax.tune(RESETTING, PLANT_R, where=WHERE_T, **kw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", obsjax.TuneWarning)
+        obsjax.tune(RESETTING, PLANT_R, where=WHERE_K0, **kw)  # T fixed: the loss is smooth in k0
+        obsjax.tune(eqx.tree_at(WHERE_T, RESETTING, jnp.array(0.53)), PLANT_R, where=WHERE_T, **kw)
+
+
+@pytest.mark.slow
+def test_least_squares_reset_kink_on_chen_yen_example():
+    """The numbers quoted in LeastSquaresReset's and tune's docstrings: Chen & Yen's example,
+    γ = 20, p0 = 0.1, x̂(0) = (5, −5), the ISE on a 0.1 s grid over [0, 10], T = 2.3 (four save
+    times on reset instants): autodiff −11.84 = the left derivative, −13.97 from the right; tune
+    warns."""
+    plant = obsjax.chen_yen_example()
+    obs = obsjax.LeastSquaresReset(plant, 20.0, 0.1, 2.3)
+    ts = jnp.linspace(0.0, 10.0, 101)
+
+    def J(T):
+        o = eqx.tree_at(WHERE_T, obs, T)
+        xh0 = jnp.array([5.0, -5.0])
+        kw = dict(rtol=1e-10, atol=1e-12, max_segments=8)
+        tr = obsjax.simulate(plant, o, jnp.zeros(2), xh0, ts, **kw)
+        return obsjax.losses.ise(tr)
+
+    g = float(jax.jit(jax.grad(J))(2.3))
+    Jj = jax.jit(J)
+    h = 1e-4
+    f0, fl1, fl2, fr1, fr2 = (float(Jj(2.3 + d)) for d in (0.0, -h, -2 * h, h, 2 * h))
+    left, right = (3 * f0 - 4 * fl1 + fl2) / (2 * h), (-3 * f0 + 4 * fr1 - fr2) / (2 * h)
+    assert g == pytest.approx(left, rel=1e-4) and g == pytest.approx(-11.84, abs=0.01)
+    assert right == pytest.approx(-13.97, abs=0.01)
+    with pytest.warns(obsjax.TuneWarning, match=r"save times 2\.3, 4\.6, 6\.9, 9\.2 coincide"):
+        obsjax.tune(obs, plant, where=WHERE_T, loss=obsjax.losses.ise, x0s=jnp.zeros((1, 2)),
+                    xhat0s=jnp.array([[5.0, -5.0]]), ts=ts, steps=1, progress=False)  # fmt: skip

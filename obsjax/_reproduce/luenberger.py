@@ -85,15 +85,19 @@ def reproduce(outdir: str) -> list[str]:
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
     for i in range(2):
-        ax[0].plot(ts, np.asarray(traj.x[:, i]), f"C{i}", label=f"x{i + 1}")
-        ax[0].plot(ts, np.asarray(traj.xhat[:, i]), f"C{i}--", label=f"x̂{i + 1}")
+        ax[0].plot(ts, np.asarray(traj.x[:, i]), f"C{i}", label=f"$x_{i + 1}$")
+        ax[0].plot(ts, np.asarray(traj.xhat[:, i]), f"C{i}--", label=rf"$\hat x_{i + 1}$")
     ax[0].set_title(f"Example (2.8): identity observer, G = [{G[0, 0]:.3g}, {G[1, 0]:.3g}]ᵀ")
-    ax[0].set_xlabel("t")
+    ax[0].set_xlabel("time t (s)")
+    ax[0].set_ylabel("state and estimate")
     ax[0].legend(fontsize=8)
-    ax[1].semilogy(ts, np.linalg.norm(np.asarray(traj.error), axis=1), label="‖x̂ − x‖ simulated")
-    ax[1].semilogy(ts, np.linalg.norm(e_ref, axis=1), "k:", label="‖exp((A − GC)t) x̃(0)‖")
-    ax[1].set_title("A − GC = [[-5, 1], [-4, -1]], eigenvalues {-3, -3}")
-    ax[1].set_xlabel("t")
+    ax[1].semilogy(ts, np.linalg.norm(np.asarray(traj.error), axis=1), label="simulated")
+    ax[1].semilogy(
+        ts, np.linalg.norm(e_ref, axis=1), "k:", label=r"$\|e^{(A - GC)t}\,\tilde x(0)\|$"
+    )
+    ax[1].set_title("A − GC = [[−5, 1], [−4, −1]], eigenvalues {−3, −3}")
+    ax[1].set_xlabel("time t (s)")
+    ax[1].set_ylabel(r"$\|\hat x(t) - x(t)\|$")
     ax[1].legend(fontsize=8)
     fig.tight_layout()
     p = os.path.join(outdir, "hassan_2_8_identity_observer.png")
@@ -107,15 +111,17 @@ def reproduce(outdir: str) -> list[str]:
     tr = obsjax.simulate(plant, red, x0, xh0, ts, u=u, rtol=1e-9, atol=1e-11)
     w_err_ref = np.exp(-3.0 * ts) * (xh0[1] - x0[1])
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
-    ax[0].plot(ts, np.asarray(tr.x[:, 1]), label="x2")
-    ax[0].plot(ts, np.asarray(tr.xhat[:, 1]), "--", label="x̂2 (reduced order)")
+    ax[0].plot(ts, np.asarray(tr.x[:, 1]), label="$x_2$")
+    ax[0].plot(ts, np.asarray(tr.xhat[:, 1]), "--", label=r"$\hat x_2$ (reduced order)")
     ax[0].set_title(f"Reduced-order observer (2.15)-(2.16): G = {Gr:.4g}")
-    ax[0].set_xlabel("t")
+    ax[0].set_xlabel("time t (s)")
+    ax[0].set_ylabel("unmeasured state and estimate")
     ax[0].legend(fontsize=8)
-    ax[1].semilogy(ts, np.abs(np.asarray(tr.error[:, 1])), label="|x̂2 − x2| simulated")
-    ax[1].semilogy(ts, np.abs(w_err_ref), "k:", label="|x̃2(0)| e^{-3t}")
-    ax[1].set_title("A22 − G A12 = −1 − G = −3")
-    ax[1].set_xlabel("t")
+    ax[1].semilogy(ts, np.abs(np.asarray(tr.error[:, 1])), label="simulated")
+    ax[1].semilogy(ts, np.abs(w_err_ref), "k:", label=r"$|\tilde x_2(0)|\, e^{-3t}$")
+    ax[1].set_title(r"$A_{22} - G A_{12} = -1 - G = -3$")
+    ax[1].set_xlabel("time t (s)")
+    ax[1].set_ylabel(r"$|\hat x_2(t) - x_2(t)|$")
     ax[1].legend(fontsize=8)
     fig.tight_layout()
     p = os.path.join(outdir, "hassan_reduced_order.png")
@@ -139,15 +145,16 @@ def reproduce(outdir: str) -> list[str]:
         eig_comp.real, eig_comp.imag, "o", ms=10, mfc="none", label="eig of composite (2.22)"
     )
     ax[0].plot(eig_sep.real, eig_sep.imag, "x", ms=8, label="eig(A + BK) ∪ eig(A − GC)")
-    ax[0].axvline(0, color="k", lw=0.5)
-    ax[0].set_xlabel("Re")
-    ax[0].set_ylabel("Im")
+    ax[0].axvline(0, color="k", lw=0.5, label="imaginary axis")
+    ax[0].set_xlabel("Re λ (1/s)")
+    ax[0].set_ylabel("Im λ (rad/s)")
     ax[0].set_title("Theorem 4: the observer adjoins its eigenvalues")
     ax[0].legend(fontsize=8)
-    ax[1].plot(tc, np.asarray(cl.x[:, 0]), label="x1, u = K x̂ (simulated)")
-    ax[1].plot(tc, ref[:, 0], "k:", label="x1, exp(M t) of (2.22)")
-    ax[1].plot(tc, full[:, 0], "C2--", label="x1, u = K x (state feedback)")
-    ax[1].set_xlabel("t")
+    ax[1].plot(tc, np.asarray(cl.x[:, 0]), label=r"$u = K\hat x$ (simulated)")
+    ax[1].plot(tc, ref[:, 0], "k:", label=r"$e^{Mt}$ of (2.22)")
+    ax[1].plot(tc, full[:, 0], "C2--", label="u = K x (state feedback)")
+    ax[1].set_xlabel("time t (s)")
+    ax[1].set_ylabel("plant state $x_1(t)$")
     ax[1].set_title("observer-based feedback, x̂(0) = 0")
     ax[1].legend(fontsize=8)
     fig.tight_layout()
@@ -207,3 +214,47 @@ def _section_3_2(outdir, plt):
     fig.savefig(p, dpi=110)
     plt.close(fig)
     return p
+
+
+def paper_values():
+    """The thesis's stated values: example (2.8), the reduced-order gain, (3.3) and Theorem 4."""
+    import obsjax
+
+    from ._report import Row
+    from .references import HASSAN_28_GAIN, HASSAN_33_T, HASSAN_REDUCED_GAIN
+
+    plant, obs = example_28()
+    G = np.asarray(obs.gain)[:, 0]
+    rows = [
+        Row(f"(2.8): G{i + 1}, poles {{−3, −3}}", g, float(G[i]))
+        for i, g in enumerate(HASSAN_28_GAIN)
+    ]
+    F = np.asarray(obs.observer_matrix)
+    for (i, j), v in np.ndenumerate(np.array([[-5.0, 1.0], [-4.0, -1.0]])):
+        rows.append(Row(f"(2.8): (A − GC)[{i + 1},{j + 1}]", v, float(F[i, j])))
+    red = obsjax.ReducedOrder.from_poles(plant, [-3.0], Dc=[[0.0, 1.0]])
+    rows.append(
+        Row(
+            "(2.13)-(2.16): reduced-order G, pole −3",
+            HASSAN_REDUCED_GAIN,
+            float(np.asarray(red.gain)[0, 0]),
+        )
+    )
+    T = np.asarray(obsjax.design.sylvester([[-2.0, 1.0], [0.0, -2.0]], [[-3.0]], [[1.0, 0.0]]))[0]
+    rows += [Row(f"(3.3): T{i + 1}, F = −3", t, float(T[i])) for i, t in enumerate(HASSAN_33_T)]
+    K = feedback_gain()
+    M = composite_matrix(K, F, np.asarray(obs.gain), np.eye(2), K, np.zeros((1, 1)))
+    eig = np.linalg.eigvals(M)
+    for lam in (*K_POLES, -3.0, -3.0):
+        k = int(np.argmin(np.abs(eig - lam)))
+        # −3 is a double eigenvalue of a Jordan block: computed to about √ε, hence the tolerance.
+        rows.append(
+            Row(
+                "Theorem 4: eig of (2.22) ∋ " + ("eig(A + BK)" if np.iscomplex(lam) else "eig(F)"),
+                complex(lam),
+                complex(eig[k]),
+                rtol=1e-6,
+            )
+        )
+        eig = np.delete(eig, k)
+    return rows

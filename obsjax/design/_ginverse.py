@@ -7,6 +7,13 @@ is one; all of them are
 
 (Given a {1}-inverse X, take Y = X − C⁺ and Z = C⁺C(X − C⁺): the formula returns X.)
 
+**Two misprints on the slides' background slide.**  They define a {1}-inverse by "XAX = A"; the defining
+identity is A X A = A (X A X = X defines a {2}-inverse, and X A X = A is not even dimensionally consistent for
+a non-square A).  They state that ẋ = A x + B u can be solved for u iff "(I − B^{1}B)(ẋ − A x) = 0"; the
+correct condition is (I − B B^{1})(ẋ − A x) = 0 (B B^{1} is the n × n projector onto range(B); B^{1}B is
+p × p and cannot multiply the n-vector ẋ − A x unless p = n).  :func:`input_solvability_residual` computes
+the corrected residual; the tests check both identities and that the printed forms fail.
+
 The Lovass-Nagy observers need G with G C = M for a given M (slides, full-state (9), reduced (12)).  The
 equation is solvable iff M (I − XC) = 0, and then G = M X.  Note that I − XC is a projector onto null(C)
 for *every* {1}-inverse X, so the solvability condition does not depend on the choice of X; the choice only
@@ -14,12 +21,21 @@ selects which of the (then many) solutions G is used.  :func:`solvability_residu
 
 :func:`lovass_nagy_T` solves the design condition for the unspecified entries of T(t): the user gives the
 block S(t) = T(t) N on the null space of C (N an orthonormal basis of null(C)), and the rest of T is
-found algebraically.  See its docstring for the derivation.
+found algebraically.  See its docstring for the derivation.  That completion needs
+rank((I − NNᵀ)ĀN) = dim null(C), which fails e.g. for a full-state observer of a 3-state, 1-output plant.
+
+:func:`lovass_nagy_T_ode` takes the procedure's other route, valid for every pair: the condition
+M (I − C^{1}C) = 0 says exactly that M = G C for some G (take G = M C^{1}), so every admissible T(t) solves
+the matrix differential equation Ṫ = F T − T A + G(t) C(t) for some free G(t), and conversely.  The free
+entries (G, F's entries above the diagonal, T(t0)) are then chosen to keep det T ≠ 0 (step 4), which is
+checked on the horizon.  :class:`obsjax.GeneralizedInverseODE` integrates this equation together with the
+observer.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -53,6 +69,7 @@ def one_inverse(C, Y=None, Z=None) -> jax.Array:
         X = C⁺ + (I − C⁺C) Y + Z (I − CC⁺),     so that  C X C = C,
 
     which parametrises every {1}-inverse of C.  ``Y = Z = None`` gives the Moore–Penrose choice C⁺.
+    (The slides print the defining identity as "X A X = A", a misprint for A X A = A.)
 
     **Arguments:**
 
@@ -103,6 +120,32 @@ def solvability_residual(M, C, C1=None) -> jax.Array:
     M = matrix(M, "M", (None, n))
     C1 = jnp.linalg.pinv(C) if C1 is None else matrix(C1, "C1", (n, m))
     return M @ (jnp.eye(n, dtype=M.dtype) - C1 @ C)
+
+
+def input_solvability_residual(B, v, B1=None) -> jax.Array:
+    """Residual (I − B B^{1}) v of the equation B u = v (slides, background slide, corrected).
+
+    For ẋ = A x + B u the input is recovered from v = ẋ − A x iff (I − B B^{1}) v = 0, and then u = B^{1} v
+    is a solution (B B^{1} projects onto range(B) for every {1}-inverse B^{1}).  The slides print the
+    condition as (I − B^{1}B)(ẋ − A x) = 0, which multiplies the n-vector v by a p × p matrix: a misprint.
+
+    **Arguments:** `B` (n, p); `v` (n,) or (n, k); `B1` (p, n) a {1}-inverse of B (Moore–Penrose if ``None``).
+
+    **Returns:** the residual, shaped like `v`.
+
+    **Example:**
+
+        B = jnp.array([[1.], [0.], [1.]])
+        input_solvability_residual(B, B @ jnp.array([2.]))     # zeros: u = 2 recovers v
+        input_solvability_residual(B, jnp.array([1., 0., 0.]))  # [0.5, 0, −0.5]: v ∉ range(B)
+    """
+    B = matrix(B, "B", (None, None))
+    n, p = B.shape
+    v = as_float_array(v, "v")
+    if v.ndim not in (1, 2) or v.shape[0] != n:
+        raise ValueError(f"`v` must have shape ({n},) or ({n}, k) to match `B` {tuple(B.shape)}, got {tuple(v.shape)}.")
+    B1 = jnp.linalg.pinv(B) if B1 is None else matrix(B1, "B1", (p, n))
+    return v - B @ (B1 @ v)
 
 
 def null_space_basis(C, rtol: float | None = None) -> np.ndarray:
@@ -247,6 +290,182 @@ def lovass_nagy_T(A, C, F, S, *, N=None, t0: float = 0.0) -> LovassNagyT:
             raise ValueError(
                 f"K = (I − NNᵀ)·A·N must have full column rank {k} at t = {t0} for the algebraic "
                 f"completion of T, found singular values {sv.tolist()}; choose other free entries "
-                f"(another N) or solve the condition as a differential equation."
+                f"(another N) or solve the condition as a differential equation "
+                f"(obsjax.design.lovass_nagy_T_ode, obsjax.GeneralizedInverseODE)."
             )
     return T
+
+
+# --------------------------------------------------------------------------------------------------
+# The design condition as a matrix differential equation (any observable pair)
+# --------------------------------------------------------------------------------------------------
+
+
+def _time_matrix(X, name: str, shape: tuple[int | None, int | None]) -> Callable:
+    """t ↦ X(t) from a constant matrix or a callable (shape checked at t = 0)."""
+    if callable(X):
+        out = jax.eval_shape(X, jnp.asarray(0.0))
+        if len(out.shape) != 2 or any(w is not None and w != g for w, g in zip(shape, out.shape)):
+            raise ValueError(f"`{name}(t)` must return a matrix of shape {shape}, got {tuple(out.shape)}.")
+        return lambda t: jnp.asarray(X(t))
+    Xc = matrix(X, name, shape)
+    return lambda t: Xc
+
+
+def lovass_nagy_rhs(A, C, F, G) -> Callable:
+    """The vector field T ↦ Ṫ = F T − T A(t) + G(t) C(t) of the design condition (slides (9)).
+
+    Every solution satisfies Ṫ + T A − F T = G C, hence the solvability condition
+    (Ṫ + T A − F T)(I − C^{1} C) = G C (I − C^{1} C) = 0 for every {1}-inverse C^{1}; conversely every T that
+    satisfies the condition solves this equation with G = (Ṫ + T A − F T) C^{1}.
+
+    **Arguments:** `A`, `C`, `G`: constant matrices or callables of t; `F` (n, n) constant.
+
+    **Returns:** ``rhs(t, T)``.
+    """
+    F = matrix(F, "F", (None, None))
+    q = F.shape[0]
+    A_fn = A if callable(A) else _time_matrix(A, "A", (None, None))
+    C_fn = C if callable(C) else _time_matrix(C, "C", (None, None))
+    G_fn = G if callable(G) else _time_matrix(G, "G", (q, None))
+
+    def rhs(t, T):
+        return F @ T - T @ jnp.asarray(A_fn(t)) + jnp.asarray(G_fn(t)) @ jnp.asarray(C_fn(t))
+
+    return rhs
+
+
+def frozen_T0(A0, C0, F, G0) -> jax.Array:
+    """T(t0) on the frozen-coefficient steady state: T A(t0) − F T = G(t0) C(t0) (a Sylvester equation).
+
+    For constant (A, C, G) this is the equilibrium of Ṫ = F T − T A + G C, invertible when (A, C) is
+    observable, (F, G) controllable and eig F ∩ eig A = ∅ (the Luenberger/Sylvester theorem); starting T
+    there avoids the transient e^{F(t−t0)} T(t0) Φ(t0, t).  Differentiable in all arguments.
+
+    **Arguments:** `A0` (n, n), `C0` (m, n), `F` (q, q), `G0` (q, m).  **Returns:** T0 (q, n).
+    """
+    from ._place import sylvester
+
+    A0 = matrix(A0, "A(t0)", (None, None))
+    C0 = matrix(C0, "C(t0)", (None, A0.shape[0]))
+    F = matrix(F, "F", (None, None))
+    G0 = matrix(G0, "G(t0)", (F.shape[0], C0.shape[0]))
+    return sylvester(A0, F, G0 @ C0)
+
+
+class LovassNagyTFlow(NamedTuple):
+    """T(t) of :func:`lovass_nagy_T_ode` on the requested times: `ts` (K,), `T` (K, n, n), `rcond` (K,) the
+    reciprocal condition number σ_min(T)/σ_max(T), `det` (K,) det T."""
+
+    ts: jax.Array
+    T: jax.Array
+    rcond: jax.Array
+    det: jax.Array
+
+
+def check_invertible_on(ts, rcond, det, rcond_min: float, what: str) -> None:
+    """Raise ``ValueError`` when T(t) is singular on the grid: σ_min/σ_max ≤ rcond_min (scale-invariant),
+    a non-finite value, or a sign change of det T between two samples (T singular in between)."""
+    ts, rcond, det = (concrete_value(jnp.asarray(v)) for v in (ts, rcond, det))
+    if ts is None or rcond is None or det is None:
+        return  # traced: the observer's estimate turns non-finite instead (status 2)
+    bad = ~np.isfinite(rcond) | ~np.isfinite(det) | (rcond <= rcond_min)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise ValueError(
+            f"{what}: `T` must stay invertible (det T ≠ 0, step 4): σ_min(T)/σ_max(T) = {rcond[k]:.3e} "
+            f"(≤ rcond_min = {rcond_min:.1e}) at t = {ts[k]:.6g}.  Choose other free entries: G, the "
+            f"entries of F above its diagonal, or T(t0); a faster F keeps T near its frozen Sylvester value."
+        )
+    flips = np.nonzero(np.sign(det[:-1]) * np.sign(det[1:]) < 0)[0]
+    if flips.size:
+        j = int(flips[0])
+        raise ValueError(
+            f"{what}: `T` must stay invertible (det T ≠ 0, step 4): det T changes sign between "
+            f"t = {ts[j]:.6g} and t = {ts[j + 1]:.6g} ({det[j]:.3e} → {det[j + 1]:.3e})."
+        )
+
+
+def lovass_nagy_T_ode(
+    A, C, F, G, ts, *, T0=None, rtol: float = 1e-10, atol: float = 1e-12, rcond_min: float = 1e-10
+) -> LovassNagyTFlow:
+    """T(t) for any pair (A(t), C(t)) by integrating the Lovass-Nagy condition as a matrix ODE.
+
+    The design equation (slides (9)) Ṫ + T A − F T = G C is solvable for G iff
+    (Ṫ + T A − F T)(I − C^{1} C) = 0 (step 3).  Its solutions are exactly the solutions of
+
+        Ṫ = F T − T A(t) + G(t) C(t),      T(t0) = T0,
+
+    for a free G(t) (q × m): the condition is then satisfied identically, for constant or time-varying C,
+    whatever the rank of (I − NNᵀ)ĀN (which the algebraic completion :func:`lovass_nagy_T` needs).  The
+    free entries (G, F above its diagonal, T0; slides, steps 1, 2 and 4) must keep det T ≠ 0; this is
+    checked on `ts` with a scale-invariant test (σ_min/σ_max of T, and sign changes of det T).  The solution
+    is T(t) = e^{F(t−t0)} T0 Φ(t0, t) + ∫_{t0}^{t} e^{F(t−s)} G C(s) Φ(s, t) ds: with F faster than A its first
+    term dies out and T follows the frozen Sylvester solution (:func:`frozen_T0`, the default T0), invertible
+    for an observable (A, C) and a controllable (F, G).
+
+    For the reduced observer use Ā = A22 and C = A12.  :class:`obsjax.GeneralizedInverseODE` integrates the
+    same equation jointly with the observer, so that z − T x = e^{F(t−t0)}(z0 − T0 x0) holds to the solver's
+    tolerance; this function gives T on a grid, for design and inspection.
+
+    **Arguments:**
+
+    - `A`, `C`: constant matrices or callables of t (Ā (n, n) and C (m, n)).
+    - `F`: (q, q) constant observer matrix (q = n for a full-state observer).
+    - `G`: (q, m) constant or a callable of t: the free gain.
+    - `ts`: (K,) increasing times; the integration runs from ts[0].
+    - `T0`: T(ts[0]); default :func:`frozen_T0` at ts[0].
+    - `rtol`, `atol`: tolerances of the integration (diffrax ``Tsit5``).
+    - `rcond_min`: smallest admissible σ_min(T)/σ_max(T).
+
+    **Returns:** a :class:`LovassNagyTFlow` (ts, T, rcond, det).
+
+    **Example:** a 3-state, 1-output LTV plant, for which :func:`lovass_nagy_T` has no completion::
+
+        A = lambda t: jnp.array([[0., 1., 0.], [0., 0., 1.], [-1., -2. - jnp.sin(t), -1.]])
+        C = jnp.array([[1., 0., 0.]])
+        flow = lovass_nagy_T_ode(A, C, jnp.diag(jnp.array([-4., -5., -6.])), jnp.ones((3, 1)),
+                                 jnp.linspace(0., 5., 51))
+        flow.rcond.min()     # > 0: T(t) invertible on [0, 5]
+    """
+    import diffrax
+
+    F = matrix(F, "F", (None, None))
+    if F.shape[0] != F.shape[1]:
+        raise ValueError(f"`F` must be square, got {tuple(F.shape)}.")
+    q = F.shape[0]
+    A_fn = _time_matrix(A, "A", (None, None))
+    n = jax.eval_shape(A_fn, jnp.asarray(0.0)).shape[0]
+    C_fn = _time_matrix(C, "C", (None, n))
+    m = jax.eval_shape(C_fn, jnp.asarray(0.0)).shape[0]
+    G_fn = _time_matrix(G, "G", (q, m))
+    ts = as_float_array(ts, "ts")
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(f"`ts` must be a 1-D array of at least 2 times, got shape {tuple(ts.shape)}.")
+    tsc = concrete_value(ts)
+    if tsc is not None and not np.all(np.diff(tsc) > 0):
+        raise ValueError("`ts` must be strictly increasing.")
+    t0 = ts[0]
+    if T0 is None:
+        T0 = frozen_T0(A_fn(t0), C_fn(t0), F, G_fn(t0))
+    T0 = matrix(T0, "T0", (q, n))
+    rhs = lovass_nagy_rhs(A_fn, C_fn, F, G_fn)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(lambda t, T, args: rhs(t, T)),
+        diffrax.Tsit5(),
+        t0,
+        ts[-1],
+        None,
+        T0,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        max_steps=100_000,
+    )
+    Ts = sol.ys
+    if q != n:
+        return LovassNagyTFlow(ts, Ts, jnp.full(ts.shape, jnp.nan), jnp.full(ts.shape, jnp.nan))
+    sv = jnp.linalg.svd(Ts, compute_uv=False)
+    rcond = sv[:, -1] / sv[:, 0]
+    det = jnp.linalg.det(Ts)
+    check_invertible_on(ts, rcond, det, rcond_min, "lovass_nagy_T_ode")
+    return LovassNagyTFlow(ts, Ts, rcond, det)

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import inspect
-import json
 import math
 import os
 import time
@@ -25,8 +23,10 @@ from .._simulate_batch import simulate_batch
 from ..observers._base import AbstractObserver
 from ..systems._noise import AbstractNoise
 from ..systems._plants import AbstractSystem
+from ._checkpoint import read_checkpoint as _resume
+from ._checkpoint import write_chunk
+from ._fingerprint import fingerprint
 
-_CHECKPOINT_VERSION = 1
 DEFAULT_QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
 
 
@@ -70,9 +70,6 @@ class _Fixed:
     def __eq__(self, other):
         return isinstance(other, _Fixed) and other._key == self._key
 
-    def name(self) -> str:  # used in the checkpoint fingerprint
-        return "fixed:" + hashlib.sha256(self.value.tobytes()).hexdigest()[:16]
-
 
 def _sampler(s, name):
     if s is None:
@@ -82,14 +79,6 @@ def _sampler(s, name):
     if callable(s):
         return s
     return _Fixed(s, name)
-
-
-def _fn_name(fn) -> str:
-    if fn is None:
-        return "None"
-    if isinstance(fn, _Fixed):
-        return fn.name()
-    return f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', type(fn).__name__)}"
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -104,18 +93,25 @@ class MonteCarloResult:
     - `ts`: (T,) save times.
     - `error_norm`: (N, T) ‖x̃(t)‖ of every completed trajectory (NaN rows for failed ones).
     - `status`: (N,) int, 0 = success, 1 = solver failure, 2 = non-finite values (see
-      :func:`obsjax.simulate`); −1 marks trajectories not yet computed (an interrupted, resumable run).
+      :func:`obsjax.simulate`); −1 marks trajectories not yet computed (an interrupted, resumable
+      run). A row whose ‖x̃(t)‖ or ISE is not finite (an overflowing error) is reported with status
+      2 here even if the solver reported success: it is a failure, never a statistic.
     - `quantiles`: the quantile levels of `bands`.
     - `bands`: (Q, T) quantiles of ‖x̃(t)‖ over the *successful* trajectories at each save time.
-    - `convergence_time`: (N,) first save time (relative to ``ts[0]``) after which ‖x̃‖ stays at or below
-      the convergence threshold; ``inf`` if it never settles within the horizon, NaN for failures.
+    - `convergence_time`: (N,) time (relative to ``ts[0]``) after which ‖x̃‖ stays at or below the
+      convergence threshold: the crossing of the threshold after the last save time above it,
+      interpolated between that save time and the next one (log-linearly: exact for an exponential
+      decay between two save times), so it is not quantised by the save grid; ``0`` if ‖x̃‖ is never
+      above the threshold, ``inf`` if it is still above at the last save time, NaN for failures.
     - `ise`: (N,) ∫‖x̃‖² dt on the save grid (trapezoid), NaN for failures.
     - `conv_tol`, `conv_relative`: the convergence threshold (relative to ‖x̃(t0)‖ when ``conv_relative``).
     - `n`: requested number of trajectories; `n_done`: number computed so far (``complete`` when equal).
     - `elapsed`: wall-clock seconds spent computing in this call (excludes chunks loaded from a
       checkpoint); `n_computed`: trajectories computed in this call.
 
-    Failures are *counted* (`n_failed`, `failure_fraction`), never averaged into the statistics.
+    Failures are *counted* (`n_failed`, `failure_fraction`), never averaged into the statistics: the
+    bands, convergence times, ISE and :meth:`summary` use the successful rows only (`ok`), so every
+    statistic is finite whenever at least one trajectory succeeded.
     """
 
     ts: np.ndarray
@@ -259,20 +255,31 @@ def _quantiles(norms: np.ndarray, qs) -> np.ndarray:
 
 
 def _convergence_time(ts, norms, tol, relative):
-    """First save time after which every later norm is ≤ threshold (inf if the last one is above)."""
-    thr = tol * norms[:, :1] if relative else tol
+    """Time after which every later norm is ≤ threshold: the threshold crossing after the last save
+    time above it, interpolated (log-linearly where both norms are positive, else linearly) up to
+    the next save time; 0 when no norm is above, inf when the last one is."""
+    thr = tol * norms[:, :1] if relative else np.full((norms.shape[0], 1), float(tol))
     above = norms > thr
     T = ts.shape[0]
     any_above = above.any(axis=1)
-    last = T - 1 - np.argmax(above[:, ::-1], axis=1)
-    idx = np.where(any_above, last + 1, 0)
-    out = np.where(idx < T, ts[np.minimum(idx, T - 1)] - ts[0], np.inf)
-    return out
+    last = T - 1 - np.argmax(above[:, ::-1], axis=1)  # last save index above the threshold
+    nxt = np.minimum(last + 1, T - 1)
+    rows = np.arange(norms.shape[0])
+    a, b, th = norms[rows, last], norms[rows, nxt], thr[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac_log = (np.log(a) - np.log(th)) / (np.log(a) - np.log(b))
+        frac_lin = (a - th) / (a - b)
+    frac = np.where((b > 0) & (th > 0), frac_log, frac_lin)
+    frac = np.clip(np.nan_to_num(frac, nan=1.0), 0.0, 1.0)
+    t_cross = ts[last] + frac * (ts[nxt] - ts[last]) - ts[0]
+    out = np.where(last == T - 1, np.inf, t_cross)
+    return np.where(any_above, out, 0.0)
 
 
 def _trapz_sq(ts, norms):
-    sq = norms**2
-    return np.sum(0.5 * (sq[:, 1:] + sq[:, :-1]) * np.diff(ts), axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        sq = norms**2
+        return np.sum(0.5 * (sq[:, 1:] + sq[:, :-1]) * np.diff(ts), axis=1)
 
 
 def summarise(
@@ -287,19 +294,30 @@ def summarise(
     elapsed=0.0,
     n_computed=0,
 ) -> MonteCarloResult:
-    """Build a :class:`MonteCarloResult` from per-trajectory error norms (N, T) and statuses (N,)."""
+    """Build a :class:`MonteCarloResult` from per-trajectory error norms (N, T) and statuses (N,).
+
+    Defence in depth: a row with status 0 whose norms or ISE are not finite (an overflowing ‖x̃‖) is
+    re-labelled status 2 (non-finite) and counted as failed; the statistics use the other rows only.
+    """
     ts = np.asarray(ts, dtype=float)
     norms = np.array(error_norm, dtype=float, copy=True)
-    status = np.asarray(status).astype(np.int32)
+    status = np.array(status, copy=True).astype(np.int32)
+    if norms.ndim != 2 or status.shape != (norms.shape[0],) or norms.shape[1] != ts.shape[0]:
+        raise ValueError(
+            f"`error_norm` must be (N, T) with T = len(ts) = {ts.shape[0]} and `status` (N,), got "
+            f"{norms.shape} and {status.shape}."
+        )
     done = status >= 0
-    bad = status != 0
-    norms[bad] = np.nan
+    ise_all = _trapz_sq(ts, norms)
+    overflow = (status == 0) & ~(np.all(np.isfinite(norms), axis=1) & np.isfinite(ise_all))
+    status[overflow] = 2  # NONFINITE: the solver finished, the error did not stay finite
     ok = status == 0
+    norms[~ok] = np.nan
     ct = np.full(status.shape, np.nan)
     ise = np.full(status.shape, np.nan)
     if ok.any():
         ct[ok] = _convergence_time(ts, norms[ok], conv_tol, conv_relative)
-        ise[ok] = _trapz_sq(ts, norms[ok])
+        ise[ok] = ise_all[ok]
     return MonteCarloResult(
         ts=ts,
         error_norm=norms,
@@ -465,56 +483,19 @@ def _hashable_kwargs(kw: dict) -> tuple:
     return tuple(items)
 
 
-def _fingerprint(dyn, ts, n, chunk_size, key_data, names) -> str:
-    h = hashlib.sha256()
-    h.update(f"v{_CHECKPOINT_VERSION}|n={n}|chunk={chunk_size}|".encode())
-    h.update(np.asarray(ts, dtype=float).tobytes())
-    h.update(np.asarray(key_data).tobytes())
-    for leaf in jax.tree_util.tree_leaves(dyn):
-        a = np.asarray(leaf)
-        h.update(str(a.shape).encode() + str(a.dtype).encode())
-        h.update(a.tobytes())
-    h.update("|".join(names).encode())
-    return h.hexdigest()
-
-
-def _atomic_savez(path, **arrays):
-    tmp = f"{path}.tmp{jax.process_index()}.npz"
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
-
-
-def _read_checkpoint(ckpt, fp, n, chunk, n_chunks, norms, status, done) -> bool:
-    """Load the finished chunks of checkpoint directory `ckpt` into `norms`, `status`, `done` (in place),
-    or start it (meta.json) when it is new.  Returns True when it holds a different study."""
-    os.makedirs(ckpt, exist_ok=True)
-    meta_path = os.path.join(ckpt, "meta.json")
-    if os.path.exists(meta_path):
-        with open(meta_path) as fh:
-            meta = json.load(fh)
-        if meta.get("fingerprint") != fp:
-            return True
-        for c in range(n_chunks):
-            path = os.path.join(ckpt, f"chunk_{c:06d}.npz")
-            if os.path.exists(path):
-                with np.load(path) as data:
-                    lo, hi = c * chunk, min((c + 1) * chunk, n)
-                    norms[lo:hi] = data["error_norm"]
-                    status[lo:hi] = data["status"]
-                done[c] = True
-    else:
-        with open(meta_path, "w") as fh:
-            json.dump(
-                {
-                    "fingerprint": fp,
-                    "n": n,
-                    "chunk_size": chunk,
-                    "n_chunks": n_chunks,
-                    "version": _CHECKPOINT_VERSION,
-                },
-                fh,
-            )
-    return False
+def _study_fingerprint(study_id, **parts) -> str:
+    """The content fingerprint of a study (see ``_fingerprint``); refuses what it cannot hash
+    unless the study is named by `study_id`."""
+    fp, opaque = fingerprint(dict(parts, study_id=study_id))
+    if opaque and study_id is None:
+        listed = "; ".join(opaque[:5]) + ("; ..." if len(opaque) > 5 else "")
+        raise ValueError(
+            "monte_carlo cannot fingerprint everything that determines this study, so a checkpoint "
+            f"could be reused by another study without notice: {listed}. Pass `study_id` (a name "
+            "you change whenever any of these changes) to checkpoint it anyway, or make the object "
+            "hashable by content (a dataclass / eqx.Module, a function, an array)."
+        )
+    return fp
 
 
 def _broadcast_from_lead(tree):
@@ -561,6 +542,7 @@ def monte_carlo(
     max_chunks=None,
     simulate_kwargs=None,
     lockstep=False,
+    study_id: str | None = None,
 ) -> MonteCarloResult:
     """Monte-Carlo study of an observer: N trajectories with random initial states, initial estimates,
     measurement noise and (optionally) plant parameters.
@@ -579,11 +561,29 @@ def monte_carlo(
     the gain values.  A tqdm bar runs over the chunks.
 
     **Checkpoints.**  With ``checkpoint=<directory>``, each finished chunk is written there as
-    ``chunk_<k>.npz`` (atomically, after the chunk completes) beside a ``meta.json`` fingerprint of the
-    study (gains, plant leaves, ts, key, N, chunk size, sampler names).  Calling ``monte_carlo`` again with
-    the same arguments loads the finished chunks and computes only the rest; a checkpoint of a different
-    study raises ``ValueError``.  ``max_chunks`` bounds the chunks computed in one call (a time-boxed
-    run); the result then has ``complete == False``.
+    ``chunk_<k>.npz`` beside a ``meta.json``.  Calling ``monte_carlo`` again with the same study
+    loads the finished chunks and computes only the rest; ``max_chunks`` bounds the chunks computed
+    in one call (a time-boxed run; the result then has ``complete == False``).  What a checkpoint
+    guarantees:
+
+    - *It is never mixed with another study.*  ``meta.json`` and every chunk carry a SHA-256
+      fingerprint of everything that determines the result, by content: the plant, observer and
+      noise model field by field (array leaves and static fields, such as a noise grid ``dt``), the
+      samplers' and plant callables' bytecode, closure values, default arguments and the globals
+      they read (recursively), the methods of user-defined classes, ``simulate_kwargs``, ``ts``, the
+      key, N, the chunk size, the number of devices of a lock-step study and the Python, JAX, NumPy,
+      SciPy, diffrax, equinox, lineax, optax and obsjax versions.  A directory or a chunk of a
+      different study raises ``ValueError``.  An object that cannot be hashed by content (e.g. a
+      ``numpy.random.Generator`` read by a sampler) is refused with its path, unless the study is
+      named by ``study_id``, which then enters the fingerprint (change it whenever such an object
+      changes).
+    - *Files are whole or absent.*  Every file is written to a temporary name, flushed to disk and
+      renamed (``os.replace``), and carries a checksum of its content.
+    - *Damage is named and repaired.*  A chunk that cannot be read, fails its checksum or sits under
+      another chunk's name is named in a :class:`obsjax.montecarlo.CheckpointWarning` and
+      recomputed; a damaged ``meta.json`` is named likewise and rewritten once every chunk present
+      has been verified to carry this study's fingerprint.  A checkpoint written by an earlier
+      format is refused.
 
     **Several hosts.**  Call ``jax.distributed.initialize(coordinator_address, num_processes,
     process_id)`` in every process before anything else touches JAX (on CPU the cross-process
@@ -628,6 +628,9 @@ def monte_carlo(
       trajectories; but the steps then depend on which trajectories share a batch, so results agree with
       the default only to the solver tolerance (not bitwise across chunk sizes or device counts), and a
       solver failure (not a non-finite trajectory) fails the whole shard.  Needs ``param_sampler=None``.
+    - `study_id`: an optional name of the study, added to the checkpoint fingerprint; needed only to
+      checkpoint a study whose samplers or plant read objects that cannot be fingerprinted by
+      content.
     - `simulate_kwargs`: extra keyword arguments of :func:`obsjax.simulate` (``solver``, ``rtol``,
       ``atol``, ``dt0``, ``adaptive``, ``max_steps``); ``throw`` is always ``False`` (failures are counted
       from the per-trajectory ``status``).
@@ -679,6 +682,8 @@ def monte_carlo(
         raise ValueError(
             f"`param_sampler` must be a callable (key, plant) -> plant, got {type(param_sampler).__name__}."
         )
+    if study_id is not None and (not isinstance(study_id, str) or not study_id):
+        raise ValueError(f"`study_id` must be a non-empty string or None, got {study_id!r}.")
     if lockstep and param_sampler is not None:
         raise ValueError(
             "`lockstep=True` integrates one plant for the whole batch, so it cannot be combined with "
@@ -761,26 +766,32 @@ def monte_carlo(
     ckpt = None
     if checkpoint is not None:
         ckpt = os.fspath(checkpoint)
-        names = [
-            _fn_name(x0_sampler),
-            _fn_name(xhat0_sampler),
-            _fn_name(param_sampler),
-            type(plant).__name__,
-            type(observer).__name__,
-            type(noise).__name__,
-            repr(sim_kw),
-        ]
-        if lockstep:  # lock-step results depend on which trajectories share a batch
-            names.append(f"lockstep, {D} devices")
-        fp = _fingerprint(dyn, ts_arr, n, chunk, key_data, names)
+        fp = _study_fingerprint(
+            study_id,
+            plant=plant,
+            observer=observer,
+            noise=noise,
+            x0_sampler=x0_sampler,
+            xhat0_sampler=xhat0_sampler,
+            xhat0_takes_x0=takes_x0,
+            param_sampler=param_sampler,
+            simulate_kwargs=sim_kw,
+            ts=ts_arr,
+            key_data=np.asarray(key_data),
+            key_impl=key_impl,
+            n=n,
+            chunk=chunk,
+            # lock-step results depend on which trajectories share a batch
+            lockstep=f"lockstep, {D} devices" if lockstep else "independent",
+        )
         mismatch, failure = False, None
         if lead:
             if n_proc == 1:
-                mismatch = _read_checkpoint(ckpt, fp, n, chunk, n_chunks, norms, status, done)
+                mismatch = _resume(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
             else:
                 # any failure is told to the other processes before it is raised, or they would wait
                 try:
-                    mismatch = _read_checkpoint(ckpt, fp, n, chunk, n_chunks, norms, status, done)
+                    mismatch = _resume(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
                 except Exception as e:  # noqa: BLE001
                     failure = e
         if n_proc > 1:
@@ -795,8 +806,10 @@ def monte_carlo(
             mismatch, done = bool(flag), done.astype(bool)
         if mismatch:
             raise ValueError(
-                f"checkpoint directory {ckpt!r} holds a different study (gains, plant, ts, key, n, "
-                "chunk size, samplers or number of devices differ): delete it or choose another path."
+                f"checkpoint directory {ckpt!r} holds a different study (its fingerprint differs: "
+                "gains, plant, samplers (code, closures, globals), noise, ts, key, n, chunk size, "
+                "simulate_kwargs, study_id, the number of devices of a lock-step study or library "
+                "versions changed): delete it or choose another path."
             )
         if n_proc > 1:
             for c in np.flatnonzero(done):
@@ -843,7 +856,7 @@ def monte_carlo(
         status[lo:hi] = st
         computed += hi - lo
         if ckpt is not None and lead:
-            _atomic_savez(os.path.join(ckpt, f"chunk_{c:06d}.npz"), error_norm=en, status=st)
+            write_chunk(ckpt, c, fp, en, st)
         if bar is not None:
             bar.set_postfix(failed=int(np.sum(status > 0)))
     elapsed = time.perf_counter() - t_start

@@ -1,3 +1,4 @@
+from ._adaptive_common import auxiliary_matrices as auxiliary_matrices
 from ._kreisselmeier import Kreisselmeier as Kreisselmeier
 from ._kreisselmeier import kreisselmeier_form as kreisselmeier_form
 from ._kreisselmeier import mean_regressor_covariance as mean_regressor_covariance
@@ -6,5 +7,8 @@ from ._kreisselmeier import resolvent_numerators as resolvent_numerators
 from ._kudva_narendra import ErrorModel1 as ErrorModel1
 from ._kudva_narendra import ErrorModel2 as ErrorModel2
 from ._kudva_narendra import KudvaNarendra as KudvaNarendra
+from ._ls_identifier import LeastSquaresIdentifier as LeastSquaresIdentifier
 from ._luders_narendra import LudersNarendra as LudersNarendra
 from ._luders_narendra import luders_narendra_form as luders_narendra_form
+from ._minimal_adaptive import MinimalAdaptiveObserver as MinimalAdaptiveObserver
+from ._nonminimal_adaptive import NonMinimalAdaptiveObserver as NonMinimalAdaptiveObserver

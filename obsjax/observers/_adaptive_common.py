@@ -147,3 +147,86 @@ def traced_positive(arr, name: str):
     else:
         bad = jnp.any(~(jnp.linalg.eigvalsh(0.5 * (arr + arr.T)) > 0))
     return eqx.error_if(arr, bad, f"`{name}` must be > 0 (positive definite for a matrix).")
+
+
+# --------------------------------------------------------------------------- chapter 4, section 4.5
+def filter_step(omega, sig, delta) -> jnp.ndarray:
+    """d/dt of the state ω of the filter 1/D(s), D(s) = s^r + δ_1 s^{r−1} + ... + δ_r, driven by ``sig``.
+
+    Controllable companion form: ω_j = s^{j−1}/D(s) sig (j = 1..r), so ω̇_j = ω_{j+1} and
+    ω̇_r = s^r/D sig = sig − Σ_j δ_{r+1−j} ω_j.  ``delta`` holds (δ_1, ..., δ_r).
+    """
+    if omega.shape[0] == 0:
+        return omega
+    top = sig - jnp.dot(delta[::-1], omega)
+    return jnp.concatenate([omega[1:], top[None]])
+
+
+def filter_regressor(omega, sig, delta) -> jnp.ndarray:
+    """The n = r + 1 filtered signals v_i = s^{n−i}/D(s) sig, i = 1..n, from the filter state ω.
+
+    v_1 = s^r/D sig = sig − Σ_j δ_{r+1−j} ω_j (a direct term of ``sig``), v_i = ω_{n+1−i} for i ≥ 2.
+    """
+    sig = jnp.asarray(sig)
+    if omega.shape[0] == 0:
+        return sig[None]
+    first = sig - jnp.dot(delta[::-1], omega)
+    return jnp.concatenate([first[None], omega[::-1]])
+
+
+def auxiliary_matrices(d) -> jnp.ndarray:
+    """Matrices C_i (n × (n−1)) of the minimal adaptive observer's auxiliary signals, stacked as C[i].
+
+    With K = [−k | Ā] in observer form and d = (1, δ_1, ..., δ_{n−1}) the coefficients of the monic D(s),
+    C_i ω is the zero-state response r⁽ⁱ⁾ of ṙ = K r + e_i sig − d v_i (v_i = s^{n−i}/D sig, ω the state of
+    1/D(s) driven by sig).  Its first component vanishes identically (hᵀ(sI − K)⁻¹(e_i D − d s^{n−i}) = 0
+    when det(sI − K) = (s + λ) D(s)), and the remaining rows follow from (sI − K) q = x, x = e_i D − d s^{n−i}:
+    q_1 = 0, q_2 = −x_1, q_{m+1} = s q_m − x_m, each q_m of degree ≤ n − 2, so r⁽ⁱ⁾ = C_i ω with C_i[m, j] the
+    coefficient of s^{j−1} in q_m.  Polynomials here are ascending coefficient arrays of length n.
+    """
+    d = jnp.asarray(d)
+    n = d.shape[0]
+    r = n - 1
+    dasc = d[::-1]  # D(s) ascending: δ_{n−1}, ..., δ_1, 1
+    mats = []
+    for i in range(n):
+        x = -jnp.outer(d, jnp.eye(n, dtype=d.dtype)[n - 1 - i])  # row m: −d_m s^{n−1−i}
+        x = x.at[i].add(dasc)  # + δ_{mi} D(s)
+        rows = [jnp.zeros(n, d.dtype)]
+        for m in range(1, n):
+            shifted = jnp.concatenate([jnp.zeros(1, d.dtype), rows[-1][:-1]])  # s · q_m
+            rows.append(shifted - x[m - 1])
+        mats.append(jnp.stack(rows)[:, :r])
+    return jnp.stack(mats)
+
+
+def adapt_mask(adapt, size: int) -> tuple[bool, ...]:
+    """Validate the static mask of adapted (unknown) parameters; ``None`` adapts all of them."""
+    if adapt is None:
+        return (True,) * size
+    mask = tuple(bool(v) for v in np.asarray(adapt, dtype=bool).reshape(-1))
+    if len(mask) != size:
+        raise ValueError(f"`adapt` must hold {size} booleans (one per parameter), got {len(mask)}.")
+    if not any(mask):
+        raise ValueError("`adapt` must mark at least one parameter as unknown (True).")
+    return mask
+
+
+def masked_rate(Gamma, mask, v) -> jnp.ndarray:
+    """M Γ M v with M = diag(mask): the rate restricted to the unknown parameters (Γ_uu is s.p.d. when Γ is)."""
+    m = jnp.asarray(mask, dtype=v.dtype)
+    return m * apply_gain(Gamma, m * v)
+
+
+def quadratic_weight(Gamma, mask, theta) -> jnp.ndarray:
+    """θ_uᵀ Γ_uu⁻¹ θ_u over the unknown parameters (vectorised over leading axes of θ)."""
+    idx = np.flatnonzero(np.asarray(mask))
+    th = theta[..., idx]
+    G = jnp.asarray(Gamma)
+    if G.ndim == 0:
+        return jnp.sum(th**2, axis=-1) / G
+    if G.ndim == 1:
+        return jnp.sum(th**2 / G[idx], axis=-1)
+    Guu = G[np.ix_(idx, idx)]
+    sol = jnp.linalg.solve(Guu, jnp.moveaxis(th, -1, 0).reshape(idx.size, -1))
+    return jnp.sum(th * sol.T.reshape(th.shape), axis=-1)

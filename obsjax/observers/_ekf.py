@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +11,7 @@ from .._checks import as_float_array, concrete_value, vector
 from .._linalg import spd_solve
 from ..systems._plants import AbstractSystem
 from ._base import AbstractObserver
+from ._validation import is_concrete, require_finite, traced_spd
 
 
 def _covariance(x, name: str, size: int, *, definite: bool) -> jax.Array:
@@ -25,6 +27,7 @@ def _covariance(x, name: str, size: int, *, definite: bool) -> jax.Array:
         raise ValueError(
             f"`{name}` must be a scalar, a length-{size} diagonal or a ({size}, {size}) matrix, got shape {tuple(a.shape)}."
         )
+    require_finite(a, name)
     v = concrete_value(a)
     if v is not None:
         if not np.allclose(v, v.T, rtol=1e-10, atol=1e-12):
@@ -76,10 +79,21 @@ class ExtendedKalman(AbstractObserver):
         self.P0 = _covariance(P0, "P0", model.n, definite=False)
 
     def check(self) -> ExtendedKalman:
-        _covariance(self.Q, "Q", self.model.n, definite=False)
-        _covariance(self.R, "R", self.model.m, definite=True)
-        _covariance(self.P0, "P0", self.model.n, definite=False)
-        return self
+        """Q and P0 finite symmetric PSD, R finite symmetric positive definite: ``ValueError`` for
+        concrete values, ``eqx.error_if`` (survives jit) for traced ones."""
+        if is_concrete(self.Q, self.R, self.P0):
+            _covariance(self.Q, "Q", self.model.n, definite=False)
+            _covariance(self.R, "R", self.model.m, definite=True)
+            _covariance(self.P0, "P0", self.model.n, definite=False)
+            return self
+        who = "ExtendedKalman's"
+        Q = traced_spd(self.Q, "Q", semi=True, what=f" ({who} process-noise intensity)")
+        R = traced_spd(self.R, "R", semi=False, what=f" ({who} measurement-noise intensity)")
+        P0 = traced_spd(self.P0, "P0", semi=True, what=f" ({who} initial covariance)")
+        return eqx.tree_at(lambda o: (o.Q, o.R, o.P0), self, (Q, R, P0))
+
+    def prepare(self) -> ExtendedKalman:
+        return self.check()
 
     def init(self, t0, xhat0, y0):
         return (vector(xhat0, "xhat0", self.model.n), self.P0)

@@ -21,6 +21,7 @@ import numpy as np
 
 from .._checks import concrete_value, matrix
 from ._base import AbstractObserver
+from ._validation import require_finite
 
 
 def _time_grid(horizon, num):
@@ -46,12 +47,14 @@ def _solvability(T, Td, F, A, C, C1):
 
 
 def _check_over(obs, ts, what):
-    """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time."""
+    """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time.
+    Returns False when the values are traced (nothing could be checked here: see
+    :func:`_guard_traced`)."""
     ts = jnp.asarray(ts, dtype=float)
     res, scale, det = _solvability_on_grid(obs, ts)
     res, scale, det = (concrete_value(v) for v in (res, scale, det))
     if res is None or scale is None or det is None:
-        return  # traced (inside jit/grad): the caller checks with concrete values
+        return False  # traced (inside jit/grad)
     ts = np.asarray(ts)
     rel = res / np.maximum(scale, 1.0)
     i = int(np.argmax(rel))
@@ -76,6 +79,31 @@ def _check_over(obs, ts, what):
         raise ValueError(
             f"{what}: `T` must be invertible over the horizon (det T ≠ 0), found det T {where}."
         )
+    return True
+
+
+def _guard_traced(obs, what):
+    """`obs.F` guarded by ``eqx.error_if`` (survives jit): the solvability condition and det T ≠ 0
+    on the check grid (the horizon's, or t = 0), as :func:`_check_over` checks concrete values
+    eagerly."""
+    ts = jnp.asarray([0.0] if obs.horizon is None else _time_grid(obs.horizon, obs.num_checks))
+    res, scale, det = jax.vmap(obs.solvability)(ts)
+    rel = res / jnp.maximum(scale, 1.0)
+    F = eqx.error_if(
+        obs.F,
+        jnp.any(~(rel <= obs.rtol)),
+        f"{what}: the Lovass-Nagy solvability condition "
+        f"‖(Ṫ + T·Ā − F·T)(I − C^{{1}}·C)‖ ≤ rtol·scale (rtol = {obs.rtol:.1e}) fails (or is not "
+        "finite) on the check grid: G·C = Ṫ + T·Ā − F·T has no solution G there.",
+    )
+    tiny = jnp.min(jnp.abs(det)) <= 1e-12 * jnp.maximum(jnp.max(jnp.abs(det)), 1.0)
+    flips = jnp.any(jnp.sign(det[:-1]) * jnp.sign(det[1:]) < 0) if det.shape[0] > 1 else False
+    return eqx.error_if(
+        F,
+        ~jnp.all(jnp.isfinite(det)) | tiny | flips,
+        f"{what}: `T` must be invertible over the check grid (det T ≠ 0), found a vanishing, "
+        "non-finite or sign-changing det T.",
+    )
 
 
 class GeneralizedInverse(AbstractObserver):
@@ -122,11 +150,14 @@ class GeneralizedInverse(AbstractObserver):
         if tuple(T0.shape) != (n, n):
             raise ValueError(f"`T(t)` must return shape ({n}, {n}), got {tuple(T0.shape)}.")
         self.T = T
-        self.C1 = None if C1 is None else matrix(C1, "C1", (n, m))
+        self.C1 = None if C1 is None else require_finite(matrix(C1, "C1", (n, m)), "C1")
+        require_finite(self.F, "F")
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
-        self.check()
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        if not _check_over(self, ts, "GeneralizedInverse"):  # built under jit: eqx.error_if
+            self.F = _guard_traced(self, "GeneralizedInverse")
 
     # --- the design quantities -------------------------------------------------------------------
     def T_of(self, t):
@@ -161,6 +192,15 @@ class GeneralizedInverse(AbstractObserver):
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
         _check_over(self, ts, "GeneralizedInverse")
         return self
+
+    def prepare(self):
+        """The checks of :meth:`check` once per simulation: eagerly when the values are concrete
+        (``ValueError``), by ``eqx.error_if`` when anything they depend on is traced (F, C1, the
+        model's or T's leaves, or values T closes over)."""
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        if _check_over(self, ts, "GeneralizedInverse"):
+            return self
+        return eqx.tree_at(lambda o: o.F, self, _guard_traced(self, "GeneralizedInverse"))
 
     # --- the observer protocol -------------------------------------------------------------------
     def init(self, t0, xhat0, y0):
@@ -261,11 +301,14 @@ class GeneralizedInverseReduced(AbstractObserver):
                 f"`T(t)` must return shape ({q}, {q}) (n − m = {q}), got {tuple(T0.shape)}."
             )
         self.T = T
-        self.C1 = None if C1 is None else matrix(C1, "C1", (q, m))
+        self.C1 = None if C1 is None else require_finite(matrix(C1, "C1", (q, m)), "C1")
+        require_finite(self.F, "F")
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
-        self.check()
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        if not _check_over(self, ts, "GeneralizedInverseReduced"):  # under jit: eqx.error_if
+            self.F = _guard_traced(self, "GeneralizedInverseReduced")
 
     @property
     def m(self) -> int:
@@ -314,6 +357,15 @@ class GeneralizedInverseReduced(AbstractObserver):
         _check_over(self, ts, "GeneralizedInverseReduced")
         return self
 
+    def prepare(self):
+        """The checks of :meth:`check` once per simulation: eagerly when the values are concrete
+        (``ValueError``), by ``eqx.error_if`` when anything they depend on is traced (F, C1, the
+        model's or T's leaves, or values T closes over)."""
+        ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
+        if _check_over(self, ts, "GeneralizedInverseReduced"):
+            return self
+        return eqx.tree_at(lambda o: o.F, self, _guard_traced(self, "GeneralizedInverseReduced"))
+
     def z_of(self, t, p, y):
         """z = p + G y, the estimate of T w."""
         return p + self.G_of(t) @ y
@@ -348,3 +400,126 @@ class GeneralizedInverseReduced(AbstractObserver):
     def estimate(self, t, z, y):
         w = jnp.linalg.solve(self.T_of(t), self.z_of(t, z, y))
         return jnp.concatenate([jnp.asarray(y), w])
+
+
+class GeneralizedInverseODE(AbstractObserver):
+    """Lovass-Nagy full-state LTV observer with T(t) from the design condition solved as a matrix ODE.
+
+    The solvability condition (Ṫ + T A − F T)(I − C^{1} C) = 0 (slides, step 3) holds iff
+    Ṫ + T A − F T = G C for some G; so for any free gain G(t) the pair
+
+        Ṫ = F T − T A + G C,                 ż = F z + G y + T B u,       x̂ = T⁻¹ z          (9), (2), (8)
+
+    satisfies (6) by construction and d/dt(z − T x) = F (z − T x) (7): z − T x = e^{F(t−t0)}(z0 − T0 x0).
+    T is integrated together with z (the observer state is (z, T)), so the law holds to the solver's
+    tolerance, for any (A(t), C(t)) — constant or time-varying C, any number of outputs — without the rank
+    condition of :func:`obsjax.design.lovass_nagy_T`.  The gain of step 5, G_LN = (Ṫ + T A − F T) C^{1}
+    = G C C^{1}, gives G_LN y = G y for every y in range C, so G is used directly (no {1}-inverse needed).
+
+    What remains of the procedure is step 4, det T ≠ 0: a design choice of G, of F's entries above its
+    diagonal and of T(t0).  By default T(t0) is the frozen Sylvester solution T A(t0) − F T = G(t0) C(t0)
+    (:func:`obsjax.design.frozen_T0`), invertible for observable (A(t0), C(t0)) and controllable (F, G).
+    With `horizon`, T is integrated once at construction (:func:`obsjax.design.lovass_nagy_T_ode`) and a
+    singular T (scale-invariant test σ_min/σ_max ≤ `rcond_min`, or a sign change of det T) raises
+    ``ValueError`` naming the time.  In a simulation a singular T makes x̂ non-finite (status 2 with
+    ``throw=False``).
+
+    **Arguments:**
+
+    - `model`: the observer's plant model (``obsjax.LTV`` or ``obsjax.LTI``).
+    - `F`: (n, n) constant observer matrix, eigenvalues in the open left half-plane (a leaf).
+    - `G`: (n, m) constant gain (a leaf) or a callable of t.
+    - `T0`: optional (n, n) T(t0) (a leaf); the frozen Sylvester solution at t0 when ``None``.
+    - `horizon`: optional (t0, t1) on which invertibility of T is checked at construction
+      (`num_checks` points; T0 must then be given or computed at t0 = horizon[0]).
+    - `rcond_min`: smallest admissible σ_min(T)/σ_max(T) for that check.
+
+    **Example:** 3 states, 1 output (where the algebraic completion does not exist)::
+
+        plant = obsjax.LTV(A, lambda t: jnp.array([[1., 0., 0.]]))
+        obs = obsjax.GeneralizedInverseODE(plant, jnp.diag(jnp.array([-4., -5., -6.])), jnp.ones((3, 1)),
+                                           horizon=(0.0, 10.0))
+        traj = obsjax.simulate(plant, obs, x0, jnp.zeros(3), ts)
+    """
+
+    model: eqx.Module
+    F: jax.Array
+    G: jax.Array | Callable
+    T0: jax.Array | None
+    horizon: tuple[float, float] | None = eqx.field(static=True)
+    num_checks: int = eqx.field(static=True)
+    rcond_min: float = eqx.field(static=True)
+
+    def __init__(self, model, F, G, T0=None, *, horizon=None, num_checks=201, rcond_min=1e-10):
+        n, m = int(model.n), int(model.m)
+        self.model = model
+        self.F = matrix(F, "F", (n, n))
+        if callable(G):
+            shape = tuple(jax.eval_shape(G, jnp.asarray(0.0)).shape)
+            if shape != (n, m):
+                raise ValueError(f"`G(t)` must return shape ({n}, {m}), got {shape}.")
+            self.G = G
+        else:
+            self.G = matrix(G, "G", (n, m))
+        self.T0 = None if T0 is None else matrix(T0, "T0", (n, n))
+        self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
+        self.num_checks = int(num_checks)
+        self.rcond_min = float(rcond_min)
+        Fc = concrete_value(self.F)
+        if Fc is not None and not np.all(np.linalg.eigvals(Fc).real < 0):
+            raise ValueError(
+                f"`F` must have its eigenvalues in the open left half-plane (z − T x = e^{{Ft}}(z0 − T0 x0) "
+                f"must decay), got {np.round(np.linalg.eigvals(Fc), 6).tolist()}."
+            )
+        self.check()
+
+    def G_of(self, t):
+        return jnp.asarray(self.G(t)) if callable(self.G) else self.G
+
+    def T0_of(self, t0):
+        """T(t0): the given T0, or the frozen Sylvester solution T A(t0) − F T = G(t0) C(t0)."""
+        if self.T0 is not None:
+            return self.T0
+        from ..design._ginverse import frozen_T0
+
+        return frozen_T0(self.model.A_of(t0), self.model.C_of(t0), self.F, self.G_of(t0))
+
+    def T_flow(self, ts):
+        """T(t) on the times `ts` from T(ts[0]) (:func:`obsjax.design.lovass_nagy_T_ode`)."""
+        from ..design._ginverse import lovass_nagy_T_ode
+
+        ts = jnp.asarray(ts, dtype=float)
+        return lovass_nagy_T_ode(
+            self.model.A_of, self.model.C_of, self.F, self.G_of, ts, T0=self.T0_of(ts[0]),
+            rcond_min=self.rcond_min,
+        )
+
+    def check_horizon(self, t0, t1, num=201):
+        """Raise ValueError if T(t) from T(t0) becomes singular on [t0, t1]."""
+        self.T_flow(_time_grid((t0, t1), num))
+        return self
+
+    def check(self):
+        if self.horizon is not None:
+            self.check_horizon(*self.horizon, num=self.num_checks)
+        return self
+
+    # --- the observer protocol -------------------------------------------------------------------
+    def init(self, t0, xhat0, y0):
+        """(z0, T0) with z0 = T0 x̂0."""
+        T0 = self.T0_of(jnp.asarray(t0, dtype=self.F.dtype))
+        return (T0 @ jnp.asarray(xhat0), T0)
+
+    def vector_field(self, t, z, y, u):
+        zz, T = z
+        G = self.G_of(t)
+        dz = self.F @ zz + G @ y
+        B = self.model.B_of(t)
+        if B.shape[1] > 0:
+            dz = dz + T @ (B @ u)
+        dT = self.F @ T - T @ self.model.A_of(t) + G @ self.model.C_of(t)
+        return (dz, dT)
+
+    def estimate(self, t, z, y):
+        zz, T = z
+        return jnp.linalg.solve(T, zz)

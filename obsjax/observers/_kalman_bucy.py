@@ -13,6 +13,7 @@ from .._checks import concrete_value, matrix
 from .._linalg import spd_solve
 from ._base import AbstractObserver
 from ._least_squares import _check_model
+from ._validation import is_concrete, require_finite, traced_spd
 
 
 class KalmanBucyState(NamedTuple):
@@ -23,7 +24,7 @@ class KalmanBucyState(NamedTuple):
 
 
 def _spd(x, name, size, *, semi=False):
-    arr = matrix(x, name, (size, size))
+    arr = require_finite(matrix(x, name, (size, size)), name)
     v = concrete_value(arr)
     if v is not None:
         if not np.allclose(v, v.T, rtol=1e-10, atol=1e-12 * max(1.0, float(np.abs(v).max()))):
@@ -76,18 +77,19 @@ class KalmanBucy(AbstractObserver):
         self.P0 = _spd(P0, "P0", n)
 
     def check(self) -> KalmanBucy:
-        """Value checks that survive jit: Rv and P0 positive definite (``eqx.error_if``)."""
-        Rv = eqx.error_if(
-            self.Rv,
-            jnp.linalg.eigvalsh(0.5 * (self.Rv + self.Rv.T)).min() <= 0,
-            "`Rv` must be positive definite.",
-        )
-        P0 = eqx.error_if(
-            self.P0,
-            jnp.linalg.eigvalsh(0.5 * (self.P0 + self.P0.T)).min() <= 0,
-            "`P0` must be positive definite.",
-        )
-        return eqx.tree_at(lambda o: (o.Rv, o.P0), self, (Rv, P0))
+        """Qw finite symmetric PSD, Rv and P0 finite symmetric positive definite: ``ValueError`` for
+        concrete values, ``eqx.error_if`` (survives jit) for traced ones."""
+        n, m = self.model.n, self.model.m
+        if is_concrete(self.Qw, self.Rv, self.P0):
+            _spd(self.Qw, "Qw", n, semi=True)
+            _spd(self.Rv, "Rv", m)
+            _spd(self.P0, "P0", n)
+            return self
+        who = "KalmanBucy's"
+        Qw = traced_spd(self.Qw, "Qw", semi=True, what=f" ({who} process-noise intensity)")
+        Rv = traced_spd(self.Rv, "Rv", semi=False, what=f" ({who} measurement-noise intensity)")
+        P0 = traced_spd(self.P0, "P0", semi=False, what=f" ({who} initial covariance)")
+        return eqx.tree_at(lambda o: (o.Qw, o.Rv, o.P0), self, (Qw, Rv, P0))
 
     def prepare(self) -> KalmanBucy:
         return self.check()

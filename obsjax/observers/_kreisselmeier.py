@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, positive, vector
+from .._checks import as_float_array, vector
 from ._adaptive_common import (
     apply_gain,
     check_gain,
@@ -18,6 +18,7 @@ from ._adaptive_common import (
     traced_positive,
 )
 from ._base import AbstractObserver
+from ._validation import positive_scalar, require_finite, traced_finite
 
 _SCHEMES = ("gradient", "generalized", "integral")
 
@@ -160,7 +161,7 @@ class Kreisselmeier(AbstractObserver):
             q = as_float_array(q, "q")
             if q.ndim != 0:
                 raise ValueError(f"`q` must be a scalar, got shape {tuple(q.shape)}.")
-            positive(q, "q")
+            positive_scalar(q, "q", " (the memory of the integral scheme)")
             self.q = q
         else:
             if q is not None:
@@ -172,10 +173,10 @@ class Kreisselmeier(AbstractObserver):
         fp = as_float_array(1.0 if filter_pole is None else filter_pole, "filter_pole")
         if fp.ndim != 0:
             raise ValueError(f"`filter_pole` must be a scalar, got shape {tuple(fp.shape)}.")
-        positive(fp, "filter_pole")
+        positive_scalar(fp, "filter_pole", " (Lion's filter pole ℓ)")
         self.filter_pole = fp
-        self.a0 = jnp.zeros(n) if a0 is None else vector(a0, "a0", n)
-        self.b0 = jnp.zeros(n) if b0 is None else vector(b0, "b0", n)
+        self.a0 = jnp.zeros(n) if a0 is None else require_finite(vector(a0, "a0", n), "a0")
+        self.b0 = jnp.zeros(n) if b0 is None else require_finite(vector(b0, "b0", n), "b0")
 
     # ------------------------------------------------------------------ design
     def _design(self):
@@ -194,17 +195,20 @@ class Kreisselmeier(AbstractObserver):
         return Ac, l_asc
 
     def prepare(self):
-        """Guards that survive ``jit``: G, Q > 0, q > 0, ℓ > 0 and Re(poles) < 0 (``eqx.error_if``)."""
+        """Guards that survive ``jit`` (``eqx.error_if``): G, Q > 0, q > 0, ℓ > 0, Re(poles) < 0,
+        all finite."""
+        G = traced_finite(traced_positive(self.G, "G"), "G")
+        Q = traced_finite(traced_positive(self.Q, "Q"), "Q")
+        new = eqx.tree_at(lambda o: (o.G, o.Q), self, (G, Q))
         new = eqx.tree_at(
-            lambda o: (o.G, o.Q), self, (traced_positive(self.G, "G"), traced_positive(self.Q, "Q"))
-        )
-        new = eqx.tree_at(
-            lambda o: o.filter_pole, new, traced_positive(self.filter_pole, "filter_pole")
+            lambda o: o.filter_pole, new, positive_scalar(self.filter_pole, "filter_pole")
         )
         if self.q is not None:
-            new = eqx.tree_at(lambda o: o.q, new, traced_positive(self.q, "q"))
+            new = eqx.tree_at(lambda o: o.q, new, positive_scalar(self.q, "q"))
         poles = eqx.error_if(
-            self.poles, jnp.any(jnp.real(self.poles) >= 0), "`poles` must satisfy Re < 0."
+            self.poles,
+            jnp.any(~(jnp.real(self.poles) < 0) | ~jnp.isfinite(self.poles)),
+            "`poles` must be finite and satisfy Re < 0.",
         )
         return eqx.tree_at(lambda o: o.poles, new, poles)
 
@@ -212,8 +216,8 @@ class Kreisselmeier(AbstractObserver):
         check_gain(self.G, "G")
         check_gain(self.Q, "Q")
         if self.q is not None:
-            positive(self.q, "q")
-        positive(self.filter_pole, "filter_pole")
+            positive_scalar(self.q, "q")
+        positive_scalar(self.filter_pole, "filter_pole")
         check_stable_roots(self.poles, "poles", self.n)
         return self
 

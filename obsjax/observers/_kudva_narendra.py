@@ -11,10 +11,11 @@ import numpy as np
 from .._checks import concrete_value, matrix
 from ._adaptive_common import check_gain, gain_array, lyapunov, solve_gain, traced_positive
 from ._base import AbstractObserver
+from ._validation import require_finite, traced_finite
 
 
 def _stable_matrix(K, name, n):
-    K = matrix(K, name, (n, n))
+    K = require_finite(matrix(K, name, (n, n)), name)
     v = concrete_value(K)
     if v is not None:
         ev = np.linalg.eigvals(v)
@@ -90,24 +91,25 @@ class KudvaNarendra(AbstractObserver):
         self.Gamma1 = gain_array(Gamma1, "Gamma1", n)
         self.Gamma2 = gain_array(Gamma2, "Gamma2", n)
         self.Q = _spd(Q, "Q", n)
-        self.A0 = jnp.zeros((n, n)) if A0 is None else matrix(A0, "A0", (n, n))
-        self.B0 = jnp.zeros((n, m)) if B0 is None else matrix(B0, "B0", (n, m))
+        A0 = jnp.zeros((n, n)) if A0 is None else matrix(A0, "A0", (n, n))
+        B0 = jnp.zeros((n, m)) if B0 is None else matrix(B0, "B0", (n, m))
+        self.A0, self.B0 = require_finite(A0, "A0"), require_finite(B0, "B0")
 
     def prepare(self):
-        """Guards that survive ``jit`` (``eqx.error_if``): Γ₁, Γ₂, Q positive (definite), K Hurwitz."""
+        """Guards that survive ``jit`` (``eqx.error_if``): Γ₁, Γ₂, Q positive (definite), K
+        Hurwitz, all finite."""
         # K is Hurwitz iff the solution P of KᵀP + PK = −Q (Q > 0) is positive definite (GPU-friendly test).
-        P = lyapunov(self.K, self.Q)
-        K = eqx.error_if(
-            self.K, jnp.any(~(jnp.linalg.eigvalsh(P) > 0)), "`K` must be stable (Hurwitz)."
-        )
+        K = traced_finite(self.K, "K")
+        P = lyapunov(K, self.Q)
+        K = eqx.error_if(K, jnp.any(~(jnp.linalg.eigvalsh(P) > 0)), "`K` must be stable (Hurwitz).")
         return eqx.tree_at(
             lambda o: (o.K, o.Gamma1, o.Gamma2, o.Q),
             self,
             (
                 K,
-                traced_positive(self.Gamma1, "Gamma1"),
-                traced_positive(self.Gamma2, "Gamma2"),
-                traced_positive(self.Q, "Q"),
+                traced_finite(traced_positive(self.Gamma1, "Gamma1"), "Gamma1"),
+                traced_finite(traced_positive(self.Gamma2, "Gamma2"), "Gamma2"),
+                traced_finite(traced_positive(self.Q, "Q"), "Q"),
             ),
         )
 

@@ -12,10 +12,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float_array, concrete_value, positive
+from .._checks import as_float_array
 from .._linalg import spd_solve
 from ..systems._plants import LTV
 from ._base import AbstractObserver
+from ._validation import positive_scalar
 
 
 def _safe_sqrt(t):
@@ -138,7 +139,7 @@ def _scalar_gain(x, name):
             raise ValueError(
                 f"`{name}` must be a scalar, got an array of shape {tuple(arr.shape)}."
             )
-    positive(arr, name)
+    positive_scalar(arr, name)  # > 0 and finite: γ = inf or NaN is refused here, not in a solve
     # a strongly typed float64 scalar, so observers built from ints or Python floats share one jit trace
     return jnp.asarray(arr, dtype=jnp.result_type(float))
 
@@ -190,7 +191,17 @@ class LeastSquaresReset(AbstractObserver):
     - `p0`: reset value p0 > 0 of P (differentiable leaf).
     - `T`: reset period T > 0 (differentiable leaf; the reset instants move with it).
 
-    A non-positive γ, p0 or T raises ``ValueError`` (or fails via ``eqx.error_if`` when traced).
+    A non-positive or non-finite γ, p0 or T raises ``ValueError`` (or fails via ``eqx.error_if``
+    when traced).
+
+    **Kinks in T.**  Where a save time coincides with a reset instant t0 + kT, the error and hence
+    any loss on the save grid has a kink as a function of T: a slightly shorter period puts the
+    reset (and the fresh gain γ p0 I) before the save time, a slightly longer one after it.
+    Autodiff then returns a one-sided derivative (at an interior save time, the derivative from the
+    left).  On the paper's example with x̂(0) = (5, −5), γ = 20, p0 = 0.1 and the ISE on a 0.1 s
+    grid over [0, 10], T = 2.3 puts four save times on reset instants: autodiff gives dJ/dT = −11.84
+    (the left derivative), the right derivative is −13.97. :func:`obsjax.tune` warns when this
+    happens; keep T off the save grid when tuning it.
 
     **Example:** Fig. 1 of the paper::
 
@@ -220,20 +231,17 @@ class LeastSquaresReset(AbstractObserver):
         return self.T
 
     def check(self) -> LeastSquaresReset:
-        """Re-validate γ, p0, T > 0: ``ValueError`` for concrete values, ``eqx.error_if`` for traced ones.
+        """Re-validate γ, p0, T > 0 and finite: ``ValueError`` for concrete values,
+        ``eqx.error_if`` for traced ones.
 
         Concrete leaves are returned untouched (so a concrete T stays concrete and ``simulate`` can count
         the reset segments itself under ``jit``).
         """
-        new = []
-        for name, leaf in (("gamma", self.gamma), ("p0", self.p0), ("T", self.T)):
-            if concrete_value(leaf) is not None:
-                positive(leaf, name)
-                new.append(leaf)
-            else:
-                what = "`T` (the reset period)" if name == "T" else f"`{name}`"
-                new.append(eqx.error_if(leaf, leaf <= 0, f"{what} must be > 0."))
-        return eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), self, tuple(new))
+        new = tuple(
+            positive_scalar(leaf, name, " (the reset period)" if name == "T" else "")
+            for name, leaf in (("gamma", self.gamma), ("p0", self.p0), ("T", self.T))
+        )
+        return eqx.tree_at(lambda o: (o.gamma, o.p0, o.T), self, new)
 
     def prepare(self) -> LeastSquaresReset:
         return self.check()

@@ -5,11 +5,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from .._checks import as_float_array, concrete_value, positive, vector
-from ._adaptive_common import traced_positive
+from .._checks import as_float_array, vector
 from ._base import AbstractObserver
+from ._validation import positive_scalar, require_finite
 
 
 def luders_narendra_form(a, b, lambdas):
@@ -105,28 +104,28 @@ class LudersNarendra(AbstractObserver):
             raise ValueError(f"`n` (the plant order) must be >= 1, got {n}.")
         self.n = n
         self.lambdas = vector(lambdas, "lambdas", n)
-        positive(self.lambdas, "lambdas")
+        positive_scalar(self.lambdas, "lambdas")
         self.c = _rates(c, "c", n)
         self.d = _rates(d, "d", n)
-        self.a0 = jnp.zeros(n) if a0 is None else vector(a0, "a0", n)
-        self.b0 = jnp.zeros(n) if b0 is None else vector(b0, "b0", n)
+        self.a0 = jnp.zeros(n) if a0 is None else require_finite(vector(a0, "a0", n), "a0")
+        self.b0 = jnp.zeros(n) if b0 is None else require_finite(vector(b0, "b0", n), "b0")
 
     def prepare(self):
-        """Guards that survive ``jit`` (``eqx.error_if``): λ_i, c_i, d_i > 0."""
+        """Guards that survive ``jit`` (``eqx.error_if``): λ_i, c_i, d_i finite and > 0."""
         return eqx.tree_at(
             lambda o: (o.lambdas, o.c, o.d),
             self,
             (
-                traced_positive(self.lambdas, "lambdas"),
-                traced_positive(self.c, "c"),
-                traced_positive(self.d, "d"),
+                positive_scalar(self.lambdas, "lambdas"),
+                positive_scalar(self.c, "c"),
+                positive_scalar(self.d, "d"),
             ),
         )
 
     def check(self):
-        positive(self.lambdas, "lambdas")
-        positive(self.c, "c")
-        positive(self.d, "d")
+        positive_scalar(self.lambdas, "lambdas")
+        positive_scalar(self.c, "c")
+        positive_scalar(self.d, "d")
         return self
 
     def init(self, t0, xhat0, y0):
@@ -173,8 +172,5 @@ def _rates(x, name, n):
     if arr.ndim == 0:
         arr = jnp.full((n,), arr)
     arr = vector(arr, name, n)
-    positive(arr, name)
-    v = concrete_value(arr)
-    if v is not None and not np.all(np.isfinite(v)):
-        raise ValueError(f"`{name}` must be finite, got {v.tolist()}.")
+    positive_scalar(arr, name)  # finite and > 0, elementwise
     return arr

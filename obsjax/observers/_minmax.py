@@ -142,6 +142,59 @@ def _solve_lp(ybar, psi, eps):
     return res.x[:n], float(res.x[-1])
 
 
+def _solve_lp_sum(ybar, psi, eps, m):
+    """The slides' cost (1): min Σ_k max_{‖δy(k)‖∞ ≤ ε} ‖ȳ(k) + δy(k) − ψ(k) x0‖∞ as an LP in (x0, θ_0..θ_N)."""
+    r, n = psi.shape
+    K = r // m
+    S = np.kron(np.eye(K), np.ones((m, 1)))  # row (k, i) -> θ_k
+    A_ub = np.vstack([np.hstack([-psi, -S]), np.hstack([psi, -S])])  # ±(ȳ − ψx) + ε ≤ θ_k
+    b_ub = np.concatenate([-ybar - eps, ybar - eps])
+    c = np.concatenate([np.zeros(n), np.ones(K)])
+    bounds = [(None, None)] * n + [(0.0, None)] * K
+    res = scipy.optimize.linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
+    if res.status != 0:
+        raise ValueError(
+            f"The min-max linear program (cost (1)) failed (HiGHS status {res.status}: {res.message})."
+        )
+    return res.x[:n], float(res.fun)
+
+
+def minmax_sum_initial_state(A, B, C, ys, us=None, eps=0.0):
+    """Estimate of x(k0) minimising the slides' basic cost (1), a sum over k of ∞-norms.
+
+        min_{x0} Σ_{k=k0}^{k0+N} max_{‖δy(k)‖∞ ≤ ε} ‖ȳ(k) + δy(k) − ψ(k) x0‖∞                        (1), (3)
+          = min Σ_k θ_k  s.t.  −θ_k + ε ≤ ȳ(k)_i − (ψ(k) x0)_i ≤ θ_k − ε   ∀ k, i,
+
+    a linear program in (x0, θ_0, …, θ_N) solved by HiGHS.  Cost (1) sums the per-sample worst residual
+    (an ℓ1 norm over time of ℓ∞ norms over outputs); :func:`minmax_initial_state` minimises the stacked
+    form (2), the ℓ∞ norm over all samples and outputs.  With one output, (1) is the least-absolute-deviation
+    problem Σ_k |ȳ(k) − ψ(k) x0|, which passes exactly through n of the samples and ignores outliers that
+    (2) has to balance.  The disturbance box adds (N + 1)·ε to the value and leaves the minimisers unchanged
+    (max_{|δ| ≤ ε} ‖r + δ‖∞ = ‖r‖∞ + ε, sample by sample).
+
+    **Arguments:** as :func:`minmax_initial_state`.
+
+    **Returns:** ``(x0, cost)``: the estimate of x(k0) and the optimal value of (1).
+
+    **Example:**
+
+        x0, cost = obsjax.minmax_sum_initial_state(A_stack, B, C, ys, us, eps=0.01)
+    """
+    eps_v = float(_np(eps, "eps"))
+    if eps_v < 0:
+        raise ValueError(f"`eps` must be >= 0 (a bound on |δy|), got {eps_v}.")
+    ybar, psi = window_regression(A, B, C, ys, us)
+    n = psi.shape[1]
+    rank = np.linalg.matrix_rank(psi)
+    if rank < n:
+        raise ValueError(
+            f"`ys`: x(k0) is not determined by the window: ψ = [C(k)·Φ(k, k0)] has rank {rank} < n = {n} "
+            f"over N + 1 = {_window_len(ys)} samples; lengthen the window."
+        )
+    m = psi.shape[0] // _window_len(ys)
+    return _solve_lp_sum(ybar, psi, eps_v, m)
+
+
 def minmax_initial_state(A, B, C, ys, us=None, eps=0.0):
     """Min-max estimate of x(k0) from a window of data (slides (1)-(5)).
 
@@ -327,8 +380,8 @@ class MinMaxLuenberger(eqx.Module):
         if int(window) < 1:
             raise ValueError(f"`window` must be >= 1, got {window}.")
         self.window = int(window)
-        if float(eps) < 0:
-            raise ValueError(f"`eps` must be >= 0, got {eps}.")
+        if not (float(eps) >= 0 and np.isfinite(float(eps))):
+            raise ValueError(f"`eps` must be >= 0 and finite (a bound on |δy|), got {eps}.")
         self.eps = float(eps)
         self.rtol = float(rtol)
 

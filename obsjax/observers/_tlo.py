@@ -23,6 +23,9 @@ from ..design._ltv_canonical import (
 from ..design._pd_spectrum import check_rho_bar, omega_function, pd_observer_gain
 from ..systems._plants import AbstractSystem
 from ._base import AbstractObserver
+from ._validation import positive_scalar, require_finite
+
+_EPS_WHAT = " (the high-gain factor, ω_H = ω/ε)"
 
 
 def _horner(cs, tau):
@@ -199,13 +202,15 @@ class TrajectoryLinearization(AbstractObserver):
 
     # ------------------------------------------------------------------ validation
     def check(self) -> TrajectoryLinearization:
+        """Eager checks (``ValueError``): ε finite > 0, ρ̄ finite < 0 (distinct per block), a
+        constant ω finite > 0.  :meth:`prepare` repeats the value checks with ``eqx.error_if``
+        under ``jit``."""
         if self.eps.ndim != 0:
             raise ValueError(f"`eps` must be a scalar, got shape {tuple(self.eps.shape)}.")
-        e = concrete_value(self.eps)
-        if e is not None and not e > 0:
-            raise ValueError(
-                f"`eps` must be > 0 (the high-gain factor, ω_H = ω/ε), got {float(e)}."
-            )
+        positive_scalar(self.eps, "eps", _EPS_WHAT)
+        require_finite(self.rho_bar, "rho_bar")
+        if not callable(self.omega):
+            require_finite(self.omega, "omega")
         check_rho_bar(self.rho_bar, "rho_bar", negative=True, distinct=False)
         start = 0
         for p in self.indices:
@@ -213,6 +218,23 @@ class TrajectoryLinearization(AbstractObserver):
             start += p
         omega_function(self.omega)
         return self
+
+    def prepare(self) -> TrajectoryLinearization:
+        """Value checks that survive ``jit`` (``eqx.error_if``): ε finite > 0, ρ̄ finite < 0, a
+        constant ω finite > 0; concrete values were checked eagerly by :meth:`check`."""
+        eps = positive_scalar(self.eps, "eps", _EPS_WHAT)
+        rho = self.rho_bar
+        if concrete_value(rho) is None:
+            rho = eqx.error_if(
+                rho,
+                jnp.any(~(rho < 0) | ~jnp.isfinite(rho)),
+                "`rho_bar` (the nominal PD-eigenvalues) must be < 0 and finite.",
+            )
+        new = eqx.tree_at(lambda o: (o.eps, o.rho_bar), self, (eps, rho))
+        if not callable(self.omega):
+            omega = positive_scalar(self.omega, "omega", " (the bandwidth)")
+            new = eqx.tree_at(lambda o: o.omega, new, omega)
+        return new
 
     # ------------------------------------------------------------------ linearisation (7)
     def _input_zeros(self):

@@ -1,9 +1,9 @@
-"""Gradient tuning of observer gains with optax."""
+"""Gradient tuning of observer gains with optax: checked arguments, backtracking, a stop rule."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+import warnings
 from typing import Any
 
 import equinox as eqx
@@ -13,27 +13,51 @@ import jax.random as jr
 import numpy as np
 import optax
 
-from .._checks import as_float_array, concrete_value
+from .._checks import as_float_array
 from .._config import require_x64
-from .._simulate import num_segments, simulate
+from .._simulate import _check_ts, num_segments, simulate
+from ..observers._base import AbstractObserver
+from ..systems._noise import AbstractNoise
+from ..systems._plants import AbstractSystem
+
+#: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
+BACKTRACK = 0.5
+
+
+class TuneWarning(UserWarning):
+    """:func:`obsjax.tune` rejected a step, stopped early, or met a kink of the loss (the message
+    says which)."""
 
 
 class TuneResult(eqx.Module):
     """Outcome of :func:`obsjax.tune`.
 
-    - `observer`: the best observer seen (lowest loss), never one from a non-finite step.
-    - `history`: dict with ``loss`` (steps,), ``params`` (list per tuned leaf, each (steps, …)),
-      ``skipped`` (number of steps whose loss or gradient was non-finite and was not applied),
-      ``best_step``.
+    - `observer`: the best observer evaluated (lowest loss), always a valid one with a finite loss.
+    - `history`: a dict with one entry per evaluation of J(θ) and ∇J (the initial point included):
+
+      - ``loss`` (k,): J at each evaluated point, NaN where the point was rejected;
+      - ``params``: one array per tuned leaf, each (k, …): the leaf at each evaluated point;
+      - ``accepted`` (k,) bool: whether the point was accepted (valid observer, finite J and ∇J);
+      - ``step_scale`` (k,): the backtracking factor s of the step that led to the point (1 = the
+        optimizer's full step);
+      - ``rejections``: a list of ``(index, reason)`` for the rejected points;
+      - ``skipped``: the number of rejected points; ``best_step``: the index of `observer`'s point.
+    - `converged`: True when the stopping rule (``rtol``, ``patience``) ended the run.
+    - `stop_reason`: ``"converged"``, ``"steps"`` (the budget of evaluations is spent) or
+      ``"rejections"`` (``max_rejections`` consecutive rejected steps).
+    - `steps_taken`: the number of evaluations made (≤ ``steps``).
     """
 
     observer: Any
     history: dict
+    converged: bool = eqx.field(static=True, default=False)
+    stop_reason: str = eqx.field(static=True, default="steps")
+    steps_taken: int = eqx.field(static=True, default=0)
 
 
 def risk_measure(losses, risk):
-    """Aggregate per-scenario losses: ``"mean"``, ``"worst"`` (max) or ``("cvar", α)`` — the mean of the
-    worst ⌈(1 − α)·N⌉ losses (conditional value at risk at level α)."""
+    """Aggregate per-scenario losses: ``"mean"``, ``"worst"`` (max) or ``("cvar", α)`` — the mean of
+    the worst ⌈(1 − α)·N⌉ losses (conditional value at risk at level α)."""
     if risk == "mean":
         return jnp.mean(losses)
     if risk in ("worst", "max"):
@@ -48,11 +72,13 @@ def risk_measure(losses, risk):
 
 
 def risk_weights(risk, batch: int) -> np.ndarray:
-    """Weights w (batch,) on the ascending-sorted losses, so that ``risk_measure(l, risk) = Σ_i w_i l_(i)``.
+    """Weights w (batch,) on the ascending-sorted losses, so that
+    ``risk_measure(l, risk) = Σ_i w_i l_(i)``.
 
     The risk measure then enters :func:`tune` as data rather than as traced code, so one compilation
-    serves ``"mean"``, ``"worst"`` and every ``("cvar", α)``.  A non-finite loss sorts last and makes the
-    weighted sum non-finite whatever its weight (a failed scenario is never averaged away).
+    serves ``"mean"``, ``"worst"`` and every ``("cvar", α)``.  A non-finite loss sorts last and
+    makes the weighted sum non-finite whatever its weight (a failed scenario is never averaged
+    away).
     """
     batch = int(batch)
     w = np.zeros(batch)
@@ -79,8 +105,8 @@ def _sorted_weighted(losses, weights):
 
 @eqx.filter_jit
 def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec):
-    """J(θ) and ∇J for :func:`tune`.  Module-level, with every array an argument: calls that differ only
-    in array values (initial gains, scenarios, risk weights, keys) reuse one compilation.
+    """J(θ) and ∇J for :func:`tune`.  Module-level, with every array an argument: calls that differ
+    only in array values (initial gains, scenarios, risk weights, keys) reuse one compilation.
     ``spec`` holds the static rest (where, loss, single, plant_batched, noise, u, max_segments,
     simulate_kwargs, and ts as a tuple of floats: simulate needs concrete save times)."""
     where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts = spec
@@ -93,10 +119,25 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
 
         def one(pl, x0, xh0, k):
             traj = simulate(
-                pl, obs, x0, xh0, ts, u=u, noise=noise, key=k, throw=False,
-                max_segments=max_segments, **dict(simulate_kwargs),
+                pl,
+                obs,
+                x0,
+                xh0,
+                ts,
+                u=u,
+                noise=noise,
+                key=k,
+                throw=False,
+                max_segments=max_segments,
+                **dict(simulate_kwargs),
             )
-            val = loss(traj)
+            val = jnp.asarray(loss(traj))
+            if val.shape != () or not jnp.issubdtype(val.dtype, jnp.floating):
+                raise ValueError(
+                    "`loss` must map a trajectory to a real scalar (e.g. obsjax.losses.ise), "
+                    f"got an array of shape {val.shape} and dtype {val.dtype}: reduce it (sum, "
+                    "mean) to one number."
+                )
             return jnp.where(traj.status == 0, val, jnp.nan)
 
         losses = eqx.filter_vmap(one, in_axes=(plant_axis, 0, 0, 0))(plant, x0s, xhat0s, keys)
@@ -105,177 +146,531 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
     return jax.value_and_grad(J)(theta)
 
 
+# --------------------------------------------------------------------------------------------------
+# Validation of tune's arguments (in the order a reader meets them in the signature)
+# --------------------------------------------------------------------------------------------------
+
+
 def _as_tuple(x):
     return tuple(x) if isinstance(x, (tuple, list)) else (x,)
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def _check_types(
+    observer, plant, where, loss, optimizer, steps, positive, rtol, patience, max_rejections
+):
+    if not isinstance(observer, AbstractObserver):
+        raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
+    if not isinstance(plant, AbstractSystem):
+        raise ValueError(
+            f"`plant` must be an obsjax plant (LTI, LTV, Nonlinear), got {type(plant).__name__}."
+        )
+    if not callable(where):
+        raise ValueError(
+            f"`where` must be a callable selecting the tuned leaves (e.g. lambda o: o.poles), got "
+            f"{type(where).__name__}."
+        )
+    if not callable(loss):
+        raise ValueError(
+            "`loss` must be a callable trajectory -> scalar (e.g. obsjax.losses.ise), got "
+            f"{type(loss).__name__}."
+        )
+    if optimizer is not None and not (
+        callable(getattr(optimizer, "init", None)) and callable(getattr(optimizer, "update", None))
+    ):
+        raise ValueError(
+            "`optimizer` must be an optax.GradientTransformation (e.g. optax.adam(1e-2)) or None, "
+            "got "
+            f"{type(optimizer).__name__} {optimizer!r}."
+        )
+    if not _is_int(steps) or steps < 1:
+        raise ValueError(
+            f"`steps` (the budget of evaluations) must be an integer >= 1, got {steps!r} "
+            f"({type(steps).__name__})."
+        )
+    if not isinstance(positive, (bool, np.bool_)):
+        raise ValueError(f"`positive` must be True or False, got {positive!r}.")
+    if rtol is not None and not (
+        isinstance(rtol, (int, float, np.floating)) and 0 <= rtol < math.inf
+    ):
+        raise ValueError(
+            f"`rtol` (the stopping rule's relative improvement) must be >= 0 or None, got {rtol!r}."
+        )
+    if not _is_int(patience) or patience < 1:
+        raise ValueError(f"`patience` must be an integer >= 1, got {patience!r}.")
+    if not _is_int(max_rejections) or max_rejections < 1:
+        raise ValueError(f"`max_rejections` must be an integer >= 1, got {max_rejections!r}.")
+
+
+def _check_data(plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_kwargs):
+    x0s = as_float_array(x0s, "x0s")
+    xhat0s = as_float_array(xhat0s, "xhat0s")
+    if x0s.ndim != 2 or xhat0s.ndim != 2 or x0s.shape[0] != xhat0s.shape[0]:
+        raise ValueError(
+            "`x0s` and `xhat0s` must be (batch, n) with the same batch, got "
+            f"{tuple(x0s.shape)} and "
+            f"{tuple(xhat0s.shape)}."
+        )
+    if not plant_batched and x0s.shape[1] != plant.n:
+        raise ValueError(
+            f"`x0s` must be (batch, {plant.n}) for a plant with n = {plant.n}, got "
+            f"{tuple(x0s.shape)}."
+        )
+    for name, arr in (("x0s", x0s), ("xhat0s", xhat0s)):
+        if not bool(jnp.all(jnp.isfinite(arr))):
+            raise ValueError(f"`{name}` must be finite, got NaN or inf entries.")
+    ts = _check_ts(ts)
+    ts_np = np.asarray(ts, dtype=float)
+    if not np.all(np.isfinite(ts_np)):
+        raise ValueError("`ts` must be finite.")
+    if noise is not None and not isinstance(noise, AbstractNoise):
+        raise ValueError(
+            f"`noise` must be an obsjax noise model or None, got {type(noise).__name__}."
+        )
+    if noise is not None and key is None:
+        raise ValueError("`key` is required when `noise` is given.")
+    if u is not None and not callable(u):
+        raise ValueError(f"`u` must be a callable t -> (p,) or None, got {type(u).__name__}.")
+    if plant_batched:
+        sizes = {
+            int(jnp.shape(leaf)[0]) if jnp.ndim(leaf) else -1
+            for leaf in jax.tree_util.tree_leaves(eqx.filter(plant, eqx.is_array))
+        }
+        if sizes and sizes != {x0s.shape[0]}:
+            raise ValueError(
+                "`plant_batched=True` needs a leading axis of length batch = "
+                f"{x0s.shape[0]} on every array "
+                f"leaf of `plant`, found leading sizes {sorted(sizes)}."
+            )
+    if not isinstance(simulate_kwargs, dict):
+        raise ValueError(
+            f"`simulate_kwargs` must be a dict or None, got {type(simulate_kwargs).__name__}."
+        )
+    for bad in ("throw", "noise", "key", "max_segments", "u"):
+        if bad in simulate_kwargs:
+            raise ValueError(f"`simulate_kwargs` must not contain {bad!r}: tune sets it.")
+    return x0s, xhat0s, ts_np
+
+
+def _selected_leaves(observer, where):
+    """The leaves `where` selects, checked to be array leaves stored in the observer."""
+    try:
+        selection = where(observer)
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"`where` failed on the observer: {type(e).__name__}: {e}") from None
+    leaves = {id(leaf) for leaf in jax.tree_util.tree_leaves(observer)}
+    for i, sel in enumerate(_as_tuple(selection)):
+        what = "`where`" if not isinstance(selection, (tuple, list)) else f"`where` entry {i}"
+        if sel is None:
+            raise ValueError(
+                f"{what} selects None (an unset optional field): select array-valued gains, e.g. "
+                "lambda o: o.poles."
+            )
+        if not isinstance(sel, (jax.Array, np.ndarray)) or id(sel) not in leaves:
+            kind = "a method" if callable(sel) else f"a {type(sel).__name__}"
+            raise ValueError(
+                f"{what} selects {kind} that is not an array leaf stored in the observer (a "
+                "derived property such as `gain` or `observer_matrix` is recomputed from the "
+                "stored gains and cannot be set): select the stored gains, e.g. "
+                "lambda o: o.poles or lambda o: (o.gamma, o.T)."
+            )
+    # strongly typed copies: a weakly typed leaf (jnp.asarray(1.0)) would retrace after the first
+    # update
+    leaves0 = tuple(
+        jnp.asarray(leaf, dtype=jnp.asarray(leaf).dtype) for leaf in _as_tuple(selection)
+    )
+    return leaves0, not isinstance(selection, (tuple, list))
+
+
+def _log_parametrisation(leaves0):
+    """signs, θ0 with leaf = sign · exp(θ) (positive=True)."""
+    signs, thetas = [], []
+    for i, leaf in enumerate(leaves0):
+        v = np.asarray(leaf)
+        if np.iscomplexobj(v):
+            raise ValueError(
+                f"tuned leaf {i} is complex: use positive=False for complex parameters."
+            )
+        if np.any(v == 0):
+            raise ValueError(
+                f"tuned leaf {i} has zero entries {v.tolist()}: positive=True keeps signs through "
+                "leaf = sign·exp(θ), so every entry must be nonzero."
+            )
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"tuned leaf {i} must be finite, got {v.tolist()}.")
+        signs.append(jnp.sign(leaf))
+        thetas.append(jnp.log(jnp.abs(leaf)))
+    return tuple(signs), tuple(thetas)
+
+
+# --------------------------------------------------------------------------------------------------
+# Kinks: save times at reset instants
+# --------------------------------------------------------------------------------------------------
+
+
+def reset_coincidences(T, ts, rtol: float = 1e-8) -> list[float]:
+    """Save times t_i (i ≥ 1) that coincide with a reset instant t0 + kT (k ≥ 1), to `rtol` of the
+    period.
+
+    At such a time the trajectory, hence the loss, has a kink (or a jump) in T: an infinitesimal
+    change of T moves the reset to the other side of t_i, and autodiff returns the derivative from
+    one side only."""
+    ts = np.asarray(ts, dtype=float)
+    T = float(np.asarray(T))
+    if not (T > 0 and math.isfinite(T)):
+        return []
+    r = (ts[1:] - ts[0]) / T
+    k = np.round(r)
+    hit = (k >= 1) & (np.abs(r - k) <= rtol * np.maximum(1.0, r))
+    return [float(t) for t in ts[1:][hit]]
+
+
+def _period_depends_on(build, theta, T0) -> bool:
+    """Does the reset period change when the tuned leaves change?"""
+    if T0 is None:
+        return False
+    bumped = jax.tree_util.tree_map(lambda t: t + 1e-3 * (jnp.abs(t) + 1.0), theta)
+    try:
+        T1 = build(bumped).reset_period
+    except Exception:  # noqa: BLE001
+        return True
+    return T1 is None or not np.allclose(np.asarray(T1), np.asarray(T0), rtol=0.0, atol=0.0)
+
+
+def _warn_kinks(obs, ts, step, warned) -> None:
+    T = obs.reset_period
+    hits = reset_coincidences(T, ts)
+    key = float(np.asarray(T))
+    if hits and key not in warned:
+        warned.add(key)
+        shown = ", ".join(f"{t:g}" for t in hits[:5]) + (", ..." if len(hits) > 5 else "")
+        warnings.warn(
+            f"tune: at evaluation {step} the save times {shown} coincide with reset instants "
+            f"t0 + kT of the observer (T = {key:.12g}); the loss has a kink in T there and "
+            "autodiff returns a one-sided derivative. Choose T off the save grid (or save times "
+            "off the multiples of T).",
+            TuneWarning,
+            stacklevel=3,
+        )
+
+
+# --------------------------------------------------------------------------------------------------
+# tune
+# --------------------------------------------------------------------------------------------------
 
 
 def tune(
     observer,
     plant,
     *,
-    where: Callable,
-    loss: Callable,
+    where,
+    loss,
     x0s,
     xhat0s,
     ts,
-    optimizer: optax.GradientTransformation | None = None,
-    steps: int = 100,
-    positive: bool = True,
+    optimizer=None,
+    steps=100,
+    positive=True,
     key=None,
-    progress: bool = True,
+    progress=True,
     noise=None,
-    u: Callable | None = None,
-    plant_batched: bool = False,
+    u=None,
+    plant_batched=False,
     risk="mean",
-    simulate_kwargs: dict | None = None,
+    simulate_kwargs=None,
+    rtol=None,
+    patience=10,
+    max_rejections=8,
 ) -> TuneResult:
     """Tune observer gains by gradient descent through simulated error trajectories.
 
-    Minimises  J(θ) = risk_i [ loss(simulate(plant_i, observer(θ), x0_i, x̂0_i, ts, noise_i)) ]  over the
-    leaves selected by ``where``, with an optax optimizer, differentiating through the diffrax solves.
+    Minimises  J(θ) = risk_i [ loss(simulate(plant_i, observer(θ), x0_i, x̂0_i, ts, noise_i)) ]
+    over the leaves selected by ``where``, with an optax optimizer, differentiating through the
+    diffrax solves.
 
-    **Arguments:**
+    **Arguments** (validated by tune itself, each bad one a ``ValueError`` naming it, so they carry
+    no type annotations that a run-time type checker would enforce first):
 
     - `observer`: the observer to tune (its other leaves stay fixed).
-    - `plant`: the true plant; with ``plant_batched=True`` every leaf has a leading batch axis (sampled
-      plants, model uncertainty) matching ``x0s``.
-    - `where`: ``lambda obs: obs.poles`` or ``lambda obs: (obs.gamma, obs.T)``: the tuned leaves.
-    - `loss`: trajectory -> scalar, e.g. :func:`obsjax.losses.ise`.
+    - `plant`: the true plant; with ``plant_batched=True`` every array leaf has a leading batch axis
+      (sampled plants, model uncertainty) matching ``x0s``.
+    - `where`: ``lambda obs: obs.poles`` or ``lambda obs: (obs.gamma, obs.T)``: the tuned leaves,
+      which must be array leaves stored in the observer (not ``None``, not a derived property such
+      as ``gain``).
+    - `loss`: trajectory -> real scalar, e.g. :func:`obsjax.losses.ise`.
     - `x0s`, `xhat0s`: (batch, n) initial states and estimates.
-    - `ts`: save times.
+    - `ts`: save times (concrete, strictly increasing): the points where the loss sees the
+      trajectory.
     - `optimizer`: optax transformation (default ``optax.adam(1e-2)``).
-    - `steps`: number of gradient steps.
+    - `steps`: the budget of evaluations of J and ∇J, the initial point and rejected points included
+      (at most ``steps − 1`` updates).
     - `positive`: keep each tuned leaf's sign: leaf = sign(leaf₀)·exp(θ) (a reparametrisation, never
-      clipping); gains, rates, periods stay positive and real poles stay in the left half-plane.  Every
-      tuned entry must then be nonzero.
-    - `key`: PRNG key for the noise (fixed across steps: common random numbers give a smooth objective).
+      clipping); gains, rates, periods stay positive and real poles stay in the left half-plane.
+      Every tuned entry must then be nonzero.
+    - `key`: PRNG key for the noise (fixed across steps: common random numbers give a smooth
+      objective).
     - `noise`, `u`: passed to :func:`obsjax.simulate`.
     - `risk`: ``"mean"``, ``"worst"`` or ``("cvar", α)`` across the batch.
     - `simulate_kwargs`: extra keyword arguments of :func:`obsjax.simulate` (solver, rtol, dt0, …).
+    - `rtol`, `patience`: the stopping rule.  With ``rtol`` given, tune stops (``converged=True``)
+      once `patience` consecutive accepted points have not lowered the reference loss by more than
+      ``rtol·|reference|``, the reference being the loss at the last such improvement; ``steps`` is
+      then only a bound.  ``rtol=None`` (the default) runs the whole budget.
+    - `max_rejections`: stop after this many consecutive rejected points (see below).
 
-    A step whose loss or gradient is non-finite is skipped (not applied) and counted; the best observer
-    seen is returned.  After each update the observer's ``check()`` re-validates its invariants
-    (``eqx.tree_at`` skips ``__check_init__``).  Observers with a reset period T are simulated with a
-    number of segments recomputed from the current T (a retrace happens only when it grows past a
-    power-of-two bucket).
+    **Guarantees.**  The arguments are checked before anything is traced (the objects and numbers
+    first, then the data, then what ``where`` selects); each bad one raises ``ValueError`` naming it
+    (a ``where`` that selects None or a derived property, an optimizer that is not an optax
+    transformation, a float ``steps``, …).  A loss that does not return a real scalar is refused
+    when the first evaluation is traced, before any step. The initial observer must be valid and
+    give a finite loss.  Every later point is *accepted* only when the updated observer passes its
+    ``check()`` (``eqx.tree_at`` skips ``__check_init__``, so e.g. a pole stepped into the right
+    half-plane with ``positive=False`` or a negative reset period is caught there) and J and ∇J are
+    finite (every trajectory has status 0).  A rejected point is recorded in the history, announced
+    by a :class:`obsjax.TuneWarning`, and the step is retried from the last accepted point with the
+    optimizer's update scaled by ``BACKTRACK`` = 1/2 (the optimizer's state is not advanced, and no
+    point is evaluated twice); after an accepted point the scale grows back by 2, up to 1.  After
+    ``max_rejections`` consecutive rejections (a scale of 2⁻⁸ with the default) tune stops with
+    ``stop_reason="rejections"``.  Whatever the stop, the best accepted observer and the full
+    history are returned.
 
-    The gradient is compiled once per problem structure and reused across calls: calls that differ only in
-    array values (initial gains, scenario batches of the same size, the risk measure, which enters as
-    weights on the sorted losses, see :func:`risk_weights`) do not recompile, provided they pass the same
-    ``where`` and ``loss`` objects (a lambda written inside a loop is a new object each time).
+    **Kinks.**  For an observer with a reset period T that is tuned (directly or through a leaf it
+    depends on), a save time that coincides with a reset instant t0 + kT puts a kink (or, where the
+    estimate jumps at resets, a jump) into J as a function of T, and autodiff returns a one-sided
+    derivative there (Chen & Yen's example, γ = 20, p0 = 0.1, x̂(0) = (5, −5), the ISE on a 0.1 s
+    grid over [0, 10] at T = 2.3: autodiff −11.84, the left derivative, against −13.97 from the
+    right).  tune detects such coincidences at every accepted point and warns
+    (:class:`obsjax.TuneWarning`); move T or the save times off each other's grid.  See
+    :func:`reset_coincidences`.
 
-    **Returns:** :class:`TuneResult`.
+    Observers with a reset period T are simulated with a number of segments recomputed from the
+    current T (a retrace happens only when it grows past a power-of-two bucket).
+
+    The gradient is compiled once per problem structure and reused across calls: calls that differ
+    only in array values (initial gains, scenario batches of the same size, the risk measure, which
+    enters as weights on the sorted losses, see :func:`risk_weights`) do not recompile, provided
+    they pass the same ``where`` and ``loss`` objects (a lambda written inside a loop is a new
+    object each time).
+
+    **Returns:** :class:`TuneResult` (`observer`, `history`, `converged`, `stop_reason`,
+    `steps_taken`).
+
+    **Example:**::
+
+        obs = obsjax.Luenberger.from_poles(plant, [-1.0, -1.2])
+        res = obsjax.tune(obs, plant, where=lambda o: o.poles, loss=obsjax.losses.ise, x0s=x0s,
+                          xhat0s=jnp.zeros_like(x0s), ts=jnp.linspace(0, 5, 51),
+                          optimizer=optax.adam(0.1), steps=200, rtol=1e-4, patience=10)
+        res.observer.poles, res.converged, res.stop_reason
     """
     require_x64("obsjax.tune")
-    x0s = as_float_array(x0s, "x0s")
-    xhat0s = as_float_array(xhat0s, "xhat0s")
-    if x0s.ndim != 2 or xhat0s.ndim != 2 or x0s.shape[0] != xhat0s.shape[0]:
-        raise ValueError(
-            f"`x0s` and `xhat0s` must be (batch, n) with the same batch, got {tuple(x0s.shape)} and {tuple(xhat0s.shape)}."
-        )
-    if steps < 1:
-        raise ValueError(f"`steps` must be >= 1, got {steps}.")
+    _check_types(
+        observer, plant, where, loss, optimizer, steps, positive, rtol, patience, max_rejections
+    )
+    simulate_kwargs = {} if simulate_kwargs is None else simulate_kwargs
+    x0s, xhat0s, ts_np = _check_data(
+        plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_kwargs
+    )
     batch = x0s.shape[0]
+    weights = jnp.asarray(risk_weights(risk, batch))
+    leaves0, single = _selected_leaves(observer, where)
     optimizer = optax.adam(1e-2) if optimizer is None else optimizer
-    simulate_kwargs = dict(simulate_kwargs or {})
-    if noise is not None and key is None:
-        raise ValueError("`key` is required when `noise` is given.")
     keys = jr.split(jr.PRNGKey(0) if key is None else key, batch)
 
-    leaves0 = tuple(jnp.asarray(leaf) for leaf in _as_tuple(where(observer)))
-    if any(leaf is None for leaf in _as_tuple(where(observer))):
-        raise ValueError("`where` selected a leaf that is None; select array-valued gains.")
     if positive:
-        signs = []
-        thetas = []
-        for i, leaf in enumerate(leaves0):
-            v = np.asarray(leaf)
-            if np.iscomplexobj(v):
-                raise ValueError(f"tuned leaf {i} is complex: use positive=False for complex parameters.")
-            if np.any(v == 0):
-                raise ValueError(
-                    f"tuned leaf {i} has zero entries {v.tolist()}: positive=True keeps signs through "
-                    "leaf = sign·exp(θ), so every entry must be nonzero."
-                )
-            signs.append(jnp.sign(leaf))
-            thetas.append(jnp.log(jnp.abs(leaf)))
-        signs = tuple(signs)
-        theta0 = tuple(thetas)
+        signs, theta0 = _log_parametrisation(leaves0)
 
         def to_leaves(theta):
             return tuple(s * jnp.exp(t) for s, t in zip(signs, theta))
     else:
-        theta0 = leaves0
+        signs, theta0 = None, leaves0
 
         def to_leaves(theta):
             return tuple(theta)
-
-    single = not isinstance(where(observer), (tuple, list))
 
     def build(theta):
         new = to_leaves(theta)
         return eqx.tree_at(where, observer, new[0] if single else new)
 
-    span = float(np.asarray(ts)[-1] - np.asarray(ts)[0])
-
-    def segments_for(obs):
-        T = obs.reset_period
-        if T is None:
-            return None
-        ns = num_segments(T, 0.0, span)
-        return int(2 ** math.ceil(math.log2(max(ns, 1))))
-
-    weights = jnp.asarray(risk_weights(risk, batch))
+    span = float(ts_np[-1] - ts_np[0])
     spec_kwargs = tuple(sorted(simulate_kwargs.items()))
-    ts_key = tuple(float(v) for v in np.asarray(ts, dtype=float).ravel())
+    ts_key = tuple(float(v) for v in ts_np)
+    seg_bucket = [None]  # only ever grows: a shrinking T would otherwise trigger a recompilation
+    first_call = [True]
 
-    def value_and_grad(theta, max_segments):
-        # array leaves of a batched plant are mapped; callables (LTV's A(t), C(t)) are shared
-        spec = (where, loss, single, plant_batched, noise, u, max_segments, spec_kwargs, ts_key)
-        return _value_and_grad(
-            theta, signs if positive else None, observer, plant, x0s, xhat0s, keys, weights, spec
+    def evaluate(theta):
+        """(observer, J, ∇J, None) at an acceptable point, or (None, J or NaN, None, reason)."""
+        try:
+            obs = build(theta).check()
+        except (
+            ValueError,
+            RuntimeError,
+        ) as e:  # RuntimeError: an eqx.error_if run eagerly by check()
+            return None, math.nan, None, f"the observer is invalid: {_checked_message(e)}"
+        T = obs.reset_period
+        if T is not None:
+            ns = num_segments(T, 0.0, span)
+            need = int(2 ** math.ceil(math.log2(max(ns, 1))))
+            seg_bucket[0] = need if seg_bucket[0] is None else max(seg_bucket[0], need)
+        spec = (where, loss, single, plant_batched, noise, u, seg_bucket[0], spec_kwargs, ts_key)
+        try:
+            val, grads = _value_and_grad(
+                theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec
+            )
+            val = float(val)
+        except (ValueError, RuntimeError) as e:
+            # an eqx.error_if that fired at run time (JAX raises it as a RuntimeError, or as a
+            # ValueError from a cached kernel), or a retrace refused for this point; at the initial
+            # point: re-raised
+            if first_call[0]:
+                raise
+            return None, math.nan, None, f"a check failed while simulating: {_checked_message(e)}"
+        finally:
+            first_call[0] = False
+        if not math.isfinite(val):
+            return None, val, None, "the loss is not finite (a trajectory failed or diverged)"
+        if not all(bool(jnp.all(jnp.isfinite(g))) for g in grads):
+            return None, val, None, "the gradient is not finite"
+        return obs, val, grads, None
+
+    return _descend(
+        evaluate, build, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
+        progress,
+    )  # fmt: skip
+
+
+def _checked_message(e: Exception) -> str:
+    """The message of a check that fired inside a compiled kernel, without JAX's traceback."""
+    text = str(e)
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith(
+            (
+                "equinox._errors._EquinoxRuntimeError:",
+                "_EquinoxRuntimeError:",
+                "EquinoxRuntimeError:",
+            )
+        ):
+            return line.split(":", 1)[1].strip()
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return lines[0] if lines else type(e).__name__
+
+
+def _descend(
+    evaluate,
+    build,
+    to_leaves,
+    theta0,
+    optimizer,
+    steps,
+    rtol,
+    patience,
+    max_rejections,
+    ts,
+    progress,
+):
+    """The optimisation loop of :func:`tune`: optax updates, backtracking, a stopping rule."""
+    obs, val, grads, why = evaluate(theta0)
+    if why is not None:
+        raise ValueError(
+            f"tune: the initial observer cannot be tuned from: {why}. Check the initial gains, "
+            "x0s, xhat0s and the loss."
         )
-
-    opt_state = optimizer.init(theta0)
+    depends = _period_depends_on(build, theta0, obs.reset_period)
+    warned: set = set()
+    if depends:
+        _warn_kinks(obs, ts, 0, warned)
+    hist_loss, hist_params, accepted, scales, rejections = (
+        [val],
+        [to_leaves(theta0)],
+        [True],
+        [1.0],
+        [],
+    )
+    best = (val, obs, 0)
+    reference, since = val, 0
+    theta, opt_state = theta0, optimizer.init(theta0)
     update = jax.jit(optimizer.update)
-    theta = theta0
-    losses, params = [], [[] for _ in leaves0]
-    skipped = 0
-    best = (np.inf, observer, -1)
-    it = range(steps)
+    scale, in_row, stop_reason = 1.0, 0, "steps"
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(it, desc="tune", leave=False)
-        it = bar
-    seg_bucket = None  # only ever grows: a shrinking T would otherwise trigger a recompilation
-    for step in it:
-        obs_now = build(theta).check()
-        need = segments_for(obs_now)
-        if need is not None:
-            seg_bucket = need if seg_bucket is None else max(seg_bucket, need)
-        val, grads = value_and_grad(theta, seg_bucket)
-        val = float(val)
-        finite = np.isfinite(val) and all(bool(jnp.all(jnp.isfinite(g))) for g in grads)
-        losses.append(val)
-        for i, leaf in enumerate(to_leaves(theta)):
-            params[i].append(np.asarray(leaf))
-        if not finite:
-            skipped += 1
-            continue
-        if val < best[0]:
-            best = (val, obs_now, step)
-        updates, opt_state = update(grads, opt_state, theta)
-        theta = optax.apply_updates(theta, updates)
-        if bar is not None:
-            bar.set_postfix(loss=f"{val:.4g}")
+        bar = tqdm(total=steps, initial=1, desc="tune", leave=False)
+    while len(hist_loss) < steps and stop_reason == "steps":
+        updates, new_state = update(grads, opt_state, theta)
+        while len(hist_loss) < steps:
+            cand = jax.tree_util.tree_map(lambda t, d, s=scale: t + s * d, theta, updates)
+            if all(bool(jnp.all(c == t)) for c, t in zip(cand, theta)):
+                stop_reason = "rejections"  # the scaled step no longer moves θ
+                warnings.warn(
+                    f"tune: the step scaled by {scale:g} no longer changes the gains; stopping.",
+                    TuneWarning,
+                    stacklevel=3,
+                )
+                break
+            obs_c, val_c, grads_c, why = evaluate(cand)
+            hist_loss.append(val_c if why is None else math.nan)
+            hist_params.append(to_leaves(cand))
+            accepted.append(why is None)
+            scales.append(scale)
+            if bar is not None:
+                bar.update(1)
+            if why is None:
+                theta, opt_state, grads, val = cand, new_state, grads_c, val_c
+                scale, in_row = min(1.0, scale / BACKTRACK), 0
+                if val < best[0]:
+                    best = (val, obs_c, len(hist_loss) - 1)
+                if depends:
+                    _warn_kinks(obs_c, ts, len(hist_loss) - 1, warned)
+                if bar is not None:
+                    bar.set_postfix(loss=f"{val:.4g}")
+                break
+            rejections.append((len(hist_loss) - 1, why))
+            in_row += 1
+            scale *= BACKTRACK
+            if in_row >= max_rejections:
+                stop_reason = "rejections"
+                then = (
+                    f"{in_row} consecutive rejections: stopping with the best observer "
+                    f"(evaluation {best[2]})"
+                )
+            else:
+                then = f"retrying from the last accepted point with the step scaled by {scale:g}"
+            warnings.warn(
+                f"tune: evaluation {len(hist_loss) - 1} rejected ({why}); {then}.",
+                TuneWarning,
+                stacklevel=3,
+            )
+            if stop_reason != "steps":
+                break
+        if stop_reason != "steps" or not accepted[-1]:
+            break  # stopped, or the budget ran out during a backtracking
+        if rtol is not None:
+            if val < reference - rtol * abs(reference):
+                reference, since = val, 0
+            else:
+                since += 1
+                if since >= patience:
+                    stop_reason = "converged"
+    if bar is not None:
+        bar.close()
     history = {
-        "loss": np.asarray(losses),
-        "params": [np.stack(p) for p in params],
-        "skipped": skipped,
+        "loss": np.asarray(hist_loss),
+        "params": [np.stack([np.asarray(p[i]) for p in hist_params]) for i in range(len(theta0))],
+        "accepted": np.asarray(accepted),
+        "step_scale": np.asarray(scales),
+        "rejections": rejections,
+        "skipped": len(rejections),
         "best_step": best[2],
     }
-    if best[2] < 0:
-        raise ValueError("tune: every step produced a non-finite loss; check the gains and the loss.")
-    return TuneResult(observer=best[1], history=history)
+    return TuneResult(
+        observer=best[1],
+        history=history,
+        converged=stop_reason == "converged",
+        stop_reason=stop_reason,
+        steps_taken=len(hist_loss),
+    )

@@ -1,0 +1,231 @@
+"""Benchmark (h): time to first result in fresh processes, with and without JAX's persistent
+compilation cache.
+
+Each workload runs in three fresh processes: with the cache turned off
+(``OBSJAX_NO_COMPILATION_CACHE=1``), with the cache on and its directory just emptied (the first run
+after installation), and again with the directory the previous run filled (the second run).
+Workloads:
+
+- ``obsjax demo`` (the command line turns the cache on itself);
+- the first ``tune`` step of the README example (``steps=1``: compilation plus one gradient step);
+- the first chunk of a Monte-Carlo study (the README's study with ``n = chunk_size = 2500``).
+
+The library workloads call ``obsjax.enable_compilation_cache()`` when the cache is on.  Each
+process's wall time and CPU time (user + system, all threads) are recorded; the workload's own
+section is timed inside the process (after imports).  The cache directory is a fresh temporary one
+(``OBSJAX_COMPILATION_CACHE_DIR``).
+
+Usage: ``python benchmarks/h_first_call.py [--only demo,tune,mc] [--demo-n 10000]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import _common as C
+
+_TUNE = r"""
+import json, os, time
+t_start = time.perf_counter()
+import jax, jax.numpy as jnp, optax, obsjax
+if os.environ.get("OBSJAX_NO_COMPILATION_CACHE") != "1":
+    obsjax.enable_compilation_cache()
+plant = obsjax.chen_yen_example()
+obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.25)
+x0s = jax.random.normal(jax.random.PRNGKey(0), (16, 2)); xh0s = jnp.zeros((16, 2))
+t0 = time.perf_counter()
+res = obsjax.tune(obs, plant, where=lambda o: (o.gamma, o.T), loss=obsjax.losses.ise, x0s=x0s,
+                  xhat0s=xh0s, ts=jnp.linspace(0., 6., 61), optimizer=optax.adam(0.05), steps=1,
+                  noise=obsjax.noise.BandLimitedNoise(0.05, dt=0.02), key=jax.random.PRNGKey(1),
+                  progress=False)
+jax.block_until_ready(res.observer)
+print("RESULT", json.dumps({"section": time.perf_counter() - t0, "import": t0 - t_start}))
+"""
+
+_MC = r"""
+import json, os, time
+t_start = time.perf_counter()
+import jax, jax.numpy as jnp, obsjax
+if os.environ.get("OBSJAX_NO_COMPILATION_CACHE") != "1":
+    obsjax.enable_compilation_cache()
+plant = obsjax.chen_yen_example()
+obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.25)
+t0 = time.perf_counter()
+mc = obsjax.monte_carlo(plant, obs, jax.random.PRNGKey(2), 2500,
+                        x0_sampler=lambda k: 3 * jax.random.normal(k, (2,)),
+                        xhat0_sampler=lambda k: jnp.zeros(2), ts=jnp.linspace(0., 10., 41),
+                        chunk_size=2500, progress=False)
+print("RESULT", json.dumps({"section": time.perf_counter() - t0, "import": t0 - t_start,
+                            "failed": int(mc.n_failed)}))
+"""
+
+
+def _run(cmd, env, cwd):
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    out = subprocess.run(
+        cmd, env=env, cwd=cwd, check=False, capture_output=True, text=True, timeout=3600
+    )
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    if out.returncode != 0:
+        raise RuntimeError(f"{cmd[:3]} failed:\n{out.stdout[-2000:]}\n{out.stderr[-3000:]}")
+    info = {}
+    for line in out.stdout.splitlines():
+        if line.startswith("RESULT "):
+            info = json.loads(line[7:])
+        if line.startswith("Total ") and " s (" in line:  # the demo's own summary line
+            info["section"] = float(line.split()[1])
+            info["demo_line"] = line.strip()
+    return wall, cpu, info
+
+
+def _cache_size(d):
+    files = [os.path.join(d, f) for f in os.listdir(d)] if os.path.isdir(d) else []
+    entries = [f for f in files if f.endswith("-cache")]
+    return len(entries), sum(os.path.getsize(f) for f in files) / 2**20
+
+
+def main(only=("demo", "tune", "mc"), demo_n=10_000):
+    load = C.Load()
+    work = tempfile.mkdtemp(prefix="obsjax-h-")
+    base = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT"))
+    }
+    base["PYTHONPATH"] = C.ROOT + (
+        os.pathsep + base["PYTHONPATH"] if base.get("PYTHONPATH") else ""
+    )
+    base["JAX_PLATFORMS"] = base.get("JAX_PLATFORMS", "cpu")
+    base["MPLBACKEND"] = "Agg"
+    workloads = {
+        "demo": [
+            sys.executable,
+            "-m",
+            "obsjax.cli",
+            "demo",
+            "--out",
+            os.path.join(work, "demo"),
+            "-n",
+            str(demo_n),
+        ],
+        "tune": [sys.executable, "-c", _TUNE],
+        "mc": [sys.executable, "-c", _MC],
+    }
+    rows = []
+    try:
+        for name in only:
+            cache = os.path.join(work, f"cache-{name}")
+            for mode in ("off", "cold", "warm"):
+                env = dict(base)
+                env.pop("OBSJAX_NO_COMPILATION_CACHE", None)
+                env["OBSJAX_COMPILATION_CACHE_DIR"] = cache
+                if mode == "off":
+                    env["OBSJAX_NO_COMPILATION_CACHE"] = "1"
+                elif mode == "cold":
+                    shutil.rmtree(cache, ignore_errors=True)
+                wall, cpu, info = _run(workloads[name], env, work)
+                n, mib = _cache_size(cache)
+                rows.append((name, mode, wall, cpu, info, n, mib))
+                print(
+                    f"{name:5s} {mode:5s} process {wall:7.1f} s wall {cpu:7.1f} s CPU; section "
+                    f"{info.get('section', float('nan')):7.1f} s; cache {n} entries {mib:.1f} MiB",
+                    flush=True,
+                )
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    C.write_result(
+        "h_first_call",
+        "Benchmark (h): time to first result in fresh processes",
+        _report(rows, demo_n),
+        load,
+        script="h_first_call",
+    )
+
+
+_TARGETS = {
+    ("demo", "cold"): 30.0,
+    ("demo", "warm"): 12.0,
+    ("tune", "warm"): 5.0,
+    ("mc", "warm"): 4.0,
+}
+_WHAT = {
+    "demo": "`obsjax demo` (whole process; section = the demo's own total)",
+    "tune": "first `tune` step of the README example (section: the `tune(..., steps=1)` call)",
+    "mc": "first Monte-Carlo chunk, 2500 trajectories (section: the `monte_carlo` call)",
+}
+
+
+_NOTES = """
+What the cache can and cannot save: JAX writes a compiled program to the cache only if it carries
+no host callback. `eqx.error_if` (the `throw=True` checks of `simulate`, and the checks inside
+diffrax) is a host callback, so jitted `simulate` calls are compiled in every process; Monte-Carlo
+kernels are traced with the checks as NaN (no callbacks) and are cached. Tracing and lowering are
+never cached. In this version `tune`'s kernel carries such checks (`JAX_EXPLAIN_CACHE_MISSES=1`
+prints: Not writing persistent cache entry for 'jit__value_and_grad' because it uses host
+callbacks), so its first step gains nothing from the cache.
+
+On a shared machine the process CPU time (all threads, compilation included) is the steadier
+figure; the wall times above include waiting for the cores.
+
+Targets (issue: time to first result, on a quiet 2-core machine): `obsjax demo` ≤ 30 s on its
+first run and ≤ 12 s on its second, the first `tune` step ≤ 5 s, the first Monte-Carlo chunk
+≤ 4 s.
+
+**Preliminary**: measured on a shared machine (see the load below); to be re-measured on a quiet
+one.
+"""
+
+
+def _report(rows, demo_n):
+    intro = (
+        "Each row is a fresh process. *off*: `OBSJAX_NO_COMPILATION_CACHE=1`; *cold*: cache on, "
+        "directory just emptied (first run after installation); *warm*: cache on, filled by the "
+        f"cold run (second run). The demo runs with `-n {demo_n}`."
+    )
+    header = (
+        "| workload | cache | process wall | process CPU | section wall | cache entries | target |"
+    )
+    lines = [
+        intro,
+        "",
+        header,
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, mode, wall, cpu, info, n, mib in rows:
+        target = _TARGETS.get((name, mode))
+        sec = info.get("section", float("nan"))
+        measured = wall if name == "demo" else sec
+        verdict = ""
+        if target is not None:
+            verdict = f"≤ {target:g} s: " + C.verdict(measured, target, "lower")
+        lines.append(
+            f"| {_WHAT[name]} | {mode} | {wall:.1f} s | {cpu:.1f} s | {sec:.1f} s | "
+            f"{n} ({mib:.1f} MiB) | {verdict} |"
+        )
+    demo = [r for r in rows if r[0] == "demo" and "demo_line" in r[4]]
+    if demo:
+        lines += ["", "The demo's own summary lines:", ""]
+        lines += [f"- {r[1]}: `{r[4]['demo_line']}`" for r in demo]
+    paragraphs = [" ".join(p.split("\n")) for p in _NOTES.strip().split("\n\n")]
+    for p in paragraphs:
+        lines += ["", p]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    p = argparse.ArgumentParser()
+    p.add_argument("--only", default="demo,tune,mc")
+    p.add_argument("--demo-n", type=int, default=10_000)
+    a = p.parse_args()
+    sys.exit(main(tuple(a.only.split(",")), a.demo_n))

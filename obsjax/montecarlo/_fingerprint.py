@@ -1,0 +1,320 @@
+"""A content fingerprint of everything that determines a study's result (its checkpoints' key).
+
+A checkpoint may only be reused by the study that wrote it.  Names are not enough: two samplers
+called ``x0_sampler`` that differ by a constant in a closure, two LTV plants whose ``A(t)`` differ,
+or two noise models that differ by a static grid spacing give different results.
+:func:`fingerprint` therefore hashes the *content* of the objects, recursively:
+
+- arrays by dtype, shape and bytes; numbers, strings, tuples, lists, dicts and sets by value;
+- dataclasses (every ``eqx.Module``: plants, observers, noise models, diffrax solvers) field by
+  field, static fields included, plus the code of the methods of user-defined classes;
+- user functions by their bytecode (constants, names, nested functions), their closure values, their
+  default arguments and the values of the globals they read, recursively;
+- functions, classes and modules of the numerical libraries (jax, numpy, scipy, diffrax, equinox,
+  optax, lineax, obsjax, ...) by qualified name (their versions enter the header), but their
+  closures by value, so ``jax.jit(f)`` and closures made by library factories are still hashed by
+  content.
+
+What cannot be hashed this way (an object of a compiled extension without a dataclass, ``__dict__``
+or slots, such as ``numpy.random.Generator``, or a traced array) is reported with its path; the
+caller refuses to checkpoint unless the user names the study with an explicit ``study_id``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import hashlib
+import importlib.metadata
+import struct
+import sys
+import types
+
+import jax
+import jax.random as jr
+import numpy as np
+
+FORMAT = 2  # checkpoint format: content fingerprints and per-file checksums
+
+# Top-level packages hashed by name (their version is part of the fingerprint header).
+_LIBRARIES = frozenset(
+    {
+        "jax", "jaxlib", "numpy", "scipy", "diffrax", "equinox", "lineax", "optax", "optimistix",
+        "jaxtyping", "obsjax", "builtins", "math", "cmath", "operator", "functools", "itertools",
+        "typing", "collections", "abc", "dataclasses", "enum", "numbers", "_operator", "_functools",
+        "inspect",
+    }
+)  # fmt: skip
+_VERSIONED = ("jax", "jaxlib", "numpy", "scipy", "diffrax", "equinox", "lineax", "optax", "obsjax")
+# Class attributes that are machinery, not behaviour (the instance's fields carry the state).
+_CLASS_SKIP = frozenset(
+    {
+        "__module__", "__qualname__", "__doc__", "__dict__", "__weakref__", "__annotations__",
+        "__dataclass_fields__", "__dataclass_params__", "__match_args__", "__abstractmethods__",
+        "_abc_impl", "__abstractvars__", "__abstractclassvars__", "__slots__", "__orig_bases__",
+        "__parameters__", "__static_attributes__", "__firstlineno__", "__init__", "__post_init__",
+        "__check_init__", "__repr__", "__eq__", "__hash__", "__init_subclass__", "__new__",
+        "__setattr__", "__delattr__", "__getstate__", "__setstate__", "__reduce__", "__annotate__",
+    }
+)  # fmt: skip
+
+
+def _is_library(module_name) -> bool:
+    return isinstance(module_name, str) and module_name.split(".")[0] in _LIBRARIES
+
+
+def _version(pkg: str) -> str:
+    try:
+        return importlib.metadata.version(pkg)
+    except importlib.metadata.PackageNotFoundError:
+        mod = sys.modules.get(pkg)
+        return str(getattr(mod, "__version__", "?"))
+
+
+def header() -> str:
+    """Python and library versions: a result computed by other versions is another study."""
+    py = f"python{sys.version_info.major}.{sys.version_info.minor}"
+    return ";".join([f"format{FORMAT}", py] + [f"{p}={_version(p)}" for p in _VERSIONED])
+
+
+class _Hasher:
+    """Feeds a canonical, length-prefixed encoding of an object graph into SHA-256."""
+
+    def __init__(self):
+        self.h = hashlib.sha256()
+        self.memo: dict[int, int] = {}
+        self.keep: list = []  # keeps visited objects alive, so that their ids are not reused
+        self.opaque: list[str] = []
+
+    def put(self, tag: str, data: bytes | str = b"") -> None:
+        if isinstance(data, str):
+            data = data.encode()
+        tag_b = tag.encode()
+        self.h.update(struct.pack("<I", len(tag_b)) + tag_b + struct.pack("<Q", len(data)) + data)
+
+    def _seen(self, obj) -> bool:
+        i = self.memo.get(id(obj))
+        if i is not None:
+            self.put("ref", str(i))
+            return True
+        self.memo[id(obj)] = len(self.memo)
+        self.keep.append(obj)
+        return False
+
+    # ---------------------------------------------------------------------------------------------
+    def visit(self, obj, path: str) -> None:
+        if obj is None or isinstance(obj, (bool, int, float, complex, str, bytes)):
+            self.put(type(obj).__name__, repr(obj) if not isinstance(obj, bytes) else obj)
+            return
+        if isinstance(obj, (np.ndarray, np.generic)):
+            self._array(np.asarray(obj), path)
+            return
+        if isinstance(obj, jax.Array):
+            self._jax_array(obj, path)
+            return
+        if isinstance(obj, (np.dtype, type(Ellipsis))):
+            self.put(type(obj).__name__, str(obj))
+            return
+        if self._seen(obj):
+            return
+        if isinstance(obj, (tuple, list)):
+            self.put(type(obj).__name__, str(len(obj)))
+            for i, v in enumerate(obj):
+                self.visit(v, f"{path}[{i}]")
+            return
+        if isinstance(obj, (dict, types.MappingProxyType)):
+            self._dict(dict(obj), path)
+            return
+        if isinstance(obj, jax.tree_util.PyTreeDef):
+            self._treedef(obj, path)
+            return
+        if type(obj) is object:  # a sentinel
+            self.put("object")
+            return
+        if isinstance(obj, (set, frozenset)):
+            self._set(obj, path)
+            return
+        if isinstance(obj, types.ModuleType):
+            self.put("module", obj.__name__)
+            return
+        if isinstance(obj, type):
+            self._class(obj, path)
+            return
+        if isinstance(obj, types.CodeType):
+            self._code(obj, path)
+            return
+        if isinstance(obj, types.FunctionType):
+            self._function(obj, path)
+            return
+        if isinstance(obj, types.MethodType):
+            self.put("method", obj.__func__.__qualname__)
+            self.visit(obj.__func__, f"{path}.__func__")
+            self.visit(obj.__self__, f"{path}.__self__")
+            return
+        if isinstance(obj, (types.BuiltinFunctionType, types.BuiltinMethodType, np.ufunc)):
+            self._builtin(obj, path)
+            return
+        if isinstance(obj, functools.partial):
+            self.put("partial")
+            self.visit(obj.func, f"{path}.func")
+            self.visit(obj.args, f"{path}.args")
+            self.visit(obj.keywords, f"{path}.keywords")
+            return
+        if isinstance(obj, enum.Enum):
+            self.put("enum", f"{type(obj).__module__}.{type(obj).__qualname__}.{obj.name}")
+            return
+        if dataclasses.is_dataclass(obj):
+            self._class(type(obj), f"{path}.<class>")
+            for f in dataclasses.fields(obj):
+                self.put("field", f.name)
+                self.visit(getattr(obj, f.name, None), f"{path}.{f.name}")
+            return
+        if callable(obj) and hasattr(obj, "__wrapped__"):  # jax.jit, functools.wraps
+            self.put("wrapper", type(obj).__qualname__)
+            self.visit(obj.__wrapped__, f"{path}.__wrapped__")
+            return
+        self._instance(obj, path)
+
+    # ---------------------------------------------------------------------------------------------
+    def _array(self, a: np.ndarray, path: str) -> None:
+        if a.dtype == object:
+            self.opaque.append(f"{path} (an array of Python objects)")
+            return
+        self.put("array", f"{a.dtype.str}{a.shape}")
+        self.put("bytes", np.ascontiguousarray(a).tobytes())
+
+    def _jax_array(self, a, path: str) -> None:
+        if isinstance(a, jax.core.Tracer):
+            self.opaque.append(f"{path} (a traced array: call monte_carlo outside jit)")
+            return
+        if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
+            self.put("prng_key", str(jr.key_impl(a)))
+            a = jr.key_data(a)
+        try:
+            self._array(np.asarray(a), path)
+        except Exception as e:  # noqa: BLE001  (e.g. an array not addressable from this process)
+            self.opaque.append(f"{path} (a jax.Array that cannot be read: {type(e).__name__})")
+
+    def _dict(self, d: dict, path: str) -> None:
+        self.put("dict", str(len(d)))
+        items = list(d.items())
+        if all(isinstance(k, (str, int, float)) for k in d):
+            items.sort(key=lambda kv: (type(kv[0]).__name__, repr(kv[0])))
+        for k, v in items:
+            self.visit(k, f"{path}.<key>")
+            self.visit(v, f"{path}[{k!r}]")
+
+    def _treedef(self, td, path: str) -> None:
+        """A pytree structure node by node: node types and auxiliary data (static fields), by
+        content."""
+        self.put("treedef", str(td.num_leaves))
+        node = td.node_data()
+        if node is None:
+            self.put("leaf")
+            return
+        self.visit(node[0], f"{path}.<node type>")
+        self.visit(node[1], f"{path}.<node data>")
+        for i, child in enumerate(td.children()):
+            self.visit(child, f"{path}.<child {i}>")
+
+    def _set(self, s, path: str) -> None:
+        digests = []
+        for v in s:
+            sub = _Hasher()
+            sub.visit(v, path)
+            self.opaque.extend(sub.opaque)
+            digests.append(sub.h.hexdigest())
+        self.put(type(s).__name__, ",".join(sorted(digests)))
+
+    def _code(self, co: types.CodeType, path: str) -> None:
+        self.put("code", co.co_code)
+        self.put(
+            "code-meta",
+            f"{co.co_argcount},{co.co_posonlyargcount},{co.co_kwonlyargcount},{co.co_flags}|"
+            f"{co.co_names}|{co.co_varnames}|{co.co_freevars}|{co.co_cellvars}",
+        )
+        for i, c in enumerate(co.co_consts):
+            self.visit(c, f"{path}.<const {i}>")
+
+    def _function(self, fn: types.FunctionType, path: str) -> None:
+        self.put("function", f"{fn.__module__}.{fn.__qualname__}")
+        if not _is_library(fn.__module__):
+            self._code(fn.__code__, path)
+            glb = fn.__globals__
+            for name in sorted(_global_names(fn.__code__)):
+                if name in glb:
+                    self.put("global", name)
+                    self.visit(glb[name], f"{path}.<global {name}>")
+        self.visit(fn.__defaults__, f"{path}.__defaults__")
+        self.visit(fn.__kwdefaults__, f"{path}.__kwdefaults__")
+        for name, cell in zip(fn.__code__.co_freevars, fn.__closure__ or ()):
+            self.put("cell", name)
+            try:
+                value = cell.cell_contents
+            except ValueError:  # an empty cell
+                self.put("empty-cell")
+                continue
+            self.visit(value, f"{path}.<closure {name}>")
+
+    def _builtin(self, fn, path: str) -> None:
+        mod = getattr(fn, "__module__", None)
+        self.put("builtin", f"{mod}.{getattr(fn, '__qualname__', getattr(fn, '__name__', '?'))}")
+        owner = getattr(fn, "__self__", None)
+        if owner is not None and not isinstance(owner, types.ModuleType):
+            self.visit(owner, f"{path}.__self__")  # a bound method of a C object: its state matters
+
+    def _class(self, cls: type, path: str) -> None:
+        name = f"{cls.__module__}.{cls.__qualname__}"
+        if self._seen(cls):
+            return
+        self.put("class", name)
+        if _is_library(cls.__module__):
+            return
+        for base in cls.__bases__:
+            self.visit(base, f"{path}.<base {base.__qualname__}>")
+        for key in sorted(vars(cls)):
+            if key in _CLASS_SKIP:
+                continue
+            value = vars(cls)[key]
+            self.put("attr", key)
+            if isinstance(value, (staticmethod, classmethod)):
+                value = value.__func__
+            elif isinstance(value, property):
+                value = (value.fget, value.fset)
+            self.visit(value, f"{name}.{key}")
+
+    def _instance(self, obj, path: str) -> None:
+        cls = type(obj)
+        state = getattr(obj, "__dict__", None)
+        slots = [s for c in cls.__mro__ for s in getattr(c, "__slots__", ())]
+        if state is None and not slots:
+            self.opaque.append(f"{path} ({cls.__module__}.{cls.__qualname__})")
+            self.put("opaque", f"{cls.__module__}.{cls.__qualname__}")
+            return
+        self._class(cls, f"{path}.<class>")
+        if state is not None:
+            self.visit(dict(state), f"{path}.__dict__")
+        for s in slots:
+            if s not in ("__dict__", "__weakref__") and hasattr(obj, s):
+                self.put("slot", s)
+                self.visit(getattr(obj, s), f"{path}.{s}")
+
+
+def _global_names(co: types.CodeType) -> set[str]:
+    names = set(co.co_names)
+    for c in co.co_consts:
+        if isinstance(c, types.CodeType):
+            names |= _global_names(c)
+    return names
+
+
+def fingerprint(parts: dict) -> tuple[str, list[str]]:
+    """SHA-256 hex digest of the version header and the named parts, and the list of paths that
+    could not be hashed by content (empty when the fingerprint covers everything)."""
+    h = _Hasher()
+    h.put("header", header())
+    for name in sorted(parts):
+        h.put("part", name)
+        h.visit(parts[name], name)
+    return h.h.hexdigest(), h.opaque

@@ -1,0 +1,313 @@
+"""The masked adaptive Runge–Kutta back-end against diffrax's diffeqsolve (step for step), closed
+forms, SciPy, the segmented diffrax solve of obsjax.simulate, and central finite differences."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import obsjax
+from obsjax._integrate._adaptive_rk import NONFINITE, SOLVER_FAILED, SUCCESS, adaptive_rk_solve
+from obsjax._simulate import _Args, _drift
+
+PID = diffrax.PIDController(rtol=1e-6, atol=1e-8)
+K = np.linspace(1.0, 4.0, 5)  # stiffness and damping of five forced oscillators
+CD = np.linspace(0.1, 0.5, 5)
+ARGS = jnp.stack([K, CD], axis=1)
+Y0 = jnp.stack([np.linspace(1.0, 2.0, 5), np.zeros(5)], axis=1)
+TS = jnp.linspace(0.0, 5.0, 11)
+
+
+def oscillator(t, y, args):
+    return jnp.array([y[1], -args[0] * y[0] - args[1] * y[1] + jnp.sin(t)])
+
+
+@eqx.filter_jit
+def _solve(solver, y0, args, dt0):
+    return adaptive_rk_solve(
+        oscillator,
+        y0,
+        0.0,
+        5.0,
+        args=args,
+        args_axes=0,
+        ts=TS,
+        solver=solver,
+        stepsize_controller=PID,
+        dt0=dt0,
+    )
+
+
+@eqx.filter_jit
+def _diffrax(solver, y0, args, dt0):
+    def one(y, a):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(oscillator),
+            solver,
+            0.0,
+            5.0,
+            dt0,
+            y,
+            args=a,
+            saveat=diffrax.SaveAt(ts=TS),
+            stepsize_controller=PID,
+        )
+        return sol.ys, sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"]
+
+    return jax.vmap(one)(y0, args)
+
+
+@pytest.mark.parametrize("solver", [diffrax.Tsit5(), diffrax.Dopri5()], ids=["Tsit5", "Dopri5"])
+def test_step_for_step_with_diffrax(solver):
+    # the same first step (0.01), then the same PID decisions: the same steps, the same numbers
+    sol = _solve(solver, Y0, ARGS, 0.01)
+    ys, acc, rej = _diffrax(solver, Y0, ARGS, 0.01)
+    assert np.all(np.asarray(sol.status) == SUCCESS)
+    np.testing.assert_array_equal(sol.num_accepted_steps, acc)
+    np.testing.assert_array_equal(sol.num_rejected_steps, rej)
+    np.testing.assert_allclose(sol.ys, ys, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.y1, ys[:, -1], rtol=0, atol=1e-12)
+
+
+def test_initial_step_selection_against_scipy():
+    # dt0=None: Hairer & Wanner's starting step; the solution meets the tolerance against SciPy's
+    # DOP853
+    sol = _solve(diffrax.Tsit5(), Y0, ARGS, None)
+    _, acc, _ = _diffrax(diffrax.Tsit5(), Y0, ARGS, 0.01)
+    for b in range(5):
+        ref = solve_ivp(
+            lambda t, y, a=ARGS[b]: np.asarray(oscillator(t, y, a)),
+            (0, 5),
+            np.asarray(Y0[b]),
+            method="DOP853",
+            t_eval=np.asarray(TS),
+            rtol=1e-12,
+            atol=1e-14,
+        ).y.T
+        assert np.max(np.abs(np.asarray(sol.ys[b]) - ref)) < 2e-6
+    # a different first step changes the count of steps by a few, not more
+    assert np.all(
+        np.abs(np.asarray(sol.num_accepted_steps) - np.asarray(acc)) <= 0.1 * np.asarray(acc)
+    )
+
+
+# ------------------------------------------------------------------------------------------ resets:
+# Chen & Yen
+
+PLANT = obsjax.chen_yen_example()
+
+
+def _chen_yen(
+    gamma, T, x0s, xh0s, ts, t1, *, dt0=None, rtol=1e-6, atol=1e-8, adjoint=None, solver=None
+):
+    obs = eqx.tree_at(
+        lambda o: (o.gamma, o.T), obsjax.LeastSquaresReset(PLANT, 20.0, 0.1, 0.25), (gamma, T)
+    )
+    args = _Args(PLANT, obs, None, None, None)
+    z0 = jax.vmap(lambda x, xh: obs.init(0.0, xh, PLANT.h(0.0, x, jnp.zeros(0))))(x0s, xh0s)
+    n = (
+        int(np.ceil(t1 / 0.2)) + 1
+    )  # a static bound on the number of resets (those beyond t1 are ignored)
+    return adaptive_rk_solve(
+        _drift,
+        (x0s, z0),
+        0.0,
+        t1,
+        args=args,
+        ts=ts,
+        dt0=dt0,
+        solver=solver,
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        reset=lambda t, y, a: (y[0], a.observer.reset(t, y[1])),
+        reset_ts=T * jnp.arange(1, n),
+        max_steps=4096,
+        adjoint=adjoint,
+    )
+
+
+X0S = jnp.array([[0.3, -1.2], [1.0, 0.5], [-0.7, 0.1]])
+XH0S = jnp.tile(jnp.array([5.0, -5.0]), (3, 1))
+
+
+def test_resets_match_the_segmented_diffrax_solve():
+    # save times on and between the reset instants; the same first step in every segment as
+    # diffrax's
+    ts = jnp.linspace(0.0, 2.0, 17)
+    sol = jax.jit(lambda x, xh: _chen_yen(20.0, 0.25, x, xh, ts, 2.0, dt0=0.01))(X0S, XH0S)
+    obs = obsjax.LeastSquaresReset(PLANT, 20.0, 0.1, 0.25)
+    ref = jax.jit(jax.vmap(lambda x, xh: obsjax.simulate(PLANT, obs, x, xh, ts, dt0=0.01)))(
+        X0S, XH0S
+    )
+    assert np.all(np.asarray(sol.status) == SUCCESS)
+    np.testing.assert_allclose(sol.ys[0], ref.x, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(sol.ys[1].xhat, ref.xhat, rtol=0, atol=1e-11)
+    # the state saved at a reset instant is the state after the reset (right-continuous)
+    np.testing.assert_allclose(
+        sol.ys[1].Phi[:, 4], jnp.broadcast_to(jnp.eye(2), (3, 2, 2)), atol=1e-15
+    )
+
+
+def _toy(t, y, a):
+    # a small time-varying system, cheap to compile: gradients are checked on it
+    return jnp.array([-a * y[0] + y[1] * jnp.sin(3.0 * t), -y[1] + jnp.cos(2.0 * t)])
+
+
+def _toy_loss(p, adjoint=None):
+    # p = (a, T, y0): a gain of the vector field, the reset period (reset q -> q/2 + 1 at kT), a
+    # start value
+    y0 = jnp.array([[1.0, 0.5], [-0.5, 1.0]]).at[0, 0].set(p[2])
+    sol = adaptive_rk_solve(
+        _toy,
+        y0,
+        0.0,
+        1.0,
+        args=p[0],
+        ts=jnp.linspace(0.0, 1.0, 5),
+        stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
+        reset=lambda t, y, a: jnp.array([y[0], 0.5 * y[1] + 1.0]),
+        reset_ts=p[1] * jnp.arange(1, 6),
+        adjoint=adjoint,
+    )
+    return jnp.sum(sol.ys**2)
+
+
+def test_gradients_match_central_differences():
+    # reverse mode (checkpointed loop) and forward mode against central differences, with respect to
+    # a gain, the reset period (the reset instants move) and an initial state; T = 0.31 keeps the
+    # reset instants off the save times (where the loss has a kink)
+    p = jnp.array([1.3, 0.31, 1.0])
+    rev = jax.jit(jax.grad(_toy_loss))(p)
+    fwd = jax.jit(jax.jacfwd(lambda q: _toy_loss(q, diffrax.ForwardMode())))(p)
+    f = jax.jit(_toy_loss)
+    eps = 1e-6
+    fd = np.array([(f(p + eps * e) - f(p - eps * e)) / (2 * eps) for e in np.eye(3)])
+    np.testing.assert_allclose(rev, fd, rtol=1e-6)
+    np.testing.assert_allclose(fwd, fd, rtol=1e-6)
+    assert np.all(np.abs(fd) > 1e-2)  # every direction matters
+
+
+@pytest.mark.slow
+def test_gradient_through_chen_yen_resets():
+    # d/dT of Chen & Yen's observer (reverse mode), against central differences (slow: compiling the
+    # reverse pass of the observer's loop takes a minute on two cores; the mechanism is tested above
+    # on a small system)
+    ts = jnp.linspace(0.0, 1.0, 5)
+
+    def loss(T):
+        sol = _chen_yen(20.0, T, X0S[:2], XH0S[:2], ts, 1.0, rtol=1e-10, atol=1e-12)
+        return jnp.sum((sol.ys[1].xhat - sol.ys[0]) ** 2)
+
+    g = jax.jit(jax.grad(loss))(0.31)
+    f = jax.jit(loss)
+    fd = (f(0.31 + 1e-6) - f(0.31 - 1e-6)) / 2e-6
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------- jumps,
+# per-member t
+
+
+def test_jump_in_the_vector_field_against_the_closed_form():
+    # ẏ = −y + H(t − s): y = y0 e^{−t} before s, 1 + (y(s) − 1) e^{−(t − s)} after; s differs per
+    # member
+    s = jnp.array([0.3, 0.5, 0.77])
+    f = lambda t, y, a: -y + jnp.where(t >= a, 1.0, 0.0)
+    ts = jnp.linspace(0.0, 1.5, 16)
+    sol = jax.jit(
+        lambda y0: adaptive_rk_solve(
+            f,
+            y0,
+            0.0,
+            1.5,
+            args=s,
+            args_axes=0,
+            ts=ts,
+            jump_ts=s[:, None],
+            stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-12),
+        )
+    )(jnp.full((3,), 2.0))
+    y0, tt, ss = 2.0, np.asarray(ts)[None, :], np.asarray(s)[:, None]
+    ys_ = y0 * np.exp(-ss)
+    exact = np.where(tt < ss, y0 * np.exp(-tt), 1 + (ys_ - 1) * np.exp(-(tt - ss)))
+    assert np.all(np.asarray(sol.status) == SUCCESS)
+    np.testing.assert_allclose(sol.ys, exact, rtol=0, atol=1e-8)
+
+
+def test_per_member_horizons():
+    t1 = jnp.array([1.0, 2.5, 4.0])
+    f = lambda t, y, a: jnp.array([y[1], -y[0]])
+    ts = jnp.stack([jnp.linspace(0.0, t, 6) for t in t1])
+    sol = adaptive_rk_solve(
+        f,
+        jnp.tile(jnp.array([1.0, 0.0]), (3, 1)),
+        0.0,
+        t1,
+        ts=ts,
+        stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
+    )
+    np.testing.assert_allclose(sol.ys[..., 0], np.cos(np.asarray(ts)), atol=1e-8)
+    np.testing.assert_allclose(sol.t1, t1)
+    assert np.asarray(sol.num_accepted_steps)[0] < np.asarray(sol.num_accepted_steps)[2]
+
+
+# ------------------------------------------------------------------------------------------- status
+
+
+def test_status_per_member():
+    # member 0 fine; member 1 stiff (runs out of steps); member 2 starts non-finite; member 3 blows
+    # up (ẏ = y²)
+    rates = jnp.array([1.0, 1e6, 1.0, 0.0])
+    f = lambda t, y, a: jnp.where(a > 0, -a * y, y * y)
+    y0 = jnp.array([[1.0], [1.0], [jnp.nan], [2.0]])
+    sol = adaptive_rk_solve(
+        f, y0, 0.0, 1.0, args=rates, args_axes=0, ts=jnp.linspace(0.0, 1.0, 5), max_steps=200
+    )
+    status = np.asarray(sol.status)
+    assert status[0] == SUCCESS and status[2] == NONFINITE
+    assert status[1] == SOLVER_FAILED and status[3] in (SOLVER_FAILED, NONFINITE)
+    np.testing.assert_allclose(sol.ys[0, :, 0], np.exp(-np.linspace(0, 1, 5)), rtol=1e-6)
+    assert np.all(np.isnan(np.asarray(sol.y1)[1:]))  # no silent values for failed members
+    assert np.isnan(np.asarray(sol.ys)[1, -1, 0]) and np.isnan(np.asarray(sol.ys)[3, -1, 0])
+    assert np.asarray(sol.num_steps)[1] == 200
+
+
+def test_a_reset_that_gives_non_finite_values():
+    f = lambda t, y, a: -y
+    reset = lambda t, y, a: jnp.where(a > 0, y / 2, jnp.log(-jnp.abs(y) - 1.0))
+    sol = adaptive_rk_solve(
+        f,
+        jnp.ones((2, 1)),
+        0.0,
+        1.0,
+        args=jnp.array([1.0, -1.0]),
+        args_axes=0,
+        reset=reset,
+        reset_ts=jnp.array([0.5]),
+    )
+    np.testing.assert_array_equal(sol.status, [SUCCESS, NONFINITE])
+    np.testing.assert_allclose(sol.y1[0, 0], np.exp(-1.0) / 2, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------- bad input
+
+
+def test_bad_input_fails_fast():
+    f = lambda t, y, a: -y
+    y0 = jnp.ones((2, 1))
+    with pytest.raises(ValueError, match="solver"):
+        adaptive_rk_solve(f, y0, 0.0, 1.0, solver=diffrax.Kvaerno5())
+    with pytest.raises(ValueError, match="stepsize_controller"):
+        adaptive_rk_solve(f, y0, 0.0, 1.0, stepsize_controller=diffrax.ConstantStepSize())
+    with pytest.raises(ValueError, match="y0"):
+        adaptive_rk_solve(f, (jnp.ones((2, 1)), jnp.ones((3, 1))), 0.0, 1.0)
+    with pytest.raises(ValueError, match="reset"):
+        adaptive_rk_solve(f, y0, 0.0, 1.0, reset_ts=jnp.array([0.5]))
+    with pytest.raises(ValueError, match="ts"):
+        adaptive_rk_solve(f, y0, 0.0, 1.0, ts=jnp.array([0.0, 2.0]))
+    with pytest.raises(ValueError, match="adjoint"):
+        adaptive_rk_solve(f, y0, 0.0, 1.0, adjoint=diffrax.BacksolveAdjoint())
+    with pytest.raises(ValueError, match="t0"):
+        adaptive_rk_solve(f, y0, jnp.zeros(3), 1.0)

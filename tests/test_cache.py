@@ -1,0 +1,139 @@
+"""JAX's persistent compilation cache: off on import, on by one call, filled by one process and read
+by the next, opted out by an environment variable, turned on by the command line and for the test
+run."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import pytest
+
+import obsjax
+from obsjax import _cache
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_CLEAN = (
+    "JAX_COMPILATION_CACHE_DIR",
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+    _cache.OPT_OUT,
+    _cache.DIR_ENV,
+)
+
+# A small Monte-Carlo study: its kernel is traced without host callbacks, so JAX may write it to the
+# cache.
+_STUDY = r"""
+import json, sys, time
+import jax, jax.numpy as jnp, numpy as np
+import obsjax
+
+events = []
+jax.monitoring.register_event_listener(lambda ev, **kw: events.append(ev))
+path = obsjax.enable_compilation_cache(sys.argv[1], min_compile_time_secs=0.0)
+plant = obsjax.LTI([[-2., 1.], [0., -1.]], [[0.], [1.]], [[1., 0.]])
+obs = obsjax.Luenberger.from_poles(plant, [-3., -3.])
+t0 = time.perf_counter()
+res = obsjax.monte_carlo(plant, obs, jax.random.PRNGKey(0), 8, x0_sampler=lambda k:
+jax.random.normal(k, (2,)),
+                         xhat0_sampler=lambda k: jnp.zeros(2), ts=np.linspace(0., 1., 5),
+                         chunk_size=8, progress=False)
+print(json.dumps({"path": path, "seconds": time.perf_counter() - t0,
+                  "hits": events.count("/jax/compilation_cache/cache_hits"),
+                  "misses": events.count("/jax/compilation_cache/cache_misses"),
+                  "error_norm": np.asarray(res.error_norm).ravel().tolist()}))
+"""
+
+
+def _env(**extra):
+    env = {k: v for k, v in os.environ.items() if k not in _CLEAN}
+    env["PYTHONPATH"] = ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.update(extra)
+    return env
+
+
+def _python(code, *args, **env):
+    out = subprocess.run(
+        [sys.executable, "-c", code, *args],
+        check=False,
+        capture_output=True,
+        text=True,
+        env=_env(**env),
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout.strip().splitlines()[-1]
+
+
+def test_import_does_not_turn_the_cache_on():
+    line = _python("import jax, obsjax; print(jax.config.jax_compilation_cache_dir)")
+    assert line == "None"
+
+
+def test_a_second_process_reads_what_the_first_wrote(tmp_path):
+    d = str(tmp_path / "cache")
+    first = json.loads(_python(_STUDY, d))
+    assert first["path"] == d and first["hits"] == 0 and first["misses"] >= 1
+    entries = [f for f in os.listdir(d) if f.endswith("-cache")]
+    assert any("chunk_kernel" in f for f in entries), (
+        entries
+    )  # the study's kernel itself was written
+    second = json.loads(_python(_STUDY, d))
+    assert second["hits"] >= 1 and second["misses"] < first["misses"], (first, second)
+    assert (
+        second["error_norm"] == first["error_norm"]
+    )  # the executable read back computes the same numbers
+
+
+def test_opt_out(tmp_path, monkeypatch):
+    d = tmp_path / "never"
+    monkeypatch.setenv(_cache.OPT_OUT, "1")
+    before = jax.config.jax_compilation_cache_dir
+    assert obsjax.enable_compilation_cache(d) is None
+    assert not d.exists() and jax.config.jax_compilation_cache_dir == before
+    line = _python(
+        "import jax; from obsjax import cli; cli.main(['reproduce', '--list']); "
+        "print(jax.config.jax_compilation_cache_dir)",
+        **{_cache.OPT_OUT: "1", _cache.DIR_ENV: str(d)},
+    )
+    assert line == "None" and not d.exists()
+
+
+def test_the_command_line_turns_it_on(tmp_path):
+    d = str(tmp_path / "cli")
+    line = _python(
+        "import jax; from obsjax import cli; cli.main(['reproduce', '--list']); "
+        "print(jax.config.jax_compilation_cache_dir)",
+        **{_cache.DIR_ENV: d},
+    )
+    assert line == d and os.path.isdir(d)
+
+
+def test_default_directory(tmp_path, monkeypatch):
+    monkeypatch.delenv(_cache.DIR_ENV, raising=False)
+    if sys.platform.startswith("linux"):
+        monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+        assert _cache.default_cache_dir() == str(tmp_path / "obsjax" / "jax-compilation-cache")
+    monkeypatch.setenv(_cache.DIR_ENV, str(tmp_path / "mine"))
+    assert _cache.default_cache_dir() == str(tmp_path / "mine")
+
+
+def test_bad_threshold():
+    with pytest.raises(ValueError, match="min_compile_time_secs"):
+        obsjax.enable_compilation_cache(min_compile_time_secs=-1.0)
+
+
+def test_the_test_run_and_its_kernels_use_it():
+    if _cache._opted_out():
+        pytest.skip("the test run opted out of the compilation cache")
+    d = jax.config.jax_compilation_cache_dir
+    assert d and os.path.isdir(d) and os.environ["JAX_COMPILATION_CACHE_DIR"] == d
+    # a child process (a notebook kernel started by nbmake) inherits the directory
+    child = subprocess.run(
+        [sys.executable, "-c", "import jax; print(jax.config.jax_compilation_cache_dir)"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert child.stdout.strip() == d

@@ -1,0 +1,354 @@
+"""Study integrity: a checkpoint is never mixed with another study; damaged files are rebuilt.
+
+The audit's three silent reuses (another x0 scale in a sampler's closure, another LTV plant, another
+noise grid) must be refused; truncated, altered or renamed chunks and a damaged ``meta.json`` must
+be named (file path) and recomputed, never surface as a raw
+``BadZipFile``/``EOFError``/``JSONDecodeError``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import obsjax
+from obsjax.montecarlo import CheckpointWarning
+
+MODEL = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+OBS = obsjax.Luenberger.from_poles(MODEL, [-3.0, -3.5])
+TS = np.linspace(0.0, 1.0, 6)
+KEY = jr.PRNGKey(3)
+N, CHUNK = 8, 4
+
+
+def ltv_plant(amp):
+    """The model's A plus a time-varying perturbation of amplitude `amp` (a closure value)."""
+    A0 = jnp.asarray(MODEL.A)
+
+    def A(t):
+        return A0 + amp * jnp.sin(3.0 * t) * jnp.eye(2)
+
+    return obsjax.LTV(A, lambda t: jnp.asarray(MODEL.C), B=lambda t: jnp.asarray(MODEL.B))
+
+
+def scaled_normal(scale):
+    return lambda k: scale * jr.normal(k, (2,))
+
+
+def xhat0_zero(k):
+    return jnp.zeros(2)
+
+
+def study(plant, noise, x0_sampler, ckpt, **kw):
+    kw = dict(x0_sampler=x0_sampler, xhat0_sampler=xhat0_zero, ts=TS, noise=noise, **kw)
+    return obsjax.monte_carlo(
+        plant, OBS, KEY, N, chunk_size=CHUNK, checkpoint=ckpt, progress=False, **kw
+    )
+
+
+# One study, computed once: its plant, noise and sampler objects are reused so the kernel compiles
+# once.
+PLANT_A = ltv_plant(0.3)
+NOISE_A = obsjax.noise.BandLimitedNoise(0.05, dt=0.05)
+X0_A = scaled_normal(1.0)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    ckpt = tmp_path_factory.mktemp("ref") / "ck"
+    res = study(PLANT_A, NOISE_A, X0_A, ckpt)
+    assert res.complete and res.n_failed == 0 and res.n_computed == N
+    return res, ckpt
+
+
+def _copy(reference, tmp_path):
+    dst = tmp_path / "ck"
+    shutil.copytree(reference[1], dst)
+    return dst
+
+
+def test_an_equal_study_built_anew_resumes(reference, tmp_path):
+    """Fingerprints are by content, not identity: freshly built equal objects load every chunk."""
+    ck = _copy(reference, tmp_path)
+    res = study(
+        ltv_plant(0.3), obsjax.noise.BandLimitedNoise(0.05, dt=0.05), scaled_normal(1.0), ck
+    )
+    assert res.n_computed == 0
+    np.testing.assert_array_equal(res.error_norm, reference[0].error_norm)
+
+
+@pytest.mark.parametrize(
+    "what",
+    [
+        "x0 scale in a closure",
+        "LTV plant",
+        "noise grid",
+        "noise sigma",
+        "simulate_kwargs",
+        "study_id",
+    ],
+)
+def test_a_changed_study_never_reuses_old_chunks(reference, tmp_path, what):
+    ck = _copy(reference, tmp_path)
+    plant, noise, x0, kw = PLANT_A, NOISE_A, X0_A, {}
+    if what == "x0 scale in a closure":
+        x0 = scaled_normal(1.5)
+    elif what == "LTV plant":
+        plant = ltv_plant(0.31)
+    elif what == "noise grid":
+        noise = obsjax.noise.BandLimitedNoise(0.05, dt=0.04)
+    elif what == "noise sigma":
+        noise = obsjax.noise.BandLimitedNoise(0.06, dt=0.05)
+    elif what == "simulate_kwargs":
+        kw = dict(simulate_kwargs={"rtol": 1e-7})
+    else:
+        kw = dict(study_id="second")
+    with pytest.raises(ValueError, match="holds a different study"):
+        study(plant, noise, x0, ck, **kw)
+
+
+SCALE = 1.0
+
+
+def x0_global_scale(k):
+    return SCALE * jr.normal(k, (2,))
+
+
+def test_globals_read_by_a_sampler_enter_the_fingerprint(tmp_path):
+    global SCALE
+    ck = tmp_path / "ck"
+    study(
+        PLANT_A, NOISE_A, x0_global_scale, ck, max_chunks=0
+    )  # starts the directory, computes nothing
+    try:
+        SCALE = 2.0
+        with pytest.raises(ValueError, match="holds a different study"):
+            study(PLANT_A, NOISE_A, x0_global_scale, ck, max_chunks=0)
+    finally:
+        SCALE = 1.0
+    study(PLANT_A, NOISE_A, x0_global_scale, ck, max_chunks=0)  # the same study again: accepted
+
+
+class _Drift:
+    """A plain (non-dataclass) callable object: hashed by class code and instance attributes."""
+
+    def __init__(self, a):
+        self.a = a
+
+    def __call__(self, t):
+        return jnp.asarray(MODEL.A) + self.a * jnp.eye(2)
+
+
+def test_methods_and_attributes_of_user_objects_enter_the_fingerprint(tmp_path):
+    ck = tmp_path / "ck"
+    C = lambda t: jnp.asarray(MODEL.C)  # noqa: E731
+    plant = obsjax.LTV(_Drift(0.1), C)
+    kw = dict(max_chunks=0)
+    study(plant, None, X0_A, ck, **kw)
+    study(obsjax.LTV(_Drift(0.1), C), None, X0_A, ck, **kw)
+    with pytest.raises(ValueError, match="holds a different study"):
+        study(obsjax.LTV(_Drift(0.2), C), None, X0_A, ck, **kw)
+
+
+def test_what_cannot_be_fingerprinted_is_refused_unless_the_study_is_named(tmp_path):
+    rng = np.random.default_rng(0)
+    offset = rng.normal(size=2)
+
+    def x0_from_generator(k):
+        return jr.normal(k, (2,)) + jnp.asarray(offset) + 0.0 * rng.random()
+
+    with pytest.raises(ValueError, match=r"x0_sampler\.<closure rng>.*Generator.*study_id"):
+        study(PLANT_A, NOISE_A, x0_from_generator, tmp_path / "ck", max_chunks=0)
+    res = study(
+        PLANT_A, NOISE_A, x0_from_generator, tmp_path / "ck", max_chunks=0, study_id="gen-0"
+    )
+    assert res.n_done == 0
+    with open(tmp_path / "ck" / "meta.json") as fh:
+        assert json.load(fh)["study_id"] == "gen-0"
+    with pytest.raises(ValueError, match="`study_id`"):
+        study(PLANT_A, NOISE_A, X0_A, tmp_path / "other", study_id="")
+
+
+# ---- damaged files: named, recomputed
+# ---------------------------------------------------------------------
+
+
+def _resume_with_warning(reference, ck, match):
+    with pytest.warns(CheckpointWarning, match=match):
+        res = study(PLANT_A, NOISE_A, X0_A, ck)
+    np.testing.assert_array_equal(res.error_norm, reference[0].error_norm)
+    np.testing.assert_array_equal(res.status, reference[0].status)
+    return res
+
+
+def test_truncated_chunk_is_named_and_recomputed(reference, tmp_path):
+    ck = _copy(reference, tmp_path)
+    path = os.path.join(ck, "chunk_000001.npz")
+    with open(path, "r+b") as fh:
+        fh.truncate(os.path.getsize(path) // 2)
+    res = _resume_with_warning(reference, ck, r"chunk_000001\.npz.*damaged.*unreadable")
+    assert res.n_computed == N - CHUNK
+    # the recomputed chunk was written back whole: the next call loads everything silently
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CheckpointWarning)
+        assert study(PLANT_A, NOISE_A, X0_A, ck).n_computed == 0
+
+
+def test_empty_and_garbage_chunks_are_named_and_recomputed(reference, tmp_path):
+    ck = _copy(reference, tmp_path)
+    open(os.path.join(ck, "chunk_000000.npz"), "wb").close()
+    with open(os.path.join(ck, "chunk_000001.npz"), "wb") as fh:
+        fh.write(b"PK\x03\x04 not a zip archive")
+    with pytest.warns(CheckpointWarning) as record:
+        res = study(PLANT_A, NOISE_A, X0_A, ck)
+    messages = " ".join(str(w.message) for w in record)
+    assert "chunk_000000.npz" in messages and "chunk_000001.npz" in messages
+    assert "BadZipFile" in messages  # the reason is named, not raised
+    assert res.n_computed == N
+    np.testing.assert_array_equal(res.error_norm, reference[0].error_norm)
+
+
+def test_altered_chunk_fails_its_checksum(reference, tmp_path):
+    ck = _copy(reference, tmp_path)
+    path = os.path.join(ck, "chunk_000000.npz")
+    with np.load(path) as d:
+        content = {k: d[k] for k in d.files}
+    content["error_norm"] = content["error_norm"] * 0.5  # a plausible but wrong content
+    with open(path, "wb") as fh:
+        np.savez(fh, **content)
+    _resume_with_warning(reference, ck, r"chunk_000000\.npz.*checksum mismatch")
+
+
+def test_renamed_chunk_is_not_loaded_into_another_slot(reference, tmp_path):
+    ck = _copy(reference, tmp_path)
+    shutil.copy(os.path.join(ck, "chunk_000000.npz"), os.path.join(ck, "chunk_000001.npz"))
+    _resume_with_warning(reference, ck, r"chunk_000001\.npz.*holds chunk 0")
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty", "edited", "not an object"])
+def test_damaged_meta_json_is_named_and_rewritten(reference, tmp_path, damage):
+    ck = _copy(reference, tmp_path)
+    meta_path = os.path.join(ck, "meta.json")
+    text = open(meta_path).read()
+    if damage == "truncated":
+        text = text[: len(text) // 2]
+    elif damage == "empty":
+        text = ""
+    elif damage == "edited":
+        meta = json.loads(text)
+        meta["n"] = 9
+        text = json.dumps(meta)
+    else:
+        text = "[1, 2]"
+    with open(meta_path, "w") as fh:
+        fh.write(text)
+    res = _resume_with_warning(reference, ck, r"meta\.json.*damaged")
+    assert res.n_computed == 0  # every chunk verified by its own fingerprint and checksum
+    with open(meta_path) as fh:
+        assert json.load(fh)["n"] == N  # rewritten (atomically)
+
+
+def test_damaged_meta_json_never_adopts_another_studys_chunks(reference, tmp_path):
+    ck = _copy(reference, tmp_path)
+    with open(os.path.join(ck, "meta.json"), "w") as fh:
+        fh.write("{")
+    with pytest.raises(ValueError, match=r"chunk_000000\.npz.*different study"):
+        study(PLANT_A, NOISE_A, scaled_normal(2.0), ck)
+
+
+def test_checkpoint_of_an_earlier_format_is_refused(tmp_path):
+    ck = tmp_path / "ck"
+    os.makedirs(ck)
+    with open(ck / "meta.json", "w") as fh:
+        json.dump(
+            {"fingerprint": "0" * 64, "n": N, "chunk_size": CHUNK, "n_chunks": 2, "version": 1}, fh
+        )
+    with pytest.raises(ValueError, match="earlier obsjax"):
+        study(PLANT_A, NOISE_A, X0_A, ck, max_chunks=0)
+
+
+def test_files_are_written_atomically(reference):
+    """No temporary file is left behind, and every file carries its checksum."""
+    ck = reference[1]
+    assert sorted(os.listdir(ck)) == ["chunk_000000.npz", "chunk_000001.npz", "meta.json"]
+    with open(os.path.join(ck, "meta.json")) as fh:
+        meta = json.load(fh)
+    assert meta["format"] == 2 and len(meta["checksum"]) == 64 and meta["n_chunks"] == 2
+    with np.load(os.path.join(ck, "chunk_000000.npz")) as d:
+        assert str(d["fingerprint"]) == meta["fingerprint"] and int(d["chunk"]) == 0
+        assert len(str(d["checksum"])) == 64
+
+
+# ---- the fingerprint itself
+# --------------------------------------------------------------------------------
+
+
+def _fp_parts():
+    import functools
+
+    import equinox as eqx
+    import jax
+
+    return {
+        "jit": jax.jit(x0_global_scale),
+        "filter_jit": eqx.filter_jit(xhat0_zero),
+        "vmap": jax.vmap(xhat0_zero),
+        "partial": functools.partial(jr.normal, shape=(2,)),
+        "plant": PLANT_A,
+        "noise": NOISE_A,
+        "x0": X0_A,
+        "set": frozenset({"a", "b", 3}),
+    }
+
+
+def test_fingerprint_covers_wrapped_functions_by_content():
+    import jax
+
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    fp, opaque = fingerprint(_fp_parts())
+    assert opaque == []
+    assert fingerprint(_fp_parts())[0] == fp
+    assert (
+        fingerprint({"f": jax.jit(scaled_normal(1.0))})[0]
+        == fingerprint({"f": jax.jit(scaled_normal(1.0))})[0]
+    )
+    assert (
+        fingerprint({"f": jax.jit(scaled_normal(1.0))})[0]
+        != fingerprint({"f": jax.jit(scaled_normal(2.0))})[0]
+    )
+
+
+def test_fingerprint_is_the_same_in_another_process():
+    """No ids, addresses or hash-randomised orderings enter the fingerprint (resuming happens in a
+    new process, with another PYTHONHASHSEED)."""
+    import subprocess
+    import sys
+
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    here = os.path.dirname(os.path.abspath(__file__))
+    module = (
+        _fp_parts.__module__
+    )  # import this file under the name pytest gave it (functions carry it)
+    code = (
+        f"import sys; sys.path[:0] = [{root!r}, {here!r}]\n"
+        f"from {module} import _fp_parts\n"
+        "from obsjax.montecarlo._fingerprint import fingerprint\n"
+        "print('FP', fingerprint(_fp_parts())[0])\n"
+    )
+    env = dict(os.environ, PYTHONHASHSEED="12345", JAX_PLATFORMS="cpu")
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300, cwd=root
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    line = next(ln for ln in out.stdout.splitlines() if ln.startswith("FP "))
+    assert line.split()[1] == fingerprint(_fp_parts())[0]

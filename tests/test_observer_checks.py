@@ -1,0 +1,315 @@
+"""Observers' own checks: every gain finite at construction, value checks that survive ``jit``.
+
+One test per bad-input class: NaN/inf gains and matrices (a ``ValueError`` naming the gain, what was
+expected and what was found, at construction and from ``check()`` after an ``eqx.tree_at`` update,
+as in :func:`obsjax.tune`), and traced values that fail (``eqx.error_if``: the message names the
+gain).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import obsjax
+from obsjax.design import lovass_nagy_T
+
+LTI2 = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+CY = obsjax.chen_yen_example()
+NAN, INF = float("nan"), float("inf")
+# a check that fires in a compiled kernel: JAX raises it as a RuntimeError, or as a ValueError when
+# the kernel came from its cache; the message (matched below) names the gain either way
+RuntimeCheck = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError, ValueError)
+
+
+def _under_jit(fn, *args):
+    """Run fn under jit and block (a failing eqx.error_if raises here)."""
+    return jax.block_until_ready(jax.jit(fn)(*args))
+
+
+# ---- LeastSquaresReset
+# -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["gamma", "p0", "T"])
+@pytest.mark.parametrize("bad", [INF, NAN])
+def test_least_squares_nonfinite_gain(name, bad):
+    kw = dict(gamma=20.0, p0=0.1, T=0.25)
+    kw[name] = bad
+    with pytest.raises(ValueError, match=rf"`{name}` must be > 0 and finite.*got \[?{bad}"):
+        obsjax.LeastSquaresReset(CY, **kw)
+
+
+def test_least_squares_tree_at_update_is_rechecked():
+    obs = obsjax.LeastSquaresReset(CY, 20.0, 0.1, 0.25)
+    with pytest.raises(ValueError, match="`gamma` must be > 0 and finite"):
+        eqx.tree_at(lambda o: o.gamma, obs, jnp.asarray(INF)).check()
+    with pytest.raises(RuntimeCheck, match=r"`T` must be > 0 and finite \(the reset period\)"):
+        _under_jit(lambda T: eqx.tree_at(lambda o: o.T, obs, T).check().T, jnp.asarray(NAN))
+
+
+# ---- Kalman-Bucy and the extended Kalman filter
+# ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["Qw", "Rv", "P0"])
+def test_kalman_bucy_nonfinite_matrix(name):
+    kw = dict(Qw=0.1 * np.eye(2), Rv=0.01 * np.eye(1), P0=np.eye(2))
+    kw[name] = kw[name].copy()
+    kw[name][0, 0] = NAN
+    with pytest.raises(
+        ValueError, match=rf"`{name}` must be finite \(no NaN or inf\), got \[\[nan"
+    ):
+        obsjax.KalmanBucy(CY, **kw)
+
+
+@pytest.mark.parametrize(
+    "name,value,kind",
+    [
+        ("Qw", -np.eye(2), "positive semidefinite"),
+        ("Rv", -np.eye(1), "positive definite"),
+        ("P0", np.array([[1.0, 2.0], [0.0, 1.0]]), "positive definite"),
+        ("Rv", np.full((1, 1), INF), "positive definite"),
+    ],
+)
+def test_kalman_bucy_traced_checks_survive_jit(name, value, kind):
+    kb = obsjax.KalmanBucy(CY, Qw=0.1 * jnp.eye(2), Rv=0.01 * jnp.eye(1), P0=jnp.eye(2))
+    where = lambda o: getattr(o, name)  # noqa: E731
+    with pytest.raises(ValueError, match=f"`{name}`"):  # eagerly, after a tree_at update
+        eqx.tree_at(where, kb, jnp.asarray(value)).check()
+    with pytest.raises(RuntimeCheck, match=f"`{name}` .*must be a finite symmetric {kind} matrix"):
+        _under_jit(lambda v: where(eqx.tree_at(where, kb, v).prepare()), jnp.asarray(value))
+    _under_jit(
+        lambda v: where(eqx.tree_at(where, kb, v).prepare()), where(kb)
+    )  # a valid value passes
+
+
+EKF_MODEL = obsjax.Nonlinear(
+    lambda t, x, u: jnp.array([x[1], -x[0] - 0.3 * x[1]]), lambda t, x, u: x[:1], 2, 1
+)
+
+
+@pytest.mark.parametrize("name", ["Q", "R", "P0"])
+@pytest.mark.parametrize("bad", [INF, NAN])
+def test_ekf_nonfinite_covariance(name, bad):
+    kw = dict(Q=0.1, R=0.01, P0=1.0)
+    kw[name] = bad
+    with pytest.raises(ValueError, match=rf"`{name}` must be finite"):
+        obsjax.ExtendedKalman(EKF_MODEL, **kw)
+
+
+def test_ekf_traced_checks_survive_jit_inside_simulate():
+    """R not positive definite, Q or P0 indefinite: under jit the solve stops, naming the gain."""
+    ekf = obsjax.ExtendedKalman(EKF_MODEL, Q=0.1, R=0.01, P0=1.0)
+    ts = jnp.linspace(0.0, 0.2, 3)
+
+    def run(R, Q, P0):
+        obs = eqx.tree_at(lambda o: (o.R, o.Q, o.P0), ekf, (R, Q, P0))
+        return obsjax.simulate(EKF_MODEL, obs, jnp.ones(2), jnp.zeros(2), ts).xhat
+
+    good = (ekf.R, ekf.Q, ekf.P0)
+    assert np.all(np.isfinite(_under_jit(run, *good)))
+    with pytest.raises(
+        RuntimeCheck, match=r"`R` \(ExtendedKalman's measurement-noise intensity\) must be"
+    ):
+        _under_jit(run, -ekf.R, ekf.Q, ekf.P0)
+    with pytest.raises(RuntimeCheck, match=r"`Q` .*positive semidefinite"):
+        _under_jit(run, ekf.R, -ekf.Q, ekf.P0)
+    with pytest.raises(RuntimeCheck, match=r"`P0` .*symmetric positive semidefinite"):
+        _under_jit(run, ekf.R, ekf.Q, jnp.array([[1.0, 1.0], [0.0, 1.0]]))
+    with pytest.raises(ValueError, match="`R` must be positive definite"):  # eagerly, from check()
+        eqx.tree_at(lambda o: o.R, ekf, -ekf.R).check()
+
+
+# ---- trajectory linearization observer
+# ---------------------------------------------------------------------
+
+TLO_MODEL = obsjax.Nonlinear(lambda t, x, u: jnp.array([x[1], -x[0]]), lambda t, x, u: x[:1], 2, 1)
+
+
+@pytest.mark.parametrize(
+    "kw,match",
+    [
+        (dict(eps=INF), r"`eps` must be > 0 and finite \(the high-gain factor"),
+        (dict(eps=NAN), r"`eps` must be > 0 and finite"),
+        (dict(eps=-0.1), r"`eps` must be > 0 \(the high-gain factor, ω_H = ω/ε\), got -0.1"),
+        (dict(rho_bar=[-1.0, -INF]), r"`rho_bar` must be finite"),
+        (dict(omega=INF), r"`omega` must be finite"),
+    ],
+)
+def test_tlo_bad_gains(kw, match):
+    args = dict(rho_bar=[-1.0, -2.0], omega=2.0, eps=0.2)
+    args.update(kw)
+    with pytest.raises(ValueError, match=match):
+        obsjax.TrajectoryLinearization(TLO_MODEL, **args)
+
+
+def test_tlo_traced_eps_and_rho_bar_checks_survive_jit():
+    tlo = obsjax.TrajectoryLinearization(TLO_MODEL, [-1.0, -2.0], 2.0, 0.2)
+    for bad in (0.0, -0.2, NAN, INF):
+        with pytest.raises(
+            RuntimeCheck, match=r"`eps` must be > 0 and finite \(the high-gain factor"
+        ):
+            _under_jit(
+                lambda e: eqx.tree_at(lambda o: o.eps, tlo, e).prepare().eps, jnp.asarray(bad)
+            )
+    with pytest.raises(RuntimeCheck, match="`rho_bar` .*must be < 0 and finite"):
+        _under_jit(
+            lambda r: eqx.tree_at(lambda o: o.rho_bar, tlo, r).prepare().rho_bar,
+            jnp.array([-1.0, 0.5]),
+        )
+    assert (
+        float(
+            _under_jit(
+                lambda e: eqx.tree_at(lambda o: o.eps, tlo, e).prepare().eps, jnp.asarray(0.3)
+            )
+        )
+        == 0.3
+    )
+    with pytest.raises(ValueError, match="`eps` must be > 0 and finite"):
+        eqx.tree_at(lambda o: o.eps, tlo, jnp.asarray(INF)).check()
+
+
+# ---- generalized-inverse observers
+# -------------------------------------------------------------------------
+
+F_GI = jnp.array([[-3.0, 1.0], [0.0, -4.0]])
+T_GI = lovass_nagy_T(LTI2.A, LTI2.C, F_GI, lambda t: jnp.array([0.3, 1.0]))
+
+
+def test_generalized_inverse_nonfinite_F_and_C1():
+    with pytest.raises(ValueError, match=r"`F` must be finite \(no NaN or inf\), got \[\[nan"):
+        obsjax.GeneralizedInverse(LTI2, F_GI.at[0, 0].set(NAN), T_GI)
+    with pytest.raises(ValueError, match=r"`C1` must be finite"):
+        obsjax.GeneralizedInverse(LTI2, F_GI, T_GI, C1=[[INF], [0.0]])
+
+
+def test_generalized_inverse_solvability_is_checked_under_jit():
+    """The condition (Ṫ + TA − FT)(I − C^{1}C) = 0 holds for F_GI and its T; another F breaks it.
+    Eagerly a ValueError (construction, check()), under jit an eqx.error_if (construction and
+    prepare())."""
+    obs = obsjax.GeneralizedInverse(LTI2, F_GI, T_GI, horizon=(0.0, 1.0), num_checks=5)
+    F_bad = F_GI.at[0, 1].set(3.0)
+    with pytest.raises(ValueError, match="solvability condition fails"):
+        obsjax.GeneralizedInverse(LTI2, F_bad, T_GI)
+    with pytest.raises(ValueError, match="solvability condition fails"):
+        eqx.tree_at(lambda o: o.F, obs, F_bad).check()
+    with pytest.raises(
+        RuntimeCheck, match="GeneralizedInverse: the Lovass-Nagy solvability condition"
+    ):
+        _under_jit(lambda F: eqx.tree_at(lambda o: o.F, obs, F).prepare().F, F_bad)
+    with pytest.raises(
+        RuntimeCheck, match="GeneralizedInverse: the Lovass-Nagy solvability condition"
+    ):
+        _under_jit(lambda F: obsjax.GeneralizedInverse(LTI2, F, T_GI).F, F_bad)
+    np.testing.assert_array_equal(
+        _under_jit(lambda F: eqx.tree_at(lambda o: o.F, obs, F).prepare().F, F_GI), F_GI
+    )
+
+
+def test_generalized_inverse_singular_T_is_checked_under_jit():
+    obs = obsjax.GeneralizedInverse(LTI2, F_GI, T_GI)
+
+    def with_scaled_T(
+        c,
+    ):  # T scaled by a traced factor: singular for c = 0, the condition still holds
+        return eqx.tree_at(lambda o: o.T, obs, lambda t: c * T_GI(t)).prepare().F
+
+    _under_jit(with_scaled_T, jnp.asarray(2.0))
+    with pytest.raises(RuntimeCheck, match=r"`T` must be invertible"):
+        _under_jit(with_scaled_T, jnp.asarray(0.0))
+
+
+# ---- adaptive observers
+# ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "kw,match",
+    [
+        (dict(filter_pole=INF), r"`filter_pole` must be > 0 and finite"),
+        (dict(scheme="integral", q=NAN), r"`q` must be > 0 and finite"),
+        (dict(a0=[NAN, 0.0]), r"`a0` must be finite"),
+        (dict(G=INF), r"`G` must be finite"),
+        (dict(poles=[-1.0, -INF]), r"`poles` must be finite"),
+    ],
+)
+def test_kreisselmeier_bad_gains(kw, match):
+    args = dict(n=2, poles=[-1.0, -2.0], G=1.0)
+    args.update(kw)
+    with pytest.raises(ValueError, match=match):
+        obsjax.Kreisselmeier(**args)
+
+
+def test_kreisselmeier_traced_checks():
+    obs = obsjax.Kreisselmeier(2, [-1.0, -2.0], 1.0, scheme="integral", q=0.5)
+    with pytest.raises(RuntimeCheck, match="`poles` must be finite and satisfy Re < 0"):
+        _under_jit(
+            lambda p: eqx.tree_at(lambda o: o.poles, obs, p).prepare().poles, jnp.array([-1.0, 0.5])
+        )
+    with pytest.raises(RuntimeCheck, match="`G` must be finite"):
+        _under_jit(lambda g: eqx.tree_at(lambda o: o.G, obs, g).prepare().G, jnp.asarray(INF))
+    with pytest.raises(RuntimeCheck, match="`q` must be > 0 and finite"):
+        _under_jit(lambda q: eqx.tree_at(lambda o: o.q, obs, q).prepare().q, jnp.asarray(NAN))
+    with pytest.raises(ValueError, match="`poles` must lie in the open left half-plane"):
+        eqx.tree_at(lambda o: o.poles, obs, jnp.array([-1.0, 0.5])).check()
+
+
+def test_luders_narendra_bad_gains():
+    with pytest.raises(ValueError, match=r"`lambdas` must be > 0 and finite"):
+        obsjax.LudersNarendra(2, [1.0, INF], 1.0, 1.0)
+    with pytest.raises(ValueError, match=r"`b0` must be finite"):
+        obsjax.LudersNarendra(2, [1.0, 2.0], 1.0, 1.0, b0=[0.0, NAN])
+    obs = obsjax.LudersNarendra(2, [1.0, 2.0], 1.0, 1.0)
+    with pytest.raises(RuntimeCheck, match="`c` must be > 0 and finite"):
+        _under_jit(lambda c: eqx.tree_at(lambda o: o.c, obs, c).prepare().c, jnp.array([1.0, INF]))
+
+
+def test_kudva_narendra_bad_matrices():
+    # a NaN in K used to reach numpy's eigvals (LinAlgError naming nothing)
+    with pytest.raises(ValueError, match=r"`K` must be finite"):
+        obsjax.KudvaNarendra(2, 1, K=[[NAN, 0.0], [0.0, -1.0]], Gamma1=1.0, Gamma2=1.0, Q=np.eye(2))
+    with pytest.raises(ValueError, match=r"`A0` must be finite"):
+        obsjax.KudvaNarendra(
+            2, 1, K=-np.eye(2), Gamma1=1.0, Gamma2=1.0, Q=np.eye(2), A0=np.full((2, 2), INF)
+        )
+    obs = obsjax.KudvaNarendra(2, 1, K=-np.eye(2), Gamma1=1.0, Gamma2=1.0, Q=np.eye(2))
+    with pytest.raises(RuntimeCheck, match="`Gamma1` must be finite"):
+        _under_jit(
+            lambda g: eqx.tree_at(lambda o: o.Gamma1, obs, g).prepare().Gamma1, jnp.asarray(INF)
+        )
+
+
+# ---- finite-window and min-max observers
+# -------------------------------------------------------------------
+
+MODEL29 = obsjax.LTI(A=[[0.0, 1.0], [0.0, 0.0]], B=[[0.0], [1.0]], C=[[2.0, 0.0]])
+
+
+@pytest.mark.parametrize(
+    "kw,match",
+    [
+        (dict(T=INF), r"`T` must be finite"),
+        (dict(T=1.0, alpha=[1.0, NAN]), r"`alpha` must be finite"),
+        (dict(T=1.0, beta=[INF, 1.0]), r"`beta` must be finite"),
+    ],
+)
+def test_finite_window_nonfinite(kw, match):
+    with pytest.raises(ValueError, match=match):
+        obsjax.FiniteWindow(MODEL29, **kw)
+
+
+def test_finite_window_traced_T_must_be_finite():
+    obs = obsjax.FiniteWindow(MODEL29, 1.0)
+    with pytest.raises(RuntimeCheck, match=r"`T` \(the window length\) must be > 0 and finite"):
+        _under_jit(lambda T: eqx.tree_at(lambda o: o.T, obs, T).norm(), jnp.asarray(INF))
+
+
+def test_minmax_luenberger_nonfinite_eps():
+    A = np.diag([0.5, 0.2])
+    for bad in (NAN, INF, -1.0):
+        with pytest.raises(ValueError, match=r"`eps` must be >= 0 and finite"):
+            obsjax.MinMaxLuenberger(A, None, np.eye(2), F=0.1 * np.eye(2), window=2, eps=bad)
