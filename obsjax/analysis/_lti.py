@@ -134,6 +134,37 @@ def lexicographic_step(basis: list, cands: np.ndarray, alive: list, thresholds) 
     return res
 
 
+def relative_residuals(rows, scales) -> jax.Array:
+    """Traced twin of :func:`lexicographic_step`, for checks that run under ``jit``.
+
+    For the rows of ``rows`` (r, n), r ≤ n, taken in order: the norm of each row's component outside the
+    span of the rows before it -- the residual that :func:`lexicographic_step` compares with its
+    threshold -- divided by ``scales`` (r,) (the scale its threshold is relative to).  The residuals
+    are |R_kk| of a Householder QR factorisation of rowsᵀ; a zero scale gives 0.  Not differentiated
+    (the decisions it feeds are not).
+
+    **Example:** ``relative_residuals(jnp.array([[1., 0.], [1., 1e-6]]), jnp.ones(2))`` → [1, 1e-6].
+    """
+    rows = jax.lax.stop_gradient(jnp.asarray(rows))
+    scales = jax.lax.stop_gradient(jnp.asarray(scales, dtype=rows.dtype))
+    R = jnp.linalg.qr(rows.T, mode="r")
+    res = jnp.abs(jnp.diagonal(R))
+    ok = scales > 0
+    return jnp.where(ok, res / jnp.where(ok, scales, 1.0), 0.0)
+
+
+def gram_relative_residuals(M) -> jax.Array:
+    """:func:`relative_residuals` of the vectors whose Gram matrix is M (symmetric positive
+    semi-definite, n × n), each relative to its own norm √M_kk: with M = SᵀS, the residual of column k
+    of S outside the columns before it.  Zero where M_kk = 0.  Invariant to a diagonal scaling of M (the
+    units of the vectors)."""
+    M = jax.lax.stop_gradient(jnp.asarray(M))
+    M = 0.5 * (M + M.T)
+    w, V = jnp.linalg.eigh(M)
+    S = (V * jnp.sqrt(jnp.clip(w, 0.0, None))[None, :]) @ V.T  # symmetric square root
+    return relative_residuals(S.T, jnp.sqrt(jnp.clip(jnp.diagonal(M), 0.0, None)))
+
+
 class ObservabilityStaircase(NamedTuple):
     """The orthogonal staircase form of a pair (A, C), with its rank decisions.
 
