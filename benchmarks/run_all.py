@@ -19,6 +19,7 @@ BENCHMARKS = {
     "c": "c_compile_time.py",
     "d": "d_sharding.py",
     "e": "e_lti_python_control.py",
+    "f": "f_placement.py",
     "m": "multihost_local.py",
     "g": "g_numba_dopri5.py",
     "h": "h_first_call.py",

@@ -6,6 +6,13 @@
 - Section 2.5: with u = K x̂ the composite system (2.22) has the eigenvalues of A + BK and of F
   (Theorem 4); the eigenvalues of the simulated closed loop's matrix and the trajectories with the
   true-state and observer-based feedback.
+- Section 3.2 (Theorem 1, Figs. 3.1-3.4): a fourth-order plant of two second-order subsystems coupled
+  only through the measured x1 and x3.  Subsystem 1 is (3.2); Fig. 3.1's second block is not legible in
+  the text, so subsystem 2 is chosen (ẋ3 = −x3 + x4, ẋ4 = −x1 + u) such that the thesis's own second
+  observer, ẇ = −3w + x3 − (u − x1)/6 with x̂4 = 3x3 − 6w, is exact for it.  The observer of (3.5)-(3.7)
+  (ż = −3z + x1 − x3, x̂2 = x1 − z) is integrated as printed with SciPy and compared with obsjax's
+  reduced-order observer with poles {−3, −3} (G = [[1, 0], [0, 3]]); the multi-output canonical form
+  (3.1c) gives the indices (2, 2).
 
 ``reproduce(outdir)`` writes the PNGs and returns their paths.
 """
@@ -21,6 +28,17 @@ B = np.array([[0.0], [1.0]])
 C = np.array([[1.0, 0.0]])
 #: state feedback of the closed-loop example: eig(A + BK) = {-1 ± 1j}
 K_POLES = (-1.0 + 1.0j, -1.0 - 1.0j)
+
+#: Section 3.2: subsystem 1 is (3.2); subsystem 2 is consistent with the thesis's observer for it.
+A4 = np.array([[-2.0, 1.0, 0.0, 0.0], [0.0, -2.0, 1.0, 0.0], [0.0, 0.0, -1.0, 1.0], [-1.0, 0.0, 0.0, 0.0]])
+B4 = np.array([[0.0], [0.0], [0.0], [1.0]])
+C4 = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+
+
+def thesis_observer_35_37(x1, x3, u, z, w):
+    """(ż, ẇ) of the thesis's observers as printed: (3.5) ż = −3z + x1 − x3 and
+    ẇ = −3w + x3 − (u − x1)/6; the estimates are (3.6) x̂2 = x1 − z, x̂4 = 3x3 − 6w and (3.7) their sum."""
+    return (-3.0 * z + x1 - x3, -3.0 * w + x3 - (u - x1) / 6.0)
 
 
 def example_28():
@@ -144,7 +162,58 @@ def reproduce(outdir: str) -> list[str]:
     fig.savefig(p, dpi=110)
     plt.close(fig)
     paths.append(p)
+    paths.append(_section_3_2(outdir, plt))
     return paths
+
+
+def _section_3_2(outdir, plt):
+    """Figure: the observer of (3.5)-(3.7) as printed (SciPy) against obsjax's reduced-order observer."""
+    import jax.numpy as jnp
+    from scipy.integrate import solve_ivp
+
+    import obsjax
+
+    plant = obsjax.LTI(A4, B4, C4)
+    cf = obsjax.design.observable_canonical_form(A4, C4)
+    red = obsjax.ReducedOrder.from_poles(plant, [-3.0, -3.0], Dc=[[0, 1, 0, 0], [0, 0, 0, 1.0]])
+    G = np.asarray(red.gain)
+    u = obsjax.signals.multisine([1.0], [0.7])
+    ts = np.linspace(0.0, 4.0, 201)
+    x0 = np.array([1.0, -1.0, 0.5, 2.0])
+    tr = obsjax.simulate(plant, red, x0, np.zeros(4), jnp.asarray(ts), u=u, rtol=1e-10, atol=1e-12)
+
+    def rhs(t, s):
+        x, z, w = s[:4], s[4], s[5]
+        ut = float(np.asarray(u(t))[0])
+        dz, dw = thesis_observer_35_37(x[0], x[2], ut, z, w)
+        return np.concatenate([A4 @ x + B4[:, 0] * ut, [dz, dw]])
+
+    # the thesis's observer started where obsjax's is (x̂(0) = 0: z = x1 − x̂2, w = (3x3 − x̂4)/6)
+    s0 = np.concatenate([x0, [x0[0], 3 * x0[2] / 6.0]])
+    sol = solve_ivp(rhs, (0.0, 4.0), s0, t_eval=ts, rtol=1e-10, atol=1e-12)
+    x1, x3, z, w = sol.y[0], sol.y[2], sol.y[4], sol.y[5]
+    s_hat_thesis = x1 + 3 * x3 - z - 6 * w  # (3.7)
+    s_hat = np.asarray(tr.xhat[:, 1] + tr.xhat[:, 3])
+    s_true = sol.y[1] + sol.y[3]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    ax[0].plot(ts, s_true, "k", label="x2 + x4")
+    ax[0].plot(ts, s_hat_thesis, "C0--", label="(3.7) as printed (SciPy)")
+    ax[0].plot(ts, s_hat, "C1:", lw=2.5, label=f"obsjax ReducedOrder, G = {G.round(6).tolist()}")
+    ax[0].set_xlabel("t")
+    ax[0].set_title(f"§3.2: indices ν = {cf.indices}, poles {{−3, −3}}")
+    ax[0].legend(fontsize=8)
+    err = np.abs(s_hat - s_true)
+    ax[1].semilogy(ts, np.maximum(err, 1e-16), label="|x̂2 + x̂4 − (x2 + x4)| obsjax")
+    ax[1].semilogy(ts, np.maximum(np.abs(s_hat - s_hat_thesis), 1e-16), label="|obsjax − (3.7)|")
+    ax[1].semilogy(ts, err[0] * np.exp(-3 * ts), "k:", label=r"$|\tilde x_2(0) + \tilde x_4(0)|\,e^{-3t}$ (A22 − G A12 = −3I)")
+    ax[1].set_xlabel("t")
+    ax[1].set_title("two single-output observers (Fig. 3.4)")
+    ax[1].legend(fontsize=8)
+    fig.tight_layout()
+    p = os.path.join(outdir, "hassan_3_2_canonical_observer.png")
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
 
 
 def paper_values():

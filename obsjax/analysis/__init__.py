@@ -1,6 +1,7 @@
 """Analysis of plants and observers.
 
-- LTI: `obsv` (observability matrix), `is_observable`.
+- LTI: `obsv` (observability matrix), `is_observable`, `observability_staircase` (the orthogonal
+  staircase form of the balanced pair: every rank decision of the package) and `pbh_margin`.
 - LTV (Chen & Yen, 1999): `transition_matrix` Φ(t, τ) (2), `observability_gramian` (4),
   `uniform_observability_constants` ((2), (3), (16), (17)), `regressor_gramian` (16),
   `is_persistently_exciting` (Definition 2, (7)), `chen_yen_bound` (the Theorem's contraction factor per
@@ -20,8 +21,11 @@ print(O, obsjax.analysis.is_observable([[-2.0, 1.0], [0.0, -1.0]], [[1.0, 0.0]])
 
 from types import ModuleType as _ModuleType
 
+from ._lti import ObservabilityStaircase as ObservabilityStaircase
 from ._lti import is_observable as is_observable
+from ._lti import observability_staircase as observability_staircase
 from ._lti import obsv as obsv
+from ._lti import pbh_margin as pbh_margin
 from ._ltv import PersistentExcitation as PersistentExcitation
 from ._ltv import UniformObservability as UniformObservability
 from ._ltv import chen_yen_bound as chen_yen_bound

@@ -1,12 +1,27 @@
-"""Observability of LTI pairs."""
+"""Observability of LTI pairs: the observability matrix, and every rank decision of the package.
+
+All rank decisions about a pair (A, C) -- observability, the observability indices of thesis §3.2, the
+Jordan structure that pole placement can give, the solvability of a functional observer -- are made by one
+mechanism, :func:`observability_staircase`: an orthogonal staircase (observability Hessenberg) form of
+the *balanced* pair, computed by a block Arnoldi sweep in the lexicographic order of thesis §3.2, steps
+(a)-(e).  Its decisions compare a new direction with the direction it came from (relative thresholds), on
+the pair scaled to unit norm, so they do not change when A → cA (a change of time unit) or C → dC (a
+change of output unit), nor under a diagonal change of state units (balancing).
+"""
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 
 from .._checks import as_float_array
+
+#: Default relative tolerance of the rank decisions (see :func:`observability_staircase`).
+DEFAULT_TOL = 1e-9
 
 
 def _pair(A, C):
@@ -25,6 +40,8 @@ def obsv(A, C) -> jax.Array:
     """Observability matrix O = [C; CA; …; CA^{n−1}] of shape (n·m, n) (thesis section 3.2).
 
     Differentiable in A and C.
+
+    **Example:** ``obsv([[0., 1.], [0., 0.]], [[1., 0.]])`` → [[1, 0], [0, 1]].
     """
     A, C = _pair(A, C)
     n = A.shape[0]
@@ -35,7 +52,7 @@ def obsv(A, C) -> jax.Array:
 
 
 def _obsv_np(A, C) -> np.ndarray:
-    """Observability matrix in NumPy (for checks on concrete values, also while tracing)."""
+    """Observability matrix in NumPy (for checks on concrete values)."""
     A = np.asarray(A, dtype=float)
     C = np.atleast_2d(np.asarray(C, dtype=float))
     blocks = [C]
@@ -44,16 +61,258 @@ def _obsv_np(A, C) -> np.ndarray:
     return np.concatenate(blocks, axis=0)
 
 
-def is_observable(A, C, tol: float | None = None) -> bool:
-    """True when rank obsv(A, C) = n (checked on concrete values with an SVD rank test).
-
-    The default tolerance is ``max(shape) · eps · σ_max`` on the observability matrix scaled column-wise.
-    """
+def _concrete_pair(A, C, who: str) -> tuple[np.ndarray, np.ndarray]:
     _pair(A, C)
-    O = _obsv_np(A, C)
-    n = O.shape[1]
-    s = np.linalg.svd(O, compute_uv=False)
-    if s[0] == 0:
-        return False
-    tol = max(O.shape) * np.finfo(float).eps * s[0] * 10 if tol is None else tol
-    return int(np.sum(s > tol)) == n
+    try:
+        A = np.asarray(A, dtype=float)
+        C = np.atleast_2d(np.asarray(C, dtype=float))
+    except Exception:  # noqa: BLE001  (a tracer)
+        raise ValueError(
+            f"{who} decides ranks on concrete values: `A` and `C` must not be traced (call it outside "
+            "`jit`, or on the model's concrete matrices)."
+        ) from None
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(C))):
+        raise ValueError(f"{who}: `A` and `C` must be finite, got a NaN or an infinity.")
+    return A, C
+
+
+def _unit(M: np.ndarray) -> np.ndarray:
+    s = np.linalg.norm(M, 2) if M.size else 0.0
+    return M / s if s > 0 else M
+
+
+def balance_pair(A, C) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The balanced pair (A_b, C_b) = (D⁻¹ Â D / ‖·‖, Ĉ D / ‖·‖) and the diagonal D (as a vector).
+
+    Â = A/‖A‖₂ and Ĉ = C/‖C‖₂; D (powers of two, exact) equalises the row norms of Â with the column
+    norms of [Â; Ĉ] (LAPACK's balancing of [[Â, 0], [Ĉ, 0]]); both results are scaled to unit 2-norm, so
+    the balanced pair of (cA, dC) is that of (A, C).
+    """
+    A = np.asarray(A, dtype=float)
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    n, m = A.shape[0], C.shape[0]
+    An, Cn = _unit(A), _unit(C)
+    M = np.zeros((n + m, n + m))
+    M[:n, :n], M[n:, :n] = An, Cn
+    _, (scale, _) = scipy.linalg.matrix_balance(M, permute=False, separate=True)
+    d = scale[:n]
+    Ab = _unit(An * (d[None, :] / d[:, None]))
+    Cb = _unit(Cn * d[None, :])
+    return Ab, Cb, d
+
+
+def lexicographic_step(basis: list, cands: np.ndarray, alive: list, thresholds) -> np.ndarray:
+    """One level of the lexicographic search of thesis §3.2, steps (a)-(e).
+
+    The candidate rows ``cands[j]`` of the outputs still alive are taken in the order j = 1 … m; each is
+    orthogonalised (twice, modified Gram-Schmidt) against the orthonormal rows in ``basis`` (those kept
+    at earlier levels and earlier on this level) and kept -- appended, normalised, to ``basis`` -- when the
+    residual exceeds ``thresholds[j]``; otherwise output j is dead for every later level (step (e)).
+
+    Returns the residuals (m, n) (zero rows for outputs not kept).  Updates ``basis`` and ``alive``.
+    This is the one place where the package decides a rank.
+    """
+    m, n = cands.shape
+    res = np.zeros((m, n))
+    for j in range(m):
+        if not alive[j]:
+            continue
+        if len(basis) == n:
+            alive[j] = False
+            continue
+        v = np.array(cands[j], dtype=float)
+        if basis:
+            Bm = np.asarray(basis)
+            for _ in range(2):
+                v = v - Bm.T @ (Bm @ v)
+        nv = float(np.linalg.norm(v))
+        if nv > thresholds[j] and nv > 0.0:
+            basis.append(v / nv)
+            res[j] = v
+        else:
+            alive[j] = False
+    return res
+
+
+def relative_residuals(rows, scales) -> jax.Array:
+    """Traced twin of :func:`lexicographic_step`, for checks that run under ``jit``.
+
+    For the rows of ``rows`` (r, n), r ≤ n, taken in order: the norm of each row's component outside the
+    span of the rows before it -- the residual that :func:`lexicographic_step` compares with its
+    threshold -- divided by ``scales`` (r,) (the scale its threshold is relative to).  The residuals
+    are |R_kk| of a Householder QR factorisation of rowsᵀ; a zero scale gives 0.  Not differentiated
+    (the decisions it feeds are not).
+
+    **Example:** ``relative_residuals(jnp.array([[1., 0.], [1., 1e-6]]), jnp.ones(2))`` → [1, 1e-6].
+    """
+    rows = jax.lax.stop_gradient(jnp.asarray(rows))
+    scales = jax.lax.stop_gradient(jnp.asarray(scales, dtype=rows.dtype))
+    R = jnp.linalg.qr(rows.T, mode="r")
+    res = jnp.abs(jnp.diagonal(R))
+    ok = scales > 0
+    return jnp.where(ok, res / jnp.where(ok, scales, 1.0), 0.0)
+
+
+def gram_relative_residuals(M) -> jax.Array:
+    """:func:`relative_residuals` of the vectors whose Gram matrix is M (symmetric positive
+    semi-definite, n × n), each relative to its own norm √M_kk: with M = SᵀS, the residual of column k
+    of S outside the columns before it.  Zero where M_kk = 0.  Invariant to a diagonal scaling of M (the
+    units of the vectors)."""
+    M = jax.lax.stop_gradient(jnp.asarray(M))
+    M = 0.5 * (M + M.T)
+    w, V = jnp.linalg.eigh(M)
+    S = (V * jnp.sqrt(jnp.clip(w, 0.0, None))[None, :]) @ V.T  # symmetric square root
+    return relative_residuals(S.T, jnp.sqrt(jnp.clip(jnp.diagonal(M), 0.0, None)))
+
+
+class ObservabilityStaircase(NamedTuple):
+    """The orthogonal staircase form of a pair (A, C), with its rank decisions.
+
+    - `T` (n, n): z = T x; T = Q D⁻¹ with Q orthogonal (rows: the orthonormal directions found level by
+      level, then an orthonormal basis of the unobservable part) and D the balancing.
+    - `A` (n, n), `C` (m, n): T A T⁻¹ and C T⁻¹ (C T⁻¹ = [C_1, 0]; T A T⁻¹ is block Hessenberg: level k
+      couples only to levels ≤ k + 1).
+    - `blocks`: the level sizes r_1 ≥ r_2 ≥ … (r_k new directions at power k − 1 of A).
+    - `indices`: the observability indices ν_1 … ν_m of thesis §3.2 (lexicographic, per output).
+    - `kronecker`: the indices sorted in decreasing order (the conjugate partition of `blocks`).
+    - `rank`: Σ r_k, the dimension of the observable subspace.
+    - `margin`: the PBH margin min over eigenvalues λ of A_b of σ_min([A_b − λI; C_b]) of the balanced,
+      unit-norm pair (0 for an unobservable pair; at most about 1).
+    - `tol`: the relative tolerance used; `observable`: rank = n and margin > tol.
+    """
+
+    T: np.ndarray
+    A: np.ndarray
+    C: np.ndarray
+    blocks: tuple[int, ...]
+    indices: tuple[int, ...]
+    kronecker: tuple[int, ...]
+    rank: int
+    margin: float
+    tol: float
+    observable: bool
+
+
+def _margin(Ab: np.ndarray, Cb: np.ndarray) -> float:
+    n = Ab.shape[0]
+    if n == 0:
+        return 1.0
+    lams = np.linalg.eigvals(Ab)
+    best = np.inf
+    for lam in lams:
+        M = np.concatenate([Ab - lam * np.eye(n), Cb.astype(complex)])
+        best = min(best, float(np.linalg.svd(M, compute_uv=False)[-1]))
+    return best
+
+
+def pbh_margin(A, C) -> float:
+    """PBH observability margin of (A, C): min over the eigenvalues λ of A of σ_min([A − λI; C]).
+
+    Computed on the balanced pair scaled to unit norm (:func:`balance_pair`), so it is relative to ‖A‖,
+    does not depend on the units of time, outputs or states, and lies in [0, about 1]; 0 means that an
+    eigenvalue of A is unobservable (Popov-Belevitch-Hautus test).
+
+    **Example:** ``pbh_margin([[1., 0.], [0., 1. + 1e-6]], [[1., 1.]])`` is about 1e-6.
+    """
+    A, C = _concrete_pair(A, C, "pbh_margin")
+    Ab, Cb, _ = balance_pair(A, C)
+    return _margin(Ab, Cb)
+
+
+def observability_staircase(A, C, *, tol: float | None = None) -> ObservabilityStaircase:
+    """Orthogonal staircase (observability Hessenberg) form of the balanced pair, and its rank decisions.
+
+    On the balanced, unit-norm pair (A_b, C_b) (:func:`balance_pair`) a block Arnoldi sweep builds
+    orthonormal directions level by level in the order of thesis §3.2, steps (a)-(e): level 0 tests the
+    rows c_1 … c_m of C_b, level k the rows w_j A_b where w_j is the new part that output j contributed at
+    level k − 1.  A candidate is independent when its component outside the directions found so far
+    exceeds ``tol`` times its parent's norm times ‖A_b‖ (``tol``·‖C_b‖ at level 0).  In the new
+    coordinates C is [C_1, 0] and A is block Hessenberg: the staircase form.
+
+    Every threshold is relative, on a pair scaled to unit norm: the decisions do not change under
+    A → cA, C → dC, nor under a diagonal change of state units.
+
+    **Arguments:** `A` (n, n), `C` (m, n): concrete arrays; `tol`: relative tolerance (default 1e-9).
+
+    **Returns:** an :class:`ObservabilityStaircase` (transformation, staircase pair, level sizes, the
+    per-output indices ν_k of §3.2, the sorted (Kronecker) indices, rank, PBH margin, observable).
+
+    **Example:** a chain ẋ1 = x2 with a static third state, y = (x1, x3)::
+
+        st = observability_staircase([[0, 1, 0], [0, 0, 0], [0, 0, 0.]], [[1, 0, 0], [0, 0, 1.]])
+        st.indices, st.blocks   # (2, 1), (2, 1)
+    """
+    A, C = _concrete_pair(A, C, "observability_staircase")
+    tol = DEFAULT_TOL if tol is None else float(tol)
+    if not tol > 0:
+        raise ValueError(f"`tol` must be > 0, got {tol}.")
+    n, m = A.shape[0], C.shape[0]
+    Ab, Cb, d = balance_pair(A, C)
+    nA, nC = np.linalg.norm(Ab, 2), np.linalg.norm(Cb, 2)
+    basis: list = []
+    alive = [True] * m
+    nu = [0] * m
+    blocks = []
+    res = lexicographic_step(basis, Cb, alive, [tol * nC] * m)
+    while True:
+        kept = [j for j in range(m) if np.any(res[j])]
+        if not kept:
+            break
+        blocks.append(len(kept))
+        for j in kept:
+            nu[j] += 1
+        if len(basis) == n:
+            break
+        parents = np.linalg.norm(res, axis=1)
+        res = lexicographic_step(basis, res @ Ab, alive, tol * nA * parents)
+    r = len(basis)
+    Q = np.asarray(basis).reshape(r, n)
+    if r < n:  # complete with an orthonormal basis of the unobservable part
+        _, _, vt = np.linalg.svd(Q) if r else (None, None, np.eye(n))
+        Q = np.concatenate([Q, vt[r:]]) if r else np.eye(n)
+    T = Q / d[None, :]
+    Tinv = Q.T * d[:, None]
+    margin = _margin(Ab, Cb)
+    kron = tuple(sum(1 for b in blocks if b > i) for i in range(max(blocks) if blocks else 0))
+    return ObservabilityStaircase(
+        T=T,
+        A=T @ A @ Tinv,
+        C=C @ Tinv,
+        blocks=tuple(blocks),
+        indices=tuple(nu),
+        kronecker=kron,
+        rank=r,
+        margin=float(margin),
+        tol=tol,
+        observable=bool(r == n and margin > tol),
+    )
+
+
+def is_observable(A, C, tol: float | None = None) -> bool:
+    """True when (A, C) is observable by the rank decisions of :func:`observability_staircase`.
+
+    The test runs on the balanced pair scaled to unit norm: the staircase must reach rank n and the PBH
+    margin min_λ σ_min([A − λI; C]) must exceed ``tol`` (default 1e-9).  It does not depend on the units
+    of time (A → cA), of the outputs (C → dC) or of the states (diagonal scaling).
+
+    **Example:** ``is_observable([[0., 1.], [0., 0.]], [[1., 0.]])`` → True.
+    """
+    return observability_staircase(A, C, tol=tol).observable
+
+
+def require_observable(A, C, tol: float | None, who: str) -> ObservabilityStaircase:
+    """The staircase of (A, C), or ``ValueError`` naming ``who``, the rank and the PBH margin."""
+    st = observability_staircase(A, C, tol=tol)
+    if not st.observable:
+        n = st.T.shape[0]
+        why = (
+            f"the staircase finds rank {st.rank} < n = {n}"
+            if st.rank < n
+            else f"the PBH margin is below tol = {st.tol:.1e}"
+        )
+        raise ValueError(
+            f"{who}: (A, C) is not observable ({why}; PBH margin min_λ σ_min([A − λI; C]) = "
+            f"{st.margin:.2e} relative to ‖A‖, on the balanced pair).  Observer poles cannot be placed "
+            "for an unobservable (or nearly unobservable) pair (thesis Lemma 1)."
+        )
+    return st

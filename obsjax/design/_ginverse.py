@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array, concrete_value, matrix
+from ..analysis._lti import DEFAULT_TOL, relative_residuals
 
 
 def moore_penrose(C) -> jax.Array:
@@ -285,11 +286,15 @@ def lovass_nagy_T(A, C, F, S, *, N=None, t0: float = 0.0) -> LovassNagyT:
     T = LovassNagyT(A=A_fn, F=F, S=S, N=N)
     Kc = concrete_value(T.K(jnp.asarray(t0)))
     if Kc is not None:
-        sv = np.linalg.svd(Kc, compute_uv=False)
-        if sv.size < k or sv[-1] <= 1e-10 * max(1.0, np.abs(Kc).max()):
+        # the package's rank mechanism: each column's residual outside the columns before it, relative
+        # to ‖Ā‖ (K = (I − NNᵀ)ĀN has columns of norm ≤ ‖Ā‖), so the decision ignores the time unit
+        a_norm = float(np.linalg.norm(np.asarray(A0), 2))
+        res = np.asarray(relative_residuals(Kc.T, np.full(k, a_norm))) if Kc.shape[0] >= k else [0.0]
+        if not np.min(res) > DEFAULT_TOL:
             raise ValueError(
                 f"K = (I − NNᵀ)·A·N must have full column rank {k} at t = {t0} for the algebraic "
-                f"completion of T, found singular values {sv.tolist()}; choose other free entries "
+                f"completion of T; the smallest residual of a column outside those before it is "
+                f"{np.min(res):.2e} relative to ‖A‖ (≤ {DEFAULT_TOL:.0e}); choose other free entries "
                 f"(another N) or solve the condition as a differential equation "
                 f"(obsjax.design.lovass_nagy_T_ode, obsjax.GeneralizedInverseODE)."
             )

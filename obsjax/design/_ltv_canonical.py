@@ -41,6 +41,7 @@ import numpy as np
 
 from .._checks import concrete_value
 from .._config import require_x64
+from ..analysis._lti import DEFAULT_TOL, lexicographic_step, relative_residuals
 
 __all__ = [
     "LTVCanonicalForm",
@@ -180,31 +181,66 @@ def ltv_observability_matrix(A: Callable, C: Callable, t) -> jax.Array:
     return _lie_stack(A, C, n - 1)(_as_time(t)).reshape(n * m, n)
 
 
-def _indices_from_Q(Qs: np.ndarray, tol: float) -> tuple[int, ...] | None:
-    """Luenberger search c_1, …, c_m, 𝓛c_1, …, 𝓛c_m, … keeping independent rows (lexicographic)."""
+def level_scales(norms, a_norm):
+    """The scales ρ_k of the levels of the lexicographic search: ρ_0 = max_i ‖c_i‖ and
+    ρ_k = max(max_i ‖𝓛^k c_i‖, ‖A(t)‖ ρ_{k−1}) (``norms`` (levels, m): the row norms; numpy or jax)."""
+    xp = jnp if isinstance(norms, jax.Array) else np
+    rho = [xp.max(norms[0])]
+    for k in range(1, norms.shape[0]):
+        rho.append(xp.maximum(xp.max(norms[k]), a_norm * rho[-1]))
+    return xp.stack(rho)
+
+
+def _search(Qs: np.ndarray, tol: float, a_norm: float) -> tuple[tuple[int, ...] | None, float]:
+    """Lexicographic search c_1, …, c_m, 𝓛c_1, …, 𝓛c_m, … keeping independent rows.
+
+    The rank decisions are those of the LTI staircase (:func:`obsjax.analysis._lti.lexicographic_step`):
+    a row is independent when its component outside the rows kept so far exceeds ``tol`` times the
+    scale ρ_k of its level (:func:`level_scales`).  Every threshold is relative to its own level, so the
+    decisions do not change when time is rescaled (A → cA, 𝓛 → c𝓛) or the outputs are (C → dC).
+
+    Returns the indices (``None`` when fewer than n rows are independent) and the staircase margin: the
+    smallest kept residual relative to its level's scale (0 when the rank is short)."""
     depth1, m, n = Qs.shape
-    scale = max(float(np.max(np.abs(Qs))), 1.0)
-    active = [True] * m
+    rho = level_scales(np.linalg.norm(Qs, axis=2), a_norm)
+    basis: list = []
+    alive = [True] * m
     p = [0] * m
-    rows: list[np.ndarray] = []
+    margin = np.inf
     for j in range(depth1):
-        for i in range(m):
-            if not active[i]:
-                continue
-            cand = np.vstack(rows + [Qs[j, i]])
-            sv = np.linalg.svd(cand, compute_uv=False)
-            if sv[-1] > tol * scale:
-                rows.append(Qs[j, i])
-                p[i] += 1
-            else:
-                active[i] = False
-        if len(rows) == n:
+        if rho[j] == 0.0:
             break
-    return tuple(p) if len(rows) == n else None
+        res = lexicographic_step(basis, Qs[j], alive, [tol * rho[j]] * m)
+        for i in range(m):
+            if np.any(res[i]):
+                p[i] += 1
+                margin = min(margin, float(np.linalg.norm(res[i])) / rho[j])
+        if len(basis) == n or not any(alive):
+            break
+    if len(basis) < n:
+        return None, 0.0
+    return tuple(p), float(margin)
+
+
+def staircase_margin(levels: jax.Array, A0: jax.Array, indices) -> jax.Array:
+    """The staircase margin of the rows that the indices select, as a traced value (for ``jit``).
+
+    ``levels`` (≥ max p_i, m, n): [C; 𝓛C; …] at one time; ``A0``: A at that time.  The rows 𝓛ʲc_i
+    (j < p_i) are taken in the lexicographic order of the search and each one's residual outside those
+    before it is divided by its level's scale ρ_j (:func:`level_scales`) --
+    :func:`obsjax.analysis._lti.relative_residuals`, the traced twin of the search's decisions.  The
+    minimum is 0 where the rows are dependent, and does not change when A → cA or C → dC."""
+    pmax = max(indices)
+    levels = jax.lax.stop_gradient(levels[:pmax])
+    rho = level_scales(jnp.linalg.norm(levels, axis=2), jnp.linalg.norm(jax.lax.stop_gradient(A0), 2))
+    order = [(j, i) for j in range(pmax) for i in range(len(indices)) if j < indices[i]]
+    rows = jnp.stack([levels[j, i] for j, i in order])
+    scales = jnp.stack([rho[j] for j, _ in order])
+    return jnp.min(relative_residuals(rows, scales))
 
 
 def ltv_observability_indices(
-    A: Callable, C: Callable, ts, *, tol: float = 1e-9
+    A: Callable, C: Callable, ts, *, tol: float = DEFAULT_TOL
 ) -> tuple[int, ...]:
     """Observability indices p_1, …, p_m of the LTV pair (8) (fixed lexicographic basis).
 
@@ -217,7 +253,10 @@ def ltv_observability_indices(
 
     - `A`, `C`: callables of t returning (n, n) and (m, n) matrices.
     - `ts`: a time or a 1-D array of times (concrete values).
-    - `tol`: relative singular-value threshold for independence.
+    - `tol`: relative threshold of the independence decisions (the mechanism of the LTI staircase,
+      :func:`obsjax.analysis.observability_staircase`): a row is kept when its component outside the
+      rows kept before exceeds ``tol`` times the scale of its level (so the indices do not change when
+      time or the outputs are rescaled).
 
     **Returns:** the tuple (p_1, …, p_m).
 
@@ -230,10 +269,13 @@ def ltv_observability_indices(
     require_x64("ltv_observability_indices")
     tsv = _concrete_times(ts, "observability indices are static")
     n, _ = _dims(A, C, tsv[0])
+    if not tol > 0:
+        raise ValueError(f"`tol` must be > 0, got {tol}.")
     stack = jax.jit(_lie_stack(A, C, n - 1))
     found = None
     for tk in tsv:
-        p = _indices_from_Q(np.asarray(stack(_as_time(tk))), tol)
+        a_norm = float(np.linalg.norm(np.asarray(A(_as_time(tk))), 2))
+        p, _ = _search(np.asarray(stack(_as_time(tk))), tol, a_norm)
         if p is None:
             raise ValueError(
                 f"The pair (A, C) is not observable at t = {float(tk):.6g}: the observability matrix "
@@ -249,18 +291,33 @@ def ltv_observability_indices(
     return found
 
 
-def strong_observability(A: Callable, C: Callable, ts, *, threshold: float = 1e-8) -> np.ndarray:
-    """Check strong observability |det Qᵀ(t)Q(t)| ≥ threshold on the times `ts` (Huang & Zhu, below (8)).
+def margin_at(A: Callable, C: Callable, t, indices) -> jax.Array:
+    """:func:`staircase_margin` of the rows of Q_0 that `indices` select, at time t."""
+    t = _as_time(t)
+    return staircase_margin(_lie_stack(A, C, max(indices) - 1)(t), jnp.asarray(A(t)), tuple(indices))
+
+
+def strong_observability(
+    A: Callable, C: Callable, ts, *, threshold: float = DEFAULT_TOL
+) -> np.ndarray:
+    """Check strong observability of (8) on the times `ts`, scale-invariantly.
+
+    Huang & Zhu call (8) strongly observable when |det Qᵀ(t)Q(t)| ≥ c > 0 for all t (below (8)).  That
+    number changes with the units (A → cA multiplies it by a power of c), so the test here is the
+    staircase's: at each time the rows of Q(t) are searched in the lexicographic order (the decisions of
+    :func:`ltv_observability_indices`, with ``tol = threshold``) and the *staircase margin* is the
+    smallest residual of a kept row outside the rows before it, relative to the scale of its level; it
+    is 0 where Q(t) has rank < n, lies in (0, 1], and does not change when A → cA or C → dC.
 
     **Arguments:**
 
     - `A`, `C`: callables of t.
     - `ts`: 1-D array of (concrete) times.
-    - `threshold`: the constant c of the definition.
+    - `threshold`: the smallest admissible margin (default 1e-9).
 
-    **Returns:** the values |det QᵀQ| at `ts` (numpy array).
+    **Returns:** the staircase margins at `ts` (numpy array).
 
-    Raises ``ValueError`` naming the first time at which |det QᵀQ| < threshold.
+    Raises ``ValueError`` naming the first time at which the margin is below `threshold`.
 
     **Example:**
 
@@ -270,22 +327,21 @@ def strong_observability(A: Callable, C: Callable, ts, *, threshold: float = 1e-
     if not threshold > 0:
         raise ValueError(f"`threshold` must be > 0, got {threshold}.")
     tsv = _concrete_times(ts, "the strong-observability check runs before tracing")
-    n, m = _dims(A, C, tsv[0])
-    Qfn = _lie_stack(A, C, n - 1)
-
-    def gram_det(s):
-        Q = Qfn(s).reshape(n * m, n)
-        return jnp.abs(jnp.linalg.det(Q.T @ Q))
-
-    dets = np.asarray(jax.jit(jax.vmap(gram_det))(jnp.asarray(tsv)))
-    bad = np.flatnonzero(~(dets >= threshold))
-    if bad.size:
-        k = bad[0]
-        raise ValueError(
-            f"The pair (A, C) is not strongly observable: |det Qᵀ(t)Q(t)| = {dets[k]:.3e} < threshold "
-            f"{threshold:.3e} at t = {tsv[k]:.6g}."
-        )
-    return dets
+    n, _ = _dims(A, C, tsv[0])
+    stack = jax.jit(_lie_stack(A, C, n - 1))
+    anorm = jax.jit(lambda s: jnp.linalg.norm(jnp.asarray(A(s)), 2))
+    margins = np.empty(tsv.shape[0])
+    for k, tk in enumerate(tsv):
+        Qs = np.asarray(stack(_as_time(tk)))
+        a_norm = float(anorm(_as_time(tk)))
+        ok = np.all(np.isfinite(Qs)) and np.isfinite(a_norm)
+        margins[k] = _search(Qs, threshold, a_norm)[1] if ok else np.nan
+        if not margins[k] >= threshold:
+            raise ValueError(
+                f"The pair (A, C) is not strongly observable: the staircase margin of Q(t) = [C; 𝓛C; …] "
+                f"is {margins[k]:.3e} < threshold {threshold:.3e} at t = {tk:.6g}."
+            )
+    return margins
 
 
 # --------------------------------------------------------------------------------------------------
@@ -298,7 +354,8 @@ class LTVCanonicalForm(NamedTuple):
 
     Fields: `indices` (p_1, …, p_m); `Q0` (n, n); `Tinv` T⁻¹(t) (n, n); `T` (n, n); `Az` (n, n);
     `Cz` (m, n); `R` (m, m) with C_z = R C_can; `alpha` (n, m): column i is column d_i of A_z, the
-    α_{·,i}(t) of (9).
+    α_{·,i}(t) of (9); `margin`: the staircase margin of the rows of Q_0 (:func:`staircase_margin`;
+    0 where they are dependent, a traced value under ``jit``).
     """
 
     indices: tuple[int, ...]
@@ -309,6 +366,7 @@ class LTVCanonicalForm(NamedTuple):
     Cz: jax.Array
     R: jax.Array
     alpha: jax.Array
+    margin: jax.Array
 
 
 def block_ends(indices) -> tuple[int, ...]:
@@ -343,7 +401,7 @@ def _check_indices(indices, n: int, m: int) -> tuple[int, ...]:
 
 
 def ltv_observer_canonical_form(
-    A: Callable, C: Callable, t, *, indices=None, threshold: float = 1e-10
+    A: Callable, C: Callable, t, *, indices=None, threshold: float = DEFAULT_TOL
 ) -> LTVCanonicalForm:
     """Transform the LTV pair (8) to the MIMO observer canonical form (9)-(11) at time t (Huang & Zhu).
 
@@ -357,7 +415,9 @@ def ltv_observer_canonical_form(
     - `t`: the time (may be traced under ``jit`` when `indices` is given).
     - `indices`: the observability indices (p_1, …, p_m); computed by
       :func:`ltv_observability_indices` at `t` when ``None`` (then `t` must be concrete).
-    - `threshold`: when `t` is concrete, |det Qᵀ(t)Q(t)| below it raises ``ValueError`` naming t.
+    - `threshold`: when `t` is concrete, a staircase margin of the rows of Q_0(t) at or below it
+      (:func:`staircase_margin`: scale-invariant, 0 for dependent rows) raises ``ValueError`` naming t;
+      under ``jit`` the margin is returned in the result for the caller's ``eqx.error_if``.
 
     **Returns:** an :class:`LTVCanonicalForm` (indices, Q0, Tinv, T, Az, Cz, R, alpha).
 
@@ -377,8 +437,8 @@ def ltv_observer_canonical_form(
             )
         indices = ltv_observability_indices(A, C, tc)
     idx = _check_indices(indices, n, m)
-    if tc is not None:
-        strong_observability(A, C, np.atleast_1d(tc), threshold=threshold)
+    if not threshold > 0:
+        raise ValueError(f"`threshold` must be > 0, got {threshold}.")
     pmax = max(idx)
     d = block_ends(idx)
     # Every quantity is carried as a truncated Taylor series in s about t (coefficient k = k-th derivative
@@ -393,6 +453,14 @@ def ltv_observer_canonical_form(
     for _ in range(pmax - 1):
         prev = lie[-1]
         lie.append(_sderiv(prev) + _smul(prev[:-1], As[: prev.shape[0] - 1]))
+    margin = staircase_margin(jnp.stack([lv[0] for lv in lie]), As[0], idx)
+    mc = concrete_value(margin)
+    if tc is not None and mc is not None and not float(mc) > threshold:
+        raise ValueError(
+            f"The pair (A, C) is not strongly observable at t = {float(tc):.6g}: the rows of Q_0 "
+            f"selected by the indices {idx} have staircase margin {float(mc):.3e} ≤ threshold "
+            f"{threshold:.1e} (dependent, or nearly so, relative to their scale)."
+        )
     N = pmax  # q is needed to order pmax (depth of the dual Lie stack)
     Q0s = jnp.stack([lie[j][: N + 1, i] for i in range(m) for j in range(idx[i])], axis=1)
     E = jnp.eye(n)[:, [di - 1 for di in d]]
@@ -409,4 +477,4 @@ def ltv_observer_canonical_form(
     Az = jnp.asarray(canonical_structure(idx)).at[:, [di - 1 for di in d]].set(alpha)
     Cz = _mm(Cs[0], Tinv)
     R = Cz[:, [di - 1 for di in d]]
-    return LTVCanonicalForm(idx, Q0s[0], Tinv, T, Az, Cz, R, alpha)
+    return LTVCanonicalForm(idx, Q0s[0], Tinv, T, Az, Cz, R, alpha, margin)

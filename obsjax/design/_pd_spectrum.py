@@ -32,6 +32,7 @@ import numpy as np
 
 from .._checks import as_float_array, concrete_value
 from .._config import require_x64
+from ..analysis._lti import DEFAULT_TOL
 from ._ltv_canonical import (
     LTVCanonicalForm,
     _as_time,
@@ -242,7 +243,7 @@ class PDObserverGain(NamedTuple):
 
 
 def pd_observer_gain(
-    A: Callable, C: Callable, rho_bar, omega, t, *, eps=1.0, indices=None, threshold: float = 1e-10
+    A: Callable, C: Callable, rho_bar, omega, t, *, eps=1.0, indices=None, threshold: float = DEFAULT_TOL
 ) -> PDObserverGain:
     """Observer gain K_o(t) by PD-eigenvalue assignment (Huang & Zhu, Step (b), (12)-(14)).
 

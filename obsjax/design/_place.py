@@ -2,39 +2,383 @@
 
 from __future__ import annotations
 
+import functools
+import warnings
+from typing import NamedTuple
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array, concrete_value
-from ..analysis._lti import _obsv_np, _pair, is_observable, obsv
+from .._config import require_x64
+from ..analysis._lti import _pair, observability_staircase, require_observable
+from ._poles import (
+    CLUSTER_RTOL,
+    REAL_RTOL,
+    PoleStructure,
+    blocks_of,
+    default_structure,
+    jordan_summary,
+    pole_structure,
+)
+from ._robust import _MAXITER, make_layout, robust_gain
+
+#: Default bound on the a-posteriori relative eigenvalue error of a placed gain.
+PLACE_RTOL = 1e-6
 
 
-def _check_poles(poles, n):
-    poles = jnp.asarray(poles)
-    if poles.ndim == 0:
-        poles = poles.reshape(1)
-    if poles.ndim != 1 or poles.shape[0] != n:
+def as_design_matrix(x, name: str) -> jax.Array:
+    """A real matrix in float64 (float32 and integer inputs are promoted: designs run in float64)."""
+    arr = as_float_array(x, name)
+    if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+        raise ValueError(f"`{name}` must be real, got dtype {arr.dtype}.")
+    return arr.astype(jnp.float64)
+
+
+def design_pair(A, C, who: str):
+    """(A, C) validated, promoted to float64; raises under OBSJAX_NO_X64 rather than design in float32."""
+    require_x64(who)
+    A, C = _pair(A, C)
+    A, C = as_design_matrix(A, "A"), as_design_matrix(C, "C")
+    if C.shape[0] > A.shape[0]:
         raise ValueError(
-            f"`poles` must hold exactly n = {n} observer poles, got {poles.shape[0] if poles.ndim == 1 else poles.shape}."
+            f"`C` has m = {C.shape[0]} rows for n = {A.shape[0]} states: at most n independent outputs."
         )
+    return A, C
+
+
+def pole_vector(poles, n: int, who: str = "place") -> jax.Array:
+    """The poles as a vector of length n (float64 or complex128)."""
+    try:
+        p = jnp.asarray(poles)
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"`poles` must be array-like, got {type(poles).__name__}: {e}") from None
+    if p.ndim == 0:
+        p = p.reshape(1)
+    if p.ndim != 1 or p.shape[0] != n:
+        got = p.shape[0] if p.ndim == 1 else p.shape
+        raise ValueError(f"{who}: `poles` must hold exactly n = {n} observer poles, got {got}.")
+    if jnp.issubdtype(p.dtype, jnp.complexfloating):
+        return p.astype(jnp.complex128)
+    return p.astype(jnp.float64)
+
+
+def resolve_structure(poles, structure: PoleStructure | None, n: int) -> PoleStructure:
+    """The pole pattern: read from concrete poles, given, or (traced real poles) n distinct reals."""
     v = concrete_value(poles)
-    if v is not None and np.iscomplexobj(v):
-        # complex poles must come with their conjugates
-        remaining = list(v)
-        while remaining:
-            p = remaining.pop(0)
-            if abs(p.imag) <= 1e-12 * max(1.0, abs(p)):
-                continue
-            dist = [abs(q - np.conj(p)) for q in remaining]
-            if not dist or min(dist) > 1e-9 * max(1.0, abs(p)):
-                raise ValueError(
-                    f"`poles` must be closed under conjugation for a real gain: {p} has no conjugate {np.conj(p)}."
-                )
-            remaining.pop(int(np.argmin(dist)))
-    if v is not None and not np.all(np.isfinite(v)):
-        raise ValueError(f"`poles` must be finite, got {v.tolist()}.")
-    return poles
+    if v is not None:
+        found = pole_structure(v)
+        if structure is not None and structure != found:
+            raise ValueError(
+                f"`structure` {structure} does not match the pattern of `poles` {found}."
+            )
+        return found
+    if structure is not None:
+        if not isinstance(structure, PoleStructure) or structure.n != n:
+            raise ValueError(
+                f"`structure` must be a PoleStructure of n = {n} poles (obsjax.design.pole_structure)."
+            )
+        return structure
+    if jnp.issubdtype(poles.dtype, jnp.complexfloating):
+        raise ValueError(
+            "Traced complex `poles`: their pattern (which are conjugate pairs, which repeat) cannot be "
+            "read under jit; pass `structure=obsjax.design.pole_structure(example_poles)`."
+        )
+    return default_structure(n)
+
+
+class Pattern(NamedTuple):
+    """A pole pattern and its Jordan chains as arrays of length n (data, so that patterns share one
+    compiled program): per pole its cluster id `pc`, a reference copy `ref`, whether it is real, the
+    member with Im > 0 of a pair (`up`) and its conjugate's position (`partner`); per row of T its
+    cluster id `rc` and whether that cluster is defective (`rdef`)."""
+
+    pc: jax.Array
+    ref: jax.Array
+    real: jax.Array
+    up: jax.Array
+    partner: jax.Array
+    rc: jax.Array
+    rdef: jax.Array
+
+
+def make_pattern(structure: PoleStructure, blocks) -> Pattern:
+    n = structure.n
+    pc, ref, partner = np.zeros(n, np.int32), np.zeros(n, np.int32), np.arange(n, dtype=np.int32)
+    real, up = np.zeros(n, bool), np.zeros(n, bool)
+    for c, (kind, u, d) in enumerate(structure.clusters):
+        pc[list(u)], ref[list(u)] = c, u[0]
+        if kind == 1:
+            real[list(u)] = True
+        else:
+            pc[list(d)], ref[list(d)] = c, d[0]
+            up[list(u)] = True
+            partner[list(u)], partner[list(d)] = d, u
+    rc, rdef = np.zeros(n, np.int32), np.zeros(n, bool)
+    r = 0
+    for b in blocks:
+        rc[r : r + b.kind * b.length] = b.cluster
+        r += b.kind * b.length
+    for b in blocks:
+        if b.length > 1:
+            rdef[rc == b.cluster] = True
+    return Pattern(*(jnp.asarray(a) for a in (pc, ref, real, up, partner, rc, rdef)))
+
+
+def _pattern_flags(pr, pi, pat: Pattern):
+    """(non-finite, not conjugate-closed, real pole with an imaginary part, copies apart)."""
+    nonfinite = ~(jnp.all(jnp.isfinite(pr)) & jnp.all(jnp.isfinite(pi)))
+    mag = jnp.abs(pr + 1j * pi)
+    copies = jnp.any(jnp.abs(pr - pr[pat.ref]) + jnp.abs(pi - pi[pat.ref]) > CLUSTER_RTOL * mag)
+    imag = jnp.any(pat.real & (jnp.abs(pi) > REAL_RTOL * mag))
+    conj = jnp.any(
+        pat.up
+        & (
+            (pi <= 0)
+            | (jnp.abs(pr[pat.partner] - pr) + jnp.abs(pi[pat.partner] + pi) > CLUSTER_RTOL * mag)
+        )
+    )
+    return nonfinite, conj, imag, copies
+
+
+def _check_pattern(pr, pi, pat: Pattern, who: str):
+    """The pole values against their declared pattern, under jit (eqx.error_if naming the poles)."""
+    nonfinite, conj, imag, copies = _pattern_flags(pr, pi, pat)
+    pr = eqx.error_if(pr, nonfinite, f"{who}: `poles` must be finite (a NaN or an infinity was passed).")
+    pr = eqx.error_if(
+        pr,
+        conj,
+        f"{who}: `poles` must be closed under conjugation: a complex pole lacks its conjugate at the "
+        "position the structure declares.",
+    )
+    pr = eqx.error_if(pr, imag, f"{who}: a pole declared real by the structure has an imaginary part.")
+    pr = eqx.error_if(
+        pr,
+        copies,
+        f"{who}: the copies of a repeated pole (declared by the structure) are no longer equal; give "
+        "distinct poles their own structure entries.",
+    )
+    return pr, pi
+
+
+def cluster_values(pat: Pattern, pr, pi):
+    """The requested value of each cluster id (mean of its copies, the member with Im ≥ 0), length n."""
+    n = pr.shape[0]
+    w = jnp.where(pat.real | pat.up, 1.0, 0.0)
+    tot = jax.ops.segment_sum(w * (pr + 1j * pi), pat.pc, num_segments=n)
+    cnt = jax.ops.segment_sum(w, pat.pc, num_segments=n)
+    return tot / jnp.where(cnt > 0, cnt, 1.0)
+
+
+def warn_jordan(structure, blocks, pr, pi, m, kron, who, stacklevel=4):
+    """Warn (at design time) about poles assigned with Jordan chains: such gains are sensitive."""
+    if not any(b.length > 1 for b in blocks):
+        return
+    vals = concrete_value(pr), concrete_value(pi)
+    names = (
+        jordan_summary(structure, blocks, vals[0] + 1j * vals[1])
+        if vals[0] is not None and vals[1] is not None
+        else ["(traced values)"]
+    )
+    why = f"observability indices {tuple(kron)}" if kron is not None else "the pattern of the poles"
+    warnings.warn(
+        f"{who}: poles {', '.join(names)} cannot all have independent eigenvectors with m = {m} "
+        f"output(s) and {why}; they are assigned with Jordan chains.  Such a gain is sensitive: an "
+        "eigenvalue of a Jordan block of size s moves by about ε^(1/s) under a perturbation ε of A, "
+        "C or L.",
+        stacklevel=stacklevel,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("m", "depth", "maxiter"))
+def _robust_core(lay, pat, A, C, pr, pi, *, m, depth, maxiter):
+    """Checks, placement and a-posteriori error in one program (one compilation per (n, m, depth))."""
+    pr, pi = _check_pattern(pr, pi, pat, "place")
+    L, T, F = robust_gain(m, depth, maxiter, lay, A, C, pr, pi)
+    err, kappa = _error_estimate(A, C, L, T, F, pat.rc, pat.rdef, cluster_values(pat, pr, pi))
+    return L, err, kappa
+
+
+def _error_estimate(A, C, L, T, F, rc, defective, lam):
+    """A-posteriori relative error of the placed eigenvalues.
+
+    A − LC = T⁻¹(F + Δ)T with Δ = T(A − LC)T⁻¹ − F.  For a cluster of rows R sharing a requested value
+    λ (F normal on it), the eigenvalues move by about ‖Δ_RR‖ (first order; Bauer-Fike on the block),
+    plus the rounding ε·s·‖A − LC‖_F with s the eigenvalue condition number ‖t_i‖‖(T⁻¹)_{:,i}‖; if ‖Δ‖
+    reaches a quarter of the gap between requested values, Bauer-Fike's ‖Δ‖ is used instead.  For a
+    defective (Jordan) cluster, ‖Δ_RR‖ is the backward error (the gain places the Jordan structure for
+    a matrix that close).  Each error is relative to max(|λ|, 10⁻³·max(‖A‖_F, max|λ|)).  Returns
+    (largest relative error, Frobenius condition number of T)."""
+    T, L = jax.lax.stop_gradient(T), jax.lax.stop_gradient(L)
+    n = A.shape[0]
+    ncl = n  # cluster ids < n; unused ids are ignored below
+    Acl = A - L @ C
+    Ti = jnp.linalg.inv(T)
+    D = (T @ Acl) @ Ti - F
+    same = rc[:, None] == rc[None, :]
+    dc = jnp.sqrt(jax.ops.segment_sum(jnp.sum(jnp.where(same, D**2, 0.0), axis=1), rc, num_segments=ncl))
+    s = jnp.linalg.norm(T, axis=1) * jnp.linalg.norm(Ti, axis=0)
+    sc = jax.ops.segment_max(s, rc, num_segments=ncl)
+    used = jax.ops.segment_sum(jnp.ones(n), rc, num_segments=ncl) > 0
+    defective = jax.ops.segment_max(defective.astype(jnp.int32), rc, num_segments=ncl) > 0
+    eps = jnp.finfo(A.dtype).eps
+    est = dc + jnp.where(defective, 0.0, eps * sc * jnp.linalg.norm(Acl))
+    lam = jax.lax.stop_gradient(lam)
+    big = jnp.maximum(jnp.linalg.norm(A), jnp.max(jnp.where(used, jnp.abs(lam), 0.0)))
+    pairs = used[:, None] & used[None, :] & ~jnp.eye(ncl, dtype=bool)
+    gap = jnp.where(pairs, jnp.abs(lam[:, None] - lam[None, :]), jnp.inf)
+    dn = jnp.linalg.norm(D)
+    est = jnp.where(dn >= 0.25 * jnp.min(gap), jnp.maximum(est, dn), est)
+    rel = est / jnp.maximum(jnp.abs(lam), 1e-3 * jnp.where(big > 0, big, 1.0))
+    kappa = jnp.linalg.norm(T) * jnp.linalg.norm(Ti)  # Frobenius condition number of T
+    return jnp.max(jnp.where(used, rel, 0.0)), kappa
+
+
+def _finish(L, err, kappa, rtol: float, who: str):
+    """Raise (concrete) or stop at run time (eqx.error_if) when the gain is not finite or the
+    a-posteriori eigenvalue error exceeds rtol."""
+    ok = jnp.all(jnp.isfinite(L)) & (err <= rtol)
+    e, k, okv = concrete_value(err), concrete_value(kappa), concrete_value(ok)
+    if okv is not None:
+        if not bool(okv):
+            raise ValueError(
+                f"{who}: the computed gain does not place the poles to rtol = {rtol:.1e} (a-posteriori "
+                f"relative eigenvalue error {float(e):.2e}, eigenvector condition number "
+                f"{float(k):.2e}): (A, C) is nearly unobservable, or the poles ask for an eigenstructure "
+                "too ill-conditioned to be placed in float64 (raise `rtol` to accept it)."
+            )
+        return L
+    return eqx.error_if(
+        L,
+        ~ok,
+        f"{who}: the computed gain does not place the poles to `rtol` (non-finite gain or a-posteriori "
+        "eigenvalue error above rtol): (A, C) is nearly unobservable, the poles ask for an "
+        "ill-conditioned eigenstructure, or a repeated pole exceeds the number of outputs.",
+    )
+
+
+def place_real(
+    A,
+    C,
+    pr,
+    pi,
+    structure: PoleStructure,
+    *,
+    method: str = "robust",
+    tol: float | None = None,
+    rtol: float = PLACE_RTOL,
+    maxiter: int = _MAXITER,
+    blocks=None,
+    indices=None,
+    warn: bool = True,
+    who: str = "place",
+):
+    """:func:`place` on validated float64 (A, C) and the real and imaginary parts of the poles
+    (``blocks``: the Jordan chains decided earlier on the concrete model, see :func:`blocks_of`)."""
+    n, m = A.shape[0], C.shape[0]
+    Av, Cv = concrete_value(A), concrete_value(C)
+    kron = None
+    if Av is not None and Cv is not None and blocks is None and indices is None:
+        st = require_observable(Av, Cv, tol, who)
+        if st.blocks[0] < m:
+            raise ValueError(
+                f"{who}: the rows of `C` are linearly dependent (rank {st.blocks[0]} < m = {m} at tol "
+                f"{st.tol:.1e}); remove the redundant outputs."
+            )
+        kron = st.kronecker
+    else:
+        A = eqx.error_if(A, ~jnp.all(jnp.isfinite(A)), f"{who}: `A` must be finite.")
+        C = eqx.error_if(C, ~jnp.all(jnp.isfinite(C)), f"{who}: `C` must be finite.")
+    if method == "canonical":
+        from ._canonical import canonical_gain
+
+        pr, pi = _check_pattern(pr, pi, make_pattern(structure, ()), who)
+        return canonical_gain(A, C, pr, pi, structure, tol=tol, rtol=rtol, who=who, indices=indices)
+    if method != "robust":
+        raise ValueError(f"`method` must be 'robust' or 'canonical', got {method!r}.")
+    blocks = blocks_of(structure, m, kron) if blocks is None else blocks
+    if warn:
+        warn_jordan(structure, blocks, pr, pi, m, kron, who)
+    lay, depth = make_layout(blocks, n)
+    L, err, kappa = _robust_core(
+        lay, make_pattern(structure, blocks), A, C, pr, pi, m=m, depth=depth, maxiter=maxiter
+    )
+    return _finish(L, err, kappa, rtol, who)
+
+
+def place(
+    A,
+    C,
+    poles,
+    *,
+    method: str = "robust",
+    tol: float | None = None,
+    rtol: float = PLACE_RTOL,
+    structure: PoleStructure | None = None,
+    maxiter: int = _MAXITER,
+) -> jax.Array:
+    """Observer gain L (n, m) with eig(A − L C) = ``poles`` (thesis Lemma 1, (2.7)).
+
+    The identity observer (2.7) ż = (A − LC) z + L y + B u then has the requested dynamics.
+
+    **Methods.**
+
+    - ``"robust"`` (default, any m): the eigenvector method.  With F real block-diagonal holding the
+      requested spectrum and T a real matrix of left eigenvectors, T A − F T = G C (thesis Theorem 1,
+      (2.2)-(2.4)) and L = (A − T⁻¹FT) C⁺; each row of T lies in the m-dimensional space
+      {t : t(A − λI) ∈ rowspace C} (an orthonormal basis from a QR factorisation of the PBH matrix
+      [A − λI; C], as in Kautsky, Nichols & Van Dooren, Int. J. Control 41(5), 1985), chosen to minimise
+      the Tits-Yang measure Σ log‖t_k‖ − log|det T| (Tits & Yang, IEEE TAC 41(10), 1996) by Newton's
+      method: well-conditioned eigenvectors, hence a small gain and eigenvalues accurate to about
+      ε·cond(T).  Single output: the eigenvectors are unique and the formula is exact.
+    - ``"canonical"``: thesis §3.2: the multi-output canonical form (3.1c) splits the pair into m
+      single-output subsystems of orders ν_1 … ν_m, coupled only through the outputs, and each gets its
+      poles from the coefficients of its characteristic polynomial (Figs. 3.2-3.4); the poles are
+      distributed over the subsystems in order, conjugate pairs kept together.  Exact, but its
+      eigenvectors are those of companion matrices: ill-conditioned for large ν.
+
+    **Repeated poles.**  A pole of multiplicity k ≤ m gets k independent eigenvectors where the
+    observability indices allow it (Rosenbrock's majorisation); otherwise it is assigned with Jordan
+    chains, with a warning: such a gain is sensitive -- an eigenvalue of a Jordan block of size s moves
+    by about ε^{1/s} under a perturbation ε of A, C or L.
+
+    **Trust.**  The result is checked a posteriori: with E = T(A − LC) − FT every eigenvalue of A − LC
+    lies within ‖E T⁻¹‖ of a requested one (plus the rounding in forming E); a bound above ``rtol``
+    times max(‖A‖, ‖F‖), or a non-finite gain, raises ``ValueError`` (``eqx.error_if`` under jit).
+
+    **Rank decisions** (observability, indices, the Jordan structure) use
+    :func:`obsjax.analysis.observability_staircase` with ``tol``; a nearly unobservable pair raises
+    ``ValueError`` giving the PBH margin.  They run when A and C are concrete; under jit with traced A, C
+    the a-posteriori check stands guard.
+
+    **Arguments:**
+
+    - `A` (n, n), `C` (m, n): float64 (float32 and integers are promoted; with ``OBSJAX_NO_X64=1`` the
+      call raises rather than design in float32).
+    - `poles`: n poles, real or complex (conjugate-closed).  Under ``jit`` with traced poles the pattern
+      cannot be read: real poles are taken as distinct, complex ones need ``structure``.
+    - `method`: ``"robust"`` or ``"canonical"``.
+    - `tol`: relative tolerance of the rank decisions (default 1e-9).
+    - `rtol`: bound on the a-posteriori relative eigenvalue error (default 1e-6).
+    - `structure`: :func:`obsjax.design.pole_structure` of poles with the same pattern.
+    - `maxiter`: Newton iterations of the robust method.
+
+    **Returns:** L (n, m), float64, differentiable in A, C and the poles (the derivative of the
+    minimiser, by implicit differentiation of its optimality condition); jit- and vmap-compatible.
+
+    **Example:** thesis example (2.8), poles {−3, −3}: ``place([[-2, 1], [0, -1]], [[1, 0]], [-3, -3])``
+    gives L = [[3], [4]] (a Jordan chain: one output, a double pole).
+    """
+    A, C = design_pair(A, C, "place")
+    n = A.shape[0]
+    p = pole_vector(poles, n)
+    structure = resolve_structure(p, structure, n)
+    pr, pi = jnp.real(p).astype(jnp.float64), jnp.imag(p).astype(jnp.float64)
+    return place_real(
+        A, C, pr, pi, structure, method=method, tol=tol, rtol=rtol, maxiter=maxiter, who="place"
+    )
 
 
 def _charpoly(poles):
@@ -43,110 +387,6 @@ def _charpoly(poles):
     for i in range(poles.shape[0]):
         coeffs = jnp.convolve(coeffs, jnp.stack([jnp.ones((), poles.dtype), -poles[i]]))
     return jnp.real(coeffs)
-
-
-def _ackermann(A, c, coeffs):
-    """Gain l (n,) with eig(A − l c) having characteristic polynomial ``coeffs`` (SISO, Ackermann).
-
-        l = φ(A) · O⁻¹ · e_n,   O = [c; cA; …; cA^{n−1}],   φ(s) = s^n + c1 s^{n−1} + … + cn.
-    """
-    n = A.shape[0]
-    O = obsv(A, c[None, :])
-    eye = jnp.eye(n, dtype=A.dtype)
-    phi = coeffs[0] * eye
-    for k in range(1, n + 1):  # Horner: φ(A) = ((A + c1 I) A + c2 I) A + …
-        phi = phi @ A + coeffs[k] * eye
-    en = jnp.zeros((n,), A.dtype).at[-1].set(1.0)
-    return phi @ jnp.linalg.solve(O, en)
-
-
-def _cyclic_candidates(n, m):
-    """Deterministic (L0, v) candidates for the MIMO reduction; the first is (0, equal weights)."""
-    rng = np.random.default_rng(20261121)
-    out = [(np.zeros((n, m)), np.ones(m) / np.sqrt(m))]
-    for _ in range(6):
-        v = rng.standard_normal(m)
-        out.append((np.zeros((n, m)), v / np.linalg.norm(v)))
-    for _ in range(6):
-        v = rng.standard_normal(m)
-        out.append((rng.standard_normal((n, m)), v / np.linalg.norm(v)))
-    return out
-
-
-def choose_reduction(A, C) -> int:
-    """Index of the best-conditioned single-output reduction (L0, v) of a concrete MIMO pair (A, C).
-
-    Store it (as :class:`obsjax.Luenberger` does) to keep the same reduction when A, C are later traced.
-    """
-    A = np.asarray(A, dtype=float)
-    C = np.asarray(C, dtype=float)
-    n, m = A.shape[0], C.shape[0]
-    if m == 1:
-        return 0
-    scale = max(1.0, float(np.linalg.norm(A)))
-    best = None
-    for idx, (L0, v) in enumerate(_cyclic_candidates(n, m)):
-        Ak = A - (L0 * scale) @ C
-        O = _obsv_np(Ak, (v @ C)[None, :])
-        with np.errstate(all="ignore"):
-            cond = np.linalg.cond(O)
-        if not np.isfinite(cond):
-            continue
-        if best is None or cond < best[0] * 0.5:  # prefer earlier (simpler) candidates
-            best = (cond, idx)
-    if best is None:
-        raise ValueError("place: no single-output reduction of (A, C) is observable; check (A, C).")
-    return best[1]
-
-
-def place(A, C, poles, *, reduction: int | None = None) -> jax.Array:
-    """Observer gain L (n, m) such that eig(A − L C) = ``poles`` (thesis Lemma 1, (2.7)).
-
-    The identity observer (2.7) ż = (A − LC) z + L y + B u then has the requested dynamics.
-
-    - Single output (m = 1): Ackermann's formula l = φ(A)·O⁻¹·e_n with O = obsv(A, c) and φ the
-      requested characteristic polynomial.
-    - Several outputs: the MIMO problem is reduced to a single-output one (the cyclic design): with a fixed
-      pre-gain L0 making A − L0C cyclic and a fixed output combination v making (A − L0C, vᵀC) observable,
-      L = L0 + l vᵀ where l places the poles of (A − L0C, vᵀC) by Ackermann.  L0 and v are chosen once per
-      design from a fixed deterministic list (the best-conditioned candidate when A and C are concrete; the
-      first, L0 = 0, under ``jit``), then held constant, so L is an exact, differentiable function of A, C
-      and the poles.  Well-conditioned problems give eig(A − LC) to ~1e-10 relative; the gain differs from
-      python-control's robust (Kautsky–Nichols) choice but has the same eigenvalues.
-
-    Differentiable with respect to A, C and the poles (real or conjugate-closed complex).
-
-    **Raises** ``ValueError`` for a non-square A, mismatched C, a wrong number of poles, complex poles
-    without their conjugates, or an unobservable pair (checked when A and C are concrete).
-
-    **Example:** thesis example (2.8), poles {−3, −3}: ``place([[-2, 1], [0, -1]], [[1, 0]], [-3, -3])``
-    gives L = [[3], [4]].
-    """
-    A, C = _pair(A, C)
-    n, m = A.shape[0], C.shape[0]
-    poles = _check_poles(poles, n)
-    Av, Cv = concrete_value(A), concrete_value(C)
-    if Av is not None and Cv is not None and not is_observable(Av, Cv):
-        raise ValueError(
-            f"(A, C) is not observable: rank obsv(A, C) = {np.linalg.matrix_rank(_obsv_np(Av, Cv))} < n = {n}; "
-            "the observer poles cannot be placed arbitrarily (thesis Lemma 1)."
-        )
-    if jnp.iscomplexobj(poles):
-        poles_c = poles
-    else:
-        poles_c = poles.astype(A.dtype)
-    coeffs = _charpoly(poles_c).astype(A.dtype)
-    if m == 1:
-        return _ackermann(A, C[0], coeffs)[:, None]
-
-    if reduction is None:
-        reduction = choose_reduction(Av, Cv) if (Av is not None and Cv is not None) else 0
-    L0, v = _cyclic_candidates(n, m)[reduction]
-    L0 = jnp.asarray(L0, A.dtype) * jnp.maximum(1.0, jnp.linalg.norm(A))
-    v = jnp.asarray(v, A.dtype)
-    Ak = A - L0 @ C
-    l = _ackermann(Ak, v @ C, coeffs)
-    return L0 + jnp.outer(l, v)
 
 
 def sylvester(A, F, H) -> jax.Array:
@@ -159,9 +399,10 @@ def sylvester(A, F, H) -> jax.Array:
 
     **Example:** thesis (3.3): ``sylvester([[-2, 1], [0, -2]], [[-3]], [[1, 0]])`` → [[1, −1]].
     """
-    A = as_float_array(A, "A")
-    F = as_float_array(F, "F")
-    H = as_float_array(H, "H")
+    require_x64("sylvester")
+    A = as_design_matrix(A, "A")
+    F = as_design_matrix(F, "F")
+    H = as_design_matrix(H, "H")
     if A.ndim != 2 or A.shape[0] != A.shape[1]:
         raise ValueError(f"`A` must be square (n, n), got {tuple(A.shape)}.")
     if F.ndim != 2 or F.shape[0] != F.shape[1]:
@@ -173,9 +414,10 @@ def sylvester(A, F, H) -> jax.Array:
     if Av is not None and Fv is not None:
         ea, ef = np.linalg.eigvals(Av), np.linalg.eigvals(Fv)
         gap = np.min(np.abs(ea[:, None] - ef[None, :]))
-        if gap < 1e-10 * max(1.0, np.max(np.abs(ea)), np.max(np.abs(ef))):
+        if gap < 1e-10 * max(1e-300, np.max(np.abs(ea)), np.max(np.abs(ef))):
             raise ValueError(
-                f"`A` and `F` share an eigenvalue (closest pair {gap:.2e} apart): T A − F T = H has no unique solution."
+                f"`A` and `F` share an eigenvalue (closest pair {gap:.2e} apart): T A − F T = H has "
+                "no unique solution."
             )
     K = jnp.kron(A.T, jnp.eye(q, dtype=A.dtype)) - jnp.kron(jnp.eye(n, dtype=A.dtype), F)
     vecT = jnp.linalg.solve(K, H.T.reshape(-1))  # column-major vec
@@ -188,35 +430,20 @@ def observability_indices(A, C, tol: float | None = None) -> tuple[int, ...]:
     With H = Cᵀ (so y = Hᵀx), the columns h_1 … h_m, Aᵀh_1 … Aᵀh_m, (Aᵀ)²h_1, … are tested one by one in
     that order; a column dependent on those kept is dropped, and with it every later power of the same
     h_j (step (e)).  ν_k is the number of columns kept for output k; Σ ν_k = n for an observable pair and
-    max ν_k is the observability index ν.
+    max ν_k is the observability index ν.  The independence tests are those of the orthogonal staircase
+    form of the balanced pair (:func:`obsjax.analysis.observability_staircase`), relative, so the indices
+    do not change when A → cA or C → dC.
 
-    **Raises** ``ValueError`` when the pair is not observable.
+    **Arguments:** `A` (n, n), `C` (m, n) concrete; `tol`: relative tolerance (default 1e-9).
+
+    **Returns:** (ν_1, …, ν_m).  **Raises** ``ValueError`` (with the PBH margin) when the pair is not
+    observable.
+
+    **Example:** ``observability_indices([[0, 1, 0], [0, 0, 0], [0, 0, 0]], [[1, 0, 0], [0, 0, 1]])``
+    → (2, 1).
     """
-    _pair(A, C)
-    A = np.asarray(A, dtype=float)
-    C = np.atleast_2d(np.asarray(C, dtype=float))
-    n, m = A.shape[0], C.shape[0]
-    H = C.T
-    kept = []
-    nu = [0] * m
-    alive = [True] * m
-    cols = [H[:, j].copy() for j in range(m)]
-    scale = max(1.0, np.linalg.norm(A), np.linalg.norm(C))
-    tol = (1e-9 * scale) if tol is None else tol
-    for _ in range(n):
-        for j in range(m):
-            if not alive[j] or len(kept) == n:
-                continue
-            cand = np.column_stack(kept + [cols[j]])
-            s = np.linalg.svd(cand, compute_uv=False)
-            if s[-1] > tol * max(1.0, s[0]):
-                kept.append(cols[j])
-                nu[j] += 1
-            else:
-                alive[j] = False
-            cols[j] = A.T @ cols[j]
-    if len(kept) < n:
-        raise ValueError(
-            f"(A, C) is not observable: the column selection found {len(kept)} < n = {n} independent columns."
-        )
-    return tuple(nu)
+    st = require_observable(A, C, tol, "observability_indices")
+    return st.indices
+
+
+__all__ = ["observability_indices", "observability_staircase", "place", "sylvester"]

@@ -40,6 +40,7 @@ import numpy as np
 
 from .._checks import as_float_array, concrete_value, vector
 from .._config import require_x64
+from ..analysis._lti import DEFAULT_TOL, relative_residuals
 from ..systems._plants import AbstractSystem
 from ._ltv_canonical import (
     _as_time,
@@ -47,6 +48,7 @@ from ._ltv_canonical import (
     _mm,
     ltv_observability_indices,
     ltv_observer_canonical_form,
+    margin_at,
     time_derivatives,
 )
 from ._pd_spectrum import check_rho_bar, omega_function, pd_coefficients
@@ -103,7 +105,8 @@ class PDControllerGain(NamedTuple):
     - `alpha` (n,): the left-PDO coefficients of the blocks (concatenated), from the synthesis formula.
     - `M` (n, n): x = M(t) z_c; `Ac` (n, n), `Bc` (n, l): the controller canonical form.
     - `indices`: controllability indices (p_1, …, p_l).
-    - `rcond`: σ_min/σ_max of the row-normalised controllability matrix P_0 (strong controllability).
+    - `margin`: the staircase margin of P_0 (strong controllability; the observability margin of the
+      dual pair, :func:`obsjax.design.strong_observability`): scale-invariant, 0 where P_0 is singular.
     """
 
     K: jax.Array
@@ -113,22 +116,11 @@ class PDControllerGain(NamedTuple):
     Ac: jax.Array
     Bc: jax.Array
     indices: tuple[int, ...]
-    rcond: jax.Array
-
-
-def _row_normalised_rcond(Q):
-    """σ_min/σ_max of Q with every row scaled to unit norm.
-
-    A small, local rank test for strong controllability: invariant to the scaling of each row of the
-    controllability matrix (input units, powers of 𝓛̃), unlike |det QᵀQ|.  To be replaced by the design
-    layer's shared scale-invariant rank mechanism."""
-    Qn = Q / jnp.linalg.norm(Q, axis=1, keepdims=True)
-    s = jnp.linalg.svd(Qn, compute_uv=False)
-    return s[-1] / s[0]
+    margin: jax.Array
 
 
 def pd_controller_gain(
-    A: Callable, B: Callable, rho_bar, omega, t, *, indices=None, rcond_min: float = 1e-10
+    A: Callable, B: Callable, rho_bar, omega, t, *, indices=None, threshold: float = DEFAULT_TOL
 ) -> PDControllerGain:
     """State feedback K(t) by PD-eigenstructure assignment (Huang & Zhu, Section II.A and (15)-(16)).
 
@@ -150,8 +142,9 @@ def pd_controller_gain(
     - `omega`: the bandwidth ω > 0: a constant or a callable of t.
     - `t`: the time (may be traced when `indices` is given).
     - `indices`: controllability indices; computed at t (concrete) when ``None``.
-    - `rcond_min`: strong controllability: when t is concrete, σ_min/σ_max of the row-normalised
-      controllability matrix at or below it raises ``ValueError``.
+    - `threshold`: strong controllability: when t is concrete, a staircase margin of the
+      controllability matrix P_0 (the rank mechanism of the indices, on the dual pair; scale-invariant)
+      at or below it raises ``ValueError``; under ``jit`` the margin is in the result.
 
     **Returns:** :class:`PDControllerGain`.
 
@@ -174,22 +167,20 @@ def pd_controller_gain(
     n = jax.eval_shape(A, t).shape[0]
     l = jax.eval_shape(B, t).shape[1]
     idx = _check_indices(indices, n, l)
+    if not threshold >= 0:
+        raise ValueError(f"`threshold` must be >= 0, got {threshold}.")
     try:
-        form = ltv_observer_canonical_form(Ad, Cd, -t, indices=idx, threshold=1e-300)
+        form = ltv_observer_canonical_form(
+            Ad, Cd, -t, indices=idx, threshold=max(float(threshold), 1e-300)
+        )
     except ValueError as e:
         if "not strongly observable" not in str(e):
             raise
+        m = concrete_value(margin_at(Ad, Cd, -t, idx))
         raise ValueError(
-            f"The pair (A, B) is not strongly controllable at t = {float(tc):.6g}: its controllability "
-            f"matrix is singular there."
+            f"The pair (A, B) is not strongly controllable at t = {float(tc):.6g}: the staircase margin "
+            f"of its controllability matrix P_0 is {float(m):.3e} ≤ threshold {threshold:.1e}."
         ) from None
-    rcond = _row_normalised_rcond(form.Q0)
-    rc = concrete_value(rcond)
-    if rc is not None and not rc > rcond_min:
-        raise ValueError(
-            f"The pair (A, B) is not strongly controllable at t = {float(tc):.6g}: the row-normalised "
-            f"controllability matrix has σ_min/σ_max = {float(rc):.3e} ≤ rcond_min = {rcond_min:.1e}."
-        )
     rho_bar = check_rho_bar(rho_bar, distinct=False)
     if rho_bar.shape[0] != n:
         raise ValueError(
@@ -212,7 +203,7 @@ def pd_controller_gain(
     Rc = Bc[jnp.asarray(d)]  # (l, l): unit lower triangular
     Kc = jnp.linalg.solve(Rc, jnp.stack(rows))
     K = _mm(Kc, Minv)
-    return PDControllerGain(K, Kc, jnp.concatenate(alphas), M, Ac, Bc, idx, rcond)
+    return PDControllerGain(K, Kc, jnp.concatenate(alphas), M, Ac, Bc, idx, form.margin)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -533,7 +524,8 @@ def dynamic_inversion(
             f"NominalTrajectory.from_state."
         )
     nom = NominalTrajectory(model, y_ref, None, guess_fn, tuple(r), int(iterations), float(tol))
-    # the decoupling matrix must be invertible at t_check (scale-invariant: row-normalised)
+    # the decoupling matrix must be invertible at t_check (the staircase's relative residuals: each row
+    # against its own norm, so the units of the outputs do not matter)
     _, g = _affine_parts(model)
     phis = _lie_ladder(model, max(r))
 
@@ -544,11 +536,12 @@ def dynamic_inversion(
             [jax.jacfwd(phis[ri - 1], argnums=1)(t, x1)[i] @ g(t, x1) for i, ri in enumerate(r)]
         )
 
-    rc = float(_row_normalised_rcond(decoupling(tc)))
-    if not rc > 1e-10:
+    Dl = decoupling(tc)
+    rc = float(jnp.min(relative_residuals(Dl, jnp.linalg.norm(Dl, axis=1))))
+    if not rc > DEFAULT_TOL:
         raise ValueError(
             f"dynamic_inversion: the decoupling matrix Δ = [L_g L_f^(r_i−1) h_i] is singular at t = {t_check} "
-            f"(row-normalised σ_min/σ_max = {rc:.2e})."
+            f"(smallest residual of a row outside the rows before it, relative to its norm: {rc:.2e})."
         )
     return nom
 
@@ -597,8 +590,9 @@ class TrajectoryLinearizationController(eqx.Module):
     - `u_max`, `u_min`: optional saturation bounds (scalars or (l,) vectors).
     - `indices`: controllability indices of (A_c, B_c); computed at t = 0 when ``None``.
     - `check_ts`: times where strong controllability is checked at construction.
-    - `rcond_min`: the strong-controllability threshold (row-normalised σ_min/σ_max of P_0); along the
-      trajectory a value below it stops the simulation (``eqx.error_if``).
+    - `threshold`: the strong-controllability threshold (the staircase margin of P_0, see
+      :func:`pd_controller_gain`); along the trajectory a margin at or below it stops the simulation
+      (``eqx.error_if``).
 
     **Example:** output feedback through the TLO::
 
@@ -615,7 +609,7 @@ class TrajectoryLinearizationController(eqx.Module):
     u_max: jax.Array
     u_min: jax.Array
     indices: tuple[int, ...] = eqx.field(static=True)
-    rcond_min: float = eqx.field(static=True, default=1e-10)
+    threshold: float = eqx.field(static=True, default=DEFAULT_TOL)
 
     def __init__(
         self,
@@ -628,7 +622,7 @@ class TrajectoryLinearizationController(eqx.Module):
         u_min=None,
         indices=None,
         check_ts=None,
-        rcond_min: float = 1e-10,
+        threshold: float = DEFAULT_TOL,
     ):
         require_x64("TrajectoryLinearizationController")
         if not isinstance(model, AbstractSystem):
@@ -663,7 +657,9 @@ class TrajectoryLinearizationController(eqx.Module):
             raise ValueError(
                 f"`u_min` must be < `u_max` elementwise, got {lo.tolist()} and {hi.tolist()}."
             )
-        self.rcond_min = float(rcond_min)
+        if not threshold > 0:
+            raise ValueError(f"`threshold` must be > 0, got {threshold}.")
+        self.threshold = float(threshold)
         A, B = self.jacobians()
         if indices is None:
             indices = ltv_controllability_indices(A, B, 0.0 if check_ts is None else check_ts)
@@ -681,7 +677,7 @@ class TrajectoryLinearizationController(eqx.Module):
                     self.omega,
                     float(tk),
                     indices=self.indices,
-                    rcond_min=self.rcond_min,
+                    threshold=self.threshold,
                 )
 
     def jacobians(self):
@@ -706,18 +702,17 @@ class TrajectoryLinearizationController(eqx.Module):
         """The full PD-eigenstructure design at time t."""
         A, B = self.jacobians()
         return pd_controller_gain(
-            A, B, self.rho_bar, self.omega, t, indices=self.indices, rcond_min=0.0
+            A, B, self.rho_bar, self.omega, t, indices=self.indices, threshold=0.0
         )
 
     def gain(self, t) -> jax.Array:
         """K(t), shape (l, n) (μ̃ = K ξ̃)."""
         d = self.design(jnp.asarray(t, dtype=float))
-        rc = jax.lax.stop_gradient(d.rcond)
         return eqx.error_if(
             d.K,
-            ~(rc > self.rcond_min),
+            ~(d.margin > self.threshold),
             "TrajectoryLinearizationController: the linearised pair (A_c, B_c) lost strong "
-            "controllability (row-normalised σ_min/σ_max of P_0 below `rcond_min`).",
+            "controllability (the staircase margin of P_0 fell to `threshold`).",
         )
 
     def canonical_gain(self, t, T2) -> jax.Array:

@@ -27,6 +27,7 @@ from jax.scipy.linalg import expm
 
 from .._checks import as_float_array, concrete_value, vector
 from .._config import require_x64
+from ..analysis._lti import gram_relative_residuals, observability_staircase
 from ..systems._plants import LTI
 from ._base import AbstractObserver
 from ._validation import require_finite
@@ -511,14 +512,12 @@ def _check_observable(model: LTI) -> None:
     A, C = concrete_value(model.A), concrete_value(model.C)
     if A is None or C is None:
         return
-    n = A.shape[0]
-    O = np.vstack([C @ np.linalg.matrix_power(A, k) for k in range(n)])
-    s = np.linalg.svd(O, compute_uv=False)
-    rank = int(np.sum(s > s[0] * 1e-10)) if s[0] > 0 else 0
-    if rank < n:
+    st = observability_staircase(A, C)
+    if not st.observable:
         raise ValueError(
-            f"FiniteWindow needs an observable model: the observability matrix of (A, C) has rank {rank}, "
-            f"expected {n} (Lemma 1: the columns of C e^{{−A(T−t)}} must be linearly independent)."
+            f"FiniteWindow needs an observable model: the staircase form of (A, C) has rank {st.rank}, "
+            f"expected {A.shape[0]}, PBH margin {st.margin:.2e} relative to ‖A‖ (Lemma 1: the columns "
+            f"of C e^{{−A(T−t)}} must be linearly independent)."
         )
 
 
@@ -528,15 +527,12 @@ def _check_observable(model: LTI) -> None:
 
 
 def _gram_rcond(M):
-    """Scale-invariant conditioning of a symmetric positive semi-definite Gram matrix: the smallest
-    eigenvalue of D^{-1/2} M D^{-1/2}, D = diag(M) (a unit-diagonal correlation matrix), over the largest.
-
-    Kept local (a rank decision of Lemma 1: the elements h_1^i are independent iff the Gram matrix is
-    nonsingular); it does not depend on the units of the states."""
-    d = jnp.sqrt(jnp.clip(jnp.diagonal(M), 1e-300, None))
-    R = M / (d[:, None] * d[None, :])
-    ev = jnp.linalg.eigvalsh(0.5 * (R + R.T))
-    return ev[0] / ev[-1]
+    """Lemma 1's rank decision on the window gramian M (the elements h_1^i are independent iff M is
+    nonsingular), by the staircase's relative residuals: the smallest residual of a state direction
+    outside those before it, relative to its own norm (:func:`obsjax.analysis._lti.
+    gram_relative_residuals`), squared (a ratio of gramian entries, like an eigenvalue ratio).  It does
+    not depend on the units of the states."""
+    return jnp.min(gram_relative_residuals(M)) ** 2
 
 
 def _quadrature_weights(ts, rule):
@@ -603,8 +599,8 @@ class FiniteWindowLTV(eqx.Module):
     (the paper's e^{W t} becomes Ψⁱ(t, t0), e^{−Aᵀ(T−τ)} becomes Φ(τ, t1)ᵀ).  With β = 0 (γ = 0) Ψ₁₁ = Φ and the
     kernel is the gramian one, G1(t) = M⁻¹ Φ(t, t1)ᵀ C(t)ᵀ with the window gramian
     M = ∫ Φ(t, t1)ᵀ CᵀC Φ(t, t1) dt (Lemma 1's g1 = (h1|h1ᵀ)⁻¹h1).  Lemma 1: an observer exists iff M is
-    nonsingular; this is checked with a scale-invariant test (the smallest eigenvalue of the unit-diagonal
-    scaled gramian, relative to its largest, against `rcond_min`).
+    nonsingular; this is checked with a scale-invariant test (the smallest relative residual of a state
+    direction outside those before it, the rank mechanism of the package, squared, against `rcond_min`).
 
     **Parameter identification** (a second use of Theorem 1): with `E` and/or `D`, the model is
     ẋ = A x + B u + E θ, y = C x + D θ with a constant unknown θ (q,), and X = R^{n+q} holds (x(t1), θ); the
@@ -791,7 +787,8 @@ class FiniteWindowLTV(eqx.Module):
         return Pinv.T @ end["W0"] @ Pinv
 
     def gramian_rcond(self):
-        """Scale-invariant reciprocal condition number of the window gramian (Lemma 1's test)."""
+        """Lemma 1's scale-invariant test of the window gramian: the squared smallest relative residual
+        of a state direction outside those before it (0 when the gramian is singular; ≤ 1)."""
         return _gram_rcond(self.gramian())
 
     def kernels(self, ts):

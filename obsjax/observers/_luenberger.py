@@ -7,9 +7,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, concrete_value, matrix, require_finite, vector
-from ..analysis._lti import is_observable
-from ..design._place import _check_poles, choose_reduction, observability_indices, place
+from .._checks import concrete_value, matrix, require_finite, vector
+from ..analysis._lti import require_observable
+from ..design._place import (
+    as_design_matrix,
+    design_pair,
+    observability_indices,
+    place_real,
+    pole_vector,
+    warn_jordan,
+)
+from ..design._poles import (
+    PoleStructure,
+    blocks_of,
+    decode,
+    default_structure,
+    encode,
+    pole_structure,
+)
 from ..systems._plants import LTI
 from ._base import AbstractObserver
 
@@ -19,6 +34,46 @@ def _require_lti(model, who):
         raise ValueError(f"{who} needs an obsjax.LTI model, got {type(model).__name__}.")
 
 
+def _finite_gain(G, name: str, who: str):
+    """A given gain: concrete values must be finite (``ValueError``), traced ones are checked at run time."""
+    v = concrete_value(G)
+    if v is not None and not np.all(np.isfinite(v)):
+        raise ValueError(f"{who}: the gain `{name}` must be finite, got {v.tolist()}.")
+    return G
+
+
+def _poles_leaf(poles, n: int, structure, who: str):
+    """(real-encoded poles, structure): complex poles never become a complex leaf (a pair a ± ib is kept
+    as a and b, see :func:`obsjax.design.pole_structure`); traced poles are taken as already encoded."""
+    p = pole_vector(poles, n, who)
+    v = concrete_value(p)
+    if v is None:
+        if jnp.issubdtype(p.dtype, jnp.complexfloating):
+            raise ValueError(f"{who}: traced complex `poles`; pass their real encoding and `structure`.")
+        return p, default_structure(n) if structure is None else structure
+    if np.iscomplexobj(v) or structure is None:
+        found = pole_structure(v)
+        return jnp.asarray(encode(v, found)), found
+    if not isinstance(structure, PoleStructure) or structure.n != n:
+        raise ValueError(f"{who}: `structure` must be a PoleStructure of {n} poles.")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{who}: `poles` must be finite, got {v.tolist()}.")
+    return p, structure
+
+
+def _chains(A, C, structure, poles, tol, who):
+    """(Jordan chains, observability indices) of the assignment, decided at construction on the
+    concrete model ((None, None) when it is traced)."""
+    Av, Cv = concrete_value(A), concrete_value(C)
+    if Av is None or Cv is None:
+        return None, None
+    st = require_observable(Av, Cv, tol, who)
+    blocks = blocks_of(structure, Cv.shape[0], st.kronecker)
+    pr, pi = decode(poles, structure)
+    warn_jordan(structure, blocks, pr, pi, Cv.shape[0], st.kronecker, who, stacklevel=5)
+    return blocks, st.indices
+
+
 class Luenberger(AbstractObserver):
     """Identity (full-order) observer, thesis (2.7):
 
@@ -26,10 +81,16 @@ class Luenberger(AbstractObserver):
 
     The error x̃ = x̂ − x obeys dx̃/dt = (A − LC) x̃ (Theorem 1 with T = I).
 
-    **Arguments:** `model` (an :class:`obsjax.LTI`, the observer's own model of the plant); `L` (n, m) gain.
-    Use :meth:`from_poles` to design L by pole placement; the poles then are the differentiable leaf
-    (``tune(..., where=lambda o: o.poles)``) and L is recomputed by :func:`obsjax.design.place` once per
-    simulation.
+    **Arguments:** `model` (an :class:`obsjax.LTI`, the observer's own model of the plant); `L` (n, m) gain
+    (finite: a NaN or an infinity is refused, at run time under jit); or `poles` (see :meth:`from_poles`).
+    With poles, L is recomputed by :func:`obsjax.design.place` once per simulation and the poles are the
+    differentiable leaf (``tune(..., where=lambda o: o.poles)``).  A conjugate pair a ± ib is stored as
+    the two real numbers a (at the position of a + ib) and b > 0 (at that of a − ib), so that no complex
+    leaf reaches diffrax and sign-preserving tuning keeps the pair stable and complex; :attr:`spectrum`
+    gives the complex poles.  `method` (``"robust"`` or ``"canonical"``) and `tol` are those of
+    :func:`obsjax.design.place`; the observability of the model and the Jordan structure of repeated
+    poles are decided at construction on the concrete model (a warning names poles that need Jordan
+    chains); `structure` (:func:`obsjax.design.pole_structure`) declares the pattern of traced poles.
 
     **Example:** thesis example (2.8)::
 
@@ -41,37 +102,73 @@ class Luenberger(AbstractObserver):
     model: LTI
     L: jax.Array | None
     poles: jax.Array | None
-    reduction: int = eqx.field(static=True, default=0)
+    structure: PoleStructure | None = eqx.field(static=True, default=None)
+    chains: tuple | None = eqx.field(static=True, default=None)
+    indices: tuple | None = eqx.field(static=True, default=None)
+    method: str = eqx.field(static=True, default="robust")
 
-    def __init__(self, model, L=None, poles=None, reduction=0):
+    def __init__(self, model, L=None, poles=None, *, structure=None, method="robust", tol=None):
         _require_lti(model, "Luenberger")
         if (L is None) == (poles is None):
             raise ValueError("Luenberger needs exactly one of `L` (a gain) or `poles` (use from_poles).")
+        if method not in ("robust", "canonical"):
+            raise ValueError(f"`method` must be 'robust' or 'canonical', got {method!r}.")
         self.model = model
-        self.L = None if L is None else require_finite(matrix(L, "L", (model.n, model.m)), "L")
-        self.poles = None if poles is None else _check_poles(poles, model.n)
-        self.reduction = int(reduction)
+        self.method = method
+        if L is not None:
+            self.L = _finite_gain(as_design_matrix(matrix(L, "L", (model.n, model.m)), "L"), "L", "Luenberger")
+            self.poles, self.structure, self.chains, self.indices = None, None, None, None
+            return
+        self.L = None
+        self.poles, self.structure = _poles_leaf(poles, model.n, structure, "Luenberger")
+        self.chains, self.indices = _chains(
+            model.A, model.C, self.structure, self.poles, tol, "Luenberger"
+        )
 
     @classmethod
-    def from_poles(cls, model, poles) -> "Luenberger":
-        """Observer with eig(A − LC) = ``poles`` (the poles are the tunable leaf)."""
+    def from_poles(cls, model, poles, *, method="robust", tol=None) -> Luenberger:
+        """Observer with eig(A − LC) = ``poles`` (the poles are the tunable leaf).
+
+        ``method`` and ``tol`` are those of :func:`obsjax.design.place`; the observability of the model
+        and the Jordan structure of repeated poles are decided here, on the concrete model.
+        """
         _require_lti(model, "Luenberger.from_poles")
-        A, C = concrete_value(model.A), concrete_value(model.C)
-        if A is not None and C is not None and not is_observable(A, C):
-            raise ValueError("(A, C) of `model` is not observable: the observer poles cannot be placed.")
-        red = choose_reduction(A, C) if (A is not None and C is not None) else 0
-        return cls(model, poles=poles, reduction=red)
+        return cls(model, poles=poles, method=method, tol=tol)
+
+    @property
+    def spectrum(self) -> jax.Array | None:
+        """The requested poles as complex numbers (``None`` for a given gain)."""
+        if self.poles is None:
+            return None
+        re, im = decode(self.poles, self.structure)
+        return re + 1j * im
 
     @property
     def gain(self) -> jax.Array:
         """The gain L (computed from the poles when designed by placement)."""
         if self.L is not None:
             return self.L
-        return place(self.model.A, self.model.C, self.poles, reduction=self.reduction)
+        A, C = design_pair(self.model.A, self.model.C, "Luenberger")
+        re, im = decode(self.poles, self.structure)
+        return place_real(
+            A,
+            C,
+            re,
+            im,
+            self.structure,
+            method=self.method,
+            blocks=self.chains,
+            indices=self.indices,
+            warn=False,
+            who="Luenberger",
+        )
 
     def prepare(self):
         if self.L is not None:
-            return self
+            L = eqx.error_if(
+                self.L, ~jnp.all(jnp.isfinite(self.L)), "Luenberger: the gain `L` must be finite."
+            )
+            return eqx.tree_at(lambda o: o.L, self, L)
         return eqx.tree_at(lambda o: o.L, self, self.gain, is_leaf=lambda x: x is None)
 
     @property
@@ -91,13 +188,17 @@ class Luenberger(AbstractObserver):
         return z
 
 
-def _complement(C):
+def _complement(C, tol=None):
     """Rows D completing C to a nonsingular M = [C; D] (orthonormal basis of the null space of C)."""
     C = np.asarray(C)
     _, s, vt = np.linalg.svd(C)
-    r = int(np.sum(s > 1e-12 * max(1.0, s[0])))
+    tol = 1e-9 if tol is None else tol
+    r = int(np.sum(s > tol * max(s[0], np.finfo(float).tiny)))
     if r < C.shape[0]:
-        raise ValueError(f"`C` must have full row rank m = {C.shape[0]} for a reduced-order observer, got rank {r}.")
+        raise ValueError(
+            f"`C` must have full row rank m = {C.shape[0]} for a reduced-order observer, got rank {r} "
+            f"(relative tolerance {tol:.1e})."
+        )
     return vt[r:]
 
 
@@ -112,8 +213,10 @@ class ReducedOrder(AbstractObserver):
 
     so that ŵ − w obeys d/dt(ŵ − w) = (A22 − G A12)(ŵ − w) without differentiating y.
 
-    **Arguments:** `model` (LTI with D = 0), `G` ((n−m), m) gain or `poles` (n − m of them), `Dc`
-    ((n−m), n) rows completing C (an orthonormal null-space basis of C when ``None``).
+    **Arguments:** `model` (LTI with D = 0), `G` ((n−m), m) gain (finite) or `poles` (n − m of them,
+    placed on the pair (A22, A12) by :func:`obsjax.design.place`, stored as real numbers like
+    :class:`Luenberger`'s), `Dc` ((n−m), n) rows completing C (an orthonormal null-space basis of C when
+    ``None``).
 
     **Example:** the thesis plant (2.8) with pole −3 gives G = 2 (A22 − G A12 = −1 − G).
     """
@@ -122,8 +225,10 @@ class ReducedOrder(AbstractObserver):
     G: jax.Array | None
     poles: jax.Array | None
     Dc: jax.Array
+    structure: PoleStructure | None = eqx.field(static=True, default=None)
+    chains: tuple | None = eqx.field(static=True, default=None)
 
-    def __init__(self, model, G=None, poles=None, Dc=None):
+    def __init__(self, model, G=None, poles=None, Dc=None, *, structure=None, tol=None):
         _require_lti(model, "ReducedOrder")
         n, m = model.n, model.m
         if m >= n:
@@ -137,19 +242,32 @@ class ReducedOrder(AbstractObserver):
             Cv = concrete_value(model.C)
             if Cv is None:
                 raise ValueError("`Dc` must be given when the model's C is traced.")
-            Dc = _complement(Cv)
+            Dc = _complement(Cv, tol)
         Dc = require_finite(matrix(Dc, "Dc", (n - m, n)), "Dc")
         Mv = concrete_value(jnp.concatenate([model.C, Dc]))
-        if Mv is not None and abs(np.linalg.det(Mv)) < 1e-12:
-            raise ValueError("M = [C; Dc] must be nonsingular: `Dc` does not complete `C`.")
+        if Mv is not None:
+            sv = np.linalg.svd(Mv, compute_uv=False)
+            if not sv[-1] > 1e-12 * sv[0]:
+                raise ValueError(
+                    "M = [C; Dc] must be nonsingular: `Dc` does not complete `C` "
+                    f"(σ_min/σ_max = {sv[-1] / sv[0]:.1e})."
+                )
         self.model, self.Dc = model, Dc
-        self.G = None if G is None else require_finite(matrix(G, "G", (n - m, m)), "G")
-        self.poles = None if poles is None else _check_poles(poles, n - m)
+        if G is not None:
+            self.G = _finite_gain(as_design_matrix(matrix(G, "G", (n - m, m)), "G"), "G", "ReducedOrder")
+            self.poles, self.structure, self.chains = None, None, None
+            return
+        self.G = None
+        self.poles, self.structure = _poles_leaf(poles, n - m, structure, "ReducedOrder")
+        _, _, _, A12, _, A22, _, _ = self._blocks()
+        self.chains, _ = _chains(
+            A22, A12, self.structure, self.poles, tol, "ReducedOrder (pair (A22, A12))"
+        )
 
     @classmethod
-    def from_poles(cls, model, poles, Dc=None) -> "ReducedOrder":
+    def from_poles(cls, model, poles, Dc=None, *, tol=None) -> ReducedOrder:
         """Reduced-order observer with eig(A22 − G A12) = ``poles`` (n − m poles)."""
-        return cls(model, poles=poles, Dc=Dc)
+        return cls(model, poles=poles, Dc=Dc, tol=tol)
 
     def _blocks(self):
         M = jnp.concatenate([self.model.C, self.Dc])
@@ -160,15 +278,30 @@ class ReducedOrder(AbstractObserver):
         return M, Minv, Ab[:m, :m], Ab[:m, m:], Ab[m:, :m], Ab[m:, m:], Bb[:m], Bb[m:]
 
     @property
+    def spectrum(self) -> jax.Array | None:
+        """The requested poles as complex numbers (``None`` for a given gain)."""
+        if self.poles is None:
+            return None
+        re, im = decode(self.poles, self.structure)
+        return re + 1j * im
+
+    @property
     def gain(self):
         if self.G is not None:
             return self.G
         _, _, _, A12, _, A22, _, _ = self._blocks()
-        return place(A22, A12, self.poles)
+        A22, A12 = design_pair(A22, A12, "ReducedOrder")
+        re, im = decode(self.poles, self.structure)
+        return place_real(
+            A22, A12, re, im, self.structure, blocks=self.chains, warn=False, who="ReducedOrder"
+        )
 
     def prepare(self):
         if self.G is not None:
-            return self
+            G = eqx.error_if(
+                self.G, ~jnp.all(jnp.isfinite(self.G)), "ReducedOrder: the gain `G` must be finite."
+            )
+            return eqx.tree_at(lambda o: o.G, self, G)
         return eqx.tree_at(lambda o: o.G, self, self.gain, is_leaf=lambda x: x is None)
 
     def init(self, t0, xhat0, y0):
@@ -187,31 +320,52 @@ class ReducedOrder(AbstractObserver):
         return Minv @ jnp.concatenate([y, z + self.gain @ y])
 
 
+def _equilibrate(M, sweeps: int = 8):
+    """Row and column scalings (powers of two) making every row and column of M of unit size (Ruiz):
+    the least-squares solve and its residual then do not depend on the units of A, C and a."""
+    r, c = np.ones(M.shape[0]), np.ones(M.shape[1])
+    for _ in range(sweeps):
+        S = np.abs(M / r[:, None] / c[None, :])
+        rr, cc = S.max(axis=1), S.max(axis=0)
+        r *= np.where(rr > 0, 2.0 ** np.round(np.log2(np.where(rr > 0, rr, 1.0)) / 2), 1.0)
+        c *= np.where(cc > 0, 2.0 ** np.round(np.log2(np.where(cc > 0, cc, 1.0)) / 2), 1.0)
+    return r, c
+
+
 def _companion(coeffs):
     """Observer-companion matrix F (r, r) with characteristic polynomial coeffs = [1, c1, …, cr]."""
     r = coeffs.shape[0] - 1
-    F = jnp.zeros((r, r), coeffs.dtype)
+    F = np.zeros((r, r))
     if r > 1:
-        F = F.at[1:, :-1].set(jnp.eye(r - 1, dtype=coeffs.dtype))
-    return F.at[:, -1].set(-coeffs[1:][::-1])
+        F[1:, :-1] = np.eye(r - 1)
+    F[:, -1] = -np.asarray(coeffs[1:])[::-1]
+    return F
 
 
 class FunctionalObserver(AbstractObserver):
     """Observer of a single linear functional s = aᵀx with ν − 1 arbitrary poles (thesis §3.3, Theorem II).
 
-    ν is the observability index (thesis §3.2).  The observer of order r = ν − 1 is
+    ν is the observability index (thesis §3.2, decided by the staircase form: it does not change when
+    A → cA or C → dC).  The observer of order r = ν − 1 is
 
         ż = F z + G y + T B u,      ŝ = kᵀ z + eᵀ y,
 
     with T A − F T = G C (Theorem 1, (2.4)) and aᵀ = kᵀ T + eᵀ C, so that ŝ − s = kᵀ e^{Ft}(z(0) − T x(0)).
     F is the observer-companion matrix of the requested poles and k = e_r; the linear conditions are
-    solved for (T, G, e) by least squares, and a residual above 1e-8 raises ``ValueError`` (the functional
-    is not observable with that order).  When ν = 1 (r = 0) the functional is a static map of y.
+    solved for (T, G, e) by least squares with unit-norm columns (so the test does not depend on the
+    units of A, C and a), and a relative residual above ``rtol`` raises ``ValueError`` (the functional is
+    not observable with that order).  When ν = 1 (r = 0) the functional is a static map of y.
 
     ``estimate`` returns ŝ (shape (1,)) and ``target(t, x) = aᵀx``, so ``Trajectory.error`` is ŝ − aᵀx.
 
-    **Arguments:** `model` (LTI, D = 0), `a` (n,) the functional, `poles` (ν − 1 of them; default
-    from_poles picks the order).  T, G, e are computed at construction from concrete values.
+    **Arguments:** `model` (LTI, D = 0), `a` (n,) the functional, `poles` (ν − 1 of them, real or
+    conjugate pairs), `tol` (rank decisions, see :func:`obsjax.analysis.observability_staircase`),
+    `rtol` (solvability residual, default 1e-8).  T, G, e are computed at construction from concrete
+    values.
+
+    **Example:** thesis §3.3, x2 + x4 of the fourth-order example with the pole −3::
+
+        obs = obsjax.FunctionalObserver(plant4, [0., 1., 0., 1.], [-3.])
     """
 
     model: LTI
@@ -222,25 +376,25 @@ class FunctionalObserver(AbstractObserver):
     k: jax.Array
     e: jax.Array
 
-    def __init__(self, model, a, poles):
+    def __init__(self, model, a, poles, *, tol=None, rtol=1e-8):
         _require_lti(model, "FunctionalObserver")
         A, B, C = (concrete_value(M) for M in (model.A, model.B, model.C))
-        if A is None:
+        if A is None or C is None:
             raise ValueError("FunctionalObserver is designed from concrete model matrices (not under jit).")
+        design_pair(A, C, "FunctionalObserver")
         n, m = model.n, model.m
         a = require_finite(vector(a, "a", n), "a")
-        nu = max(observability_indices(A, C))
+        nu = max(observability_indices(A, C, tol))
         r = nu - 1
-        poles = jnp.atleast_1d(jnp.asarray(poles))
-        if poles.shape[0] != r:
+        pv = np.atleast_1d(np.asarray(poles))
+        if pv.ndim != 1 or pv.shape[0] != r:
             raise ValueError(
-                f"`poles` must hold ν − 1 = {r} poles (observability index ν = {nu}), got {poles.shape[0]}."
+                f"`poles` must hold ν − 1 = {r} poles (observability index ν = {nu}), got "
+                f"{pv.shape[0] if pv.ndim == 1 else pv.shape}."
             )
-        from ..design._place import _charpoly
-
         if r > 0:
-            _check_poles(poles, r)
-            F = np.asarray(_companion(_charpoly(poles.astype(complex) if np.iscomplexobj(poles) else poles.astype(float))))
+            pole_structure(pv)  # finite, conjugate-closed
+            F = _companion(np.real(np.poly(pv)))
         else:
             F = np.zeros((0, 0))
         k = np.zeros(r)
@@ -249,35 +403,32 @@ class FunctionalObserver(AbstractObserver):
         # Unknowns: vec(T) (r n, row-major), vec(G) (r m), e (m).
         nT, nG = r * n, r * m
         rows, rhs = [], []
-        # T A − F T − G C = 0 : entry (i, j)
-        for i in range(r):
+        for i in range(r):  # T A − F T − G C = 0 : entry (i, j)
             for j in range(n):
                 row = np.zeros(nT + nG + m)
-                for l in range(n):
-                    row[i * n + l] += A[l, j]
+                row[i * n : (i + 1) * n] += A[:, j]
                 for l in range(r):
                     row[l * n + j] -= F[i, l]
-                for l in range(m):
-                    row[nT + i * m + l] -= C[l, j]
+                row[nT + i * m : nT + (i + 1) * m] -= C[:, j]
                 rows.append(row)
                 rhs.append(0.0)
-        # kᵀ T + eᵀ C = aᵀ
         av = np.asarray(a)
-        for j in range(n):
+        for j in range(n):  # kᵀ T + eᵀ C = aᵀ
             row = np.zeros(nT + nG + m)
             for i in range(r):
                 row[i * n + j] += k[i]
-            for l in range(m):
-                row[nT + nG + l] += C[l, j]
+            row[nT + nG :] += C[:, j]
             rows.append(row)
             rhs.append(av[j])
         Mx, b = np.array(rows), np.array(rhs)
-        sol, *_ = np.linalg.lstsq(Mx, b, rcond=None)
-        res = np.linalg.norm(Mx @ sol - b) / max(1.0, np.linalg.norm(b))
-        if res > 1e-8:
+        rn, cn = _equilibrate(Mx)
+        sol, *_ = np.linalg.lstsq(Mx / rn[:, None] / cn[None, :], b / rn, rcond=None)
+        sol = sol / cn
+        res = np.linalg.norm((Mx @ sol - b) / rn) / max(np.linalg.norm(b / rn), np.finfo(float).tiny)
+        if not res <= rtol:
             raise ValueError(
                 f"The functional aᵀx cannot be observed with order ν − 1 = {r} and these poles "
-                f"(residual {res:.2e} of TA − FT = GC, aᵀ = kᵀT + eᵀC)."
+                f"(relative residual {res:.2e} > rtol = {rtol:.1e} of TA − FT = GC, aᵀ = kᵀT + eᵀC)."
             )
         self.model = model
         self.a = a

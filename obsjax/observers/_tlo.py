@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array, concrete_value, vector
+from ..analysis._lti import DEFAULT_TOL
 from ..design._ltv_canonical import (
     _check_indices,
-    _mm,
     ltv_observability_indices,
     strong_observability,
     time_derivatives,
@@ -117,11 +117,14 @@ class TrajectoryLinearization(AbstractObserver):
       (without a nominal: at ξ = 0, μ = 0) when ``None``.
     - `check_ts`: times at which strong observability of (A_o, C_o) along the nominal is checked at
       construction (``ValueError`` naming the first failing time); requires `nominal`.
-    - `threshold`: the strong-observability constant c: |det Q_0ᵀQ_0| < c stops the simulation
-      (``eqx.error_if``) and |det QᵀQ| < c fails the `check_ts` check.
+    - `threshold`: the smallest admissible staircase margin of (A_o, C_o) (default 1e-9): the
+      scale-invariant form of Huang & Zhu's strong-observability constant (|det QᵀQ| ≥ c, which changes
+      with the units), computed by the rank mechanism of the indices
+      (:func:`obsjax.design.strong_observability`).  A margin of the rows of Q_0 at or below it stops
+      the simulation (``eqx.error_if``), and a margin of Q below it fails the `check_ts` check.
     - `stiff_rate`: see Stiffness.
     - `on_unobservable`: ``"error"`` (default) raises at run time (``eqx.error_if``) when |det Q_0ᵀQ_0|
-      falls below `threshold` along the trajectory; ``"nan"`` makes the gain NaN instead, so that in a
+      falls to `threshold` along the trajectory; ``"nan"`` makes the gain NaN instead, so that in a
       vmapped study only that trajectory fails (``simulate(..., throw=False)`` reports status 2).
 
     **Example:** Van der Pol oscillator, y = x₁::
@@ -140,7 +143,7 @@ class TrajectoryLinearization(AbstractObserver):
     eps: jax.Array
     nominal: Callable | None
     indices: tuple[int, ...] = eqx.field(static=True)
-    threshold: float = eqx.field(static=True, default=1e-10)
+    threshold: float = eqx.field(static=True, default=DEFAULT_TOL)
     stiff_rate: float = eqx.field(static=True, default=50.0)
     on_unobservable: str = eqx.field(static=True, default="error")
 
@@ -154,7 +157,7 @@ class TrajectoryLinearization(AbstractObserver):
         *,
         indices=None,
         check_ts=None,
-        threshold: float = 1e-10,
+        threshold: float = DEFAULT_TOL,
         stiff_rate: float = 50.0,
         on_unobservable: str = "error",
     ):
@@ -310,15 +313,15 @@ class TrajectoryLinearization(AbstractObserver):
     def gain(self, t, xhat=None, u=None) -> jax.Array:
         """K_o(t), shape (n, m) (multiplies ŷ − y)."""
         d = self.design(t, xhat, u)
-        Q0 = jax.lax.stop_gradient(d.form.Q0)  # only compared with the threshold: no tangent needed
-        det = jnp.abs(jnp.linalg.det(_mm(Q0.T, Q0)))
+        ok = d.form.margin > self.threshold  # the staircase margin (no tangent: a decision)
         if self.on_unobservable == "nan":
-            return jnp.where(det >= self.threshold, d.Ko, jnp.nan)
+            return jnp.where(ok, d.Ko, jnp.nan)
         return eqx.error_if(
             d.Ko,
-            ~(det >= self.threshold),
+            ~ok,
             "TrajectoryLinearization: the linearised pair (A_o, C_o) lost strong observability "
-            "(|det Q_0ᵀQ_0| below `threshold`); the PD-eigenvalue gain is undefined there.",
+            "(the staircase margin of Q_0 fell to `threshold`); the PD-eigenvalue gain is undefined "
+            "there.",
         )
 
     # ------------------------------------------------------------------ observer protocol

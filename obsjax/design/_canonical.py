@@ -1,0 +1,208 @@
+"""The multi-output observable canonical form of thesis §3.2 (Theorem 1, (3.1c), Figs. 3.2-3.3), and the
+observer designed on it as m single-output observers (Fig. 3.4).
+
+With the lexicographic selection (a)-(e) of §3.2 the rows c_j A^i, i < ν_j, are independent and
+
+    c_k A^{ν_k} = Σ_j Σ_i α_ij(k) c_j A^i,      α_ij(k) = 0 for i > ν_k, and for i = ν_k when j > k  (3.1c)
+
+(the thesis writes it for the columns (Aᵀ)^i h_j with H = Cᵀ).  Subsystem k of Fig. 3.3 is a chain of ν_k
+integrators driven by the outputs: with y = Cx,
+
+    ż_{k,1} = Σ_j α_0j(k) y_j,     ż_{k,l} = z_{k,l−1} + Σ_j α_{l−1,j}(k) y_j  (l = 2 … ν_k),
+    ȳ_k := z_{k,ν_k} = y_k − Σ_{j<k} α_{ν_k,j}(k) y_j,
+
+so z = P x with the rows q_{k,ν_k} = c_k − Σ_{j<k} α_{ν_k,j}(k) c_j and q_{k,l−1} = q_{k,l} A − Σ_j
+α_{l−1,j}(k) c_j; in these coordinates A_z = S + Γ C_z (S: ones on the sub-diagonal of each block, Γ the
+α's), C_z = R E (E picks the last state of each block, R is unit lower triangular): "the subsystems are
+coupled to each other only through their outputs", and y = R ȳ.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import concrete_value
+from ..analysis._lti import balance_pair, require_observable
+from ._place import _error_estimate, _finish, design_pair
+from ._poles import PoleStructure
+
+
+class ObservableCanonicalForm(NamedTuple):
+    """The multi-output canonical form of thesis §3.2 (see :func:`observable_canonical_form`).
+
+    - `P` (n, n): z = P x, the states of the subsystems block by block (z_{k,1} … z_{k,ν_k}).
+    - `A` (n, n) = P A P⁻¹ = S + Γ C_z;  `C` (m, n) = C P⁻¹ = R E.
+    - `indices`: (ν_1, …, ν_m).
+    - `alpha`: tuple of m arrays, alpha[k] of shape (ν_k + 1, m) with alpha[k][i, j] = α_ij(k) of (3.1c).
+    - `R` (m, m): unit lower triangular, y = R ȳ with ȳ_k = z_{k,ν_k} (the subsystem outputs of Fig. 3.3).
+    - `Gamma` (n, m): Γ[(k, l), j] = α_{l−1,j}(k), the output injections of Fig. 3.3.
+    """
+
+    P: jax.Array
+    A: jax.Array
+    C: jax.Array
+    indices: tuple[int, ...]
+    alpha: tuple[jax.Array, ...]
+    R: jax.Array
+    Gamma: jax.Array
+
+
+def _selected(indices) -> list[tuple[int, int]]:
+    """(i, j) of the rows c_j A^i kept by the search, in lexicographic order (power first)."""
+    return [(i, j) for i in range(max(indices)) for j in range(len(indices)) if i < indices[j]]
+
+
+def _form(A, C, indices, scale):
+    """The canonical form for static `indices`; `scale` = (D, sA) makes the α solve well scaled."""
+    m = C.shape[0]
+    d, sA = scale
+    An = (A * (d[None, :] / d[:, None])) / sA  # D⁻¹ A D / sA (similarity and time scaling)
+    Cn = C * d[None, :]
+    powers = [Cn]
+    for _ in range(max(indices)):
+        powers.append(powers[-1] @ An)
+    sel = _selected(indices)
+    O = jnp.stack([powers[i][j] for i, j in sel])  # (n, n), independent rows
+    alphas = []
+    for k in range(m):
+        nu = indices[k]
+        coef = jnp.linalg.solve(O.T, powers[nu][k])  # c_k A^ν_k in terms of the selected rows
+        ak = jnp.zeros((nu + 1, m), A.dtype)
+        for (i, j), c in zip(sel, coef):
+            keep = i < nu or (i == nu and j < k)  # (3.1c): later rows have zero coefficients
+            if keep:
+                ak = ak.at[i, j].set(c * sA ** (nu - i))  # back to the units of A
+        alphas.append(ak)
+    rows = []
+    for k in range(m):
+        nu, ak = indices[k], alphas[k]
+        q = C[k] - ak[nu, :k] @ C[:k]
+        block = [q]
+        for l in range(nu, 1, -1):  # q_{k,l−1} = q_{k,l} A − Σ_j α_{l−1,j}(k) c_j
+            q = q @ A - ak[l - 1] @ C
+            block.append(q)
+        rows.extend(block[::-1])
+    P = jnp.stack(rows)
+    Pinv = jnp.linalg.inv(P)
+    Atil = jnp.zeros((m, m), A.dtype)
+    for k in range(m):
+        Atil = Atil.at[k, :k].set(alphas[k][indices[k], :k])
+    R = jnp.linalg.inv(jnp.eye(m, dtype=A.dtype) - Atil)
+    Gamma = jnp.concatenate([alphas[k][: indices[k]] for k in range(m)], axis=0)
+    return ObservableCanonicalForm(P, P @ A @ Pinv, C @ Pinv, tuple(indices), tuple(alphas), R, Gamma)
+
+
+def _indices_and_scale(A, C, tol, who):
+    Av, Cv = concrete_value(A), concrete_value(C)
+    if Av is None or Cv is None:
+        raise ValueError(
+            f"{who}: the observability indices are static: call it with concrete `A` and `C` "
+            "(outside jit), or pass `indices`."
+        )
+    st = require_observable(Av, Cv, tol, who)
+    if min(st.indices) < 1:
+        raise ValueError(
+            f"{who}: every output must contribute (indices {st.indices}); the rows of `C` are "
+            "linearly dependent -- remove the redundant outputs."
+        )
+    _, _, d = balance_pair(Av, Cv)
+    sA = max(np.linalg.norm(Av * (d[None, :] / d[:, None]), 2), np.finfo(float).tiny)
+    return st.indices, (jnp.asarray(d), float(sA))
+
+
+def observable_canonical_form(A, C, *, tol: float | None = None, indices=None) -> ObservableCanonicalForm:
+    """The multi-output observable canonical form of thesis §3.2, Theorem 1 ((3.1c), Figs. 3.2-3.3).
+
+    The observability indices ν_k come from the lexicographic search (a)-(e) (decided on the staircase
+    form, :func:`obsjax.analysis.observability_staircase`); the α_ij(k) of (3.1c) express c_k A^{ν_k}
+    through the rows kept before it; the coordinates z = P x make the system m single-output
+    subsystems (orders ν_k, Σ ν_k = n) coupled only through their outputs:
+
+        ż_{k,1} = Σ_j α_0j(k) y_j,   ż_{k,l} = z_{k,l−1} + Σ_j α_{l−1,j}(k) y_j,
+        z_{k,ν_k} = y_k − Σ_{j<k} α_{ν_k,j}(k) y_j,
+
+    i.e. P A P⁻¹ = S + Γ C P⁻¹ and C P⁻¹ = R E (module docstring).  Differentiable in A and C (for fixed
+    indices).  For m = 1 it is the observable companion form (python-control's ``observable_form``
+    with the states in reverse order).
+
+    **Arguments:** `A` (n, n), `C` (m, n) (concrete unless `indices` is given); `tol`: tolerance of the
+    rank decisions; `indices`: the ν_k (to call it under ``jit``).
+
+    **Returns:** an :class:`ObservableCanonicalForm` (P, A, C, indices, alpha, R, Gamma).
+
+    **Example:** the fourth-order example of §3.2 (x1, x3 measured) has ν = (2, 2)::
+
+        cf = observable_canonical_form(A4, [[1, 0, 0, 0], [0, 0, 1, 0]])
+        cf.indices, cf.alpha[0]   # (2, 2), the α_ij(1)
+    """
+    A, C = design_pair(A, C, "observable_canonical_form")
+    if indices is None:
+        indices, scale = _indices_and_scale(A, C, tol, "observable_canonical_form")
+    else:
+        indices = tuple(int(v) for v in indices)
+        if len(indices) != C.shape[0] or min(indices) < 1 or sum(indices) != A.shape[0]:
+            raise ValueError(
+                f"`indices` must be {C.shape[0]} positive integers summing to n = {A.shape[0]}, "
+                f"got {indices}."
+            )
+        scale = (jnp.ones(A.shape[0]), 1.0)
+    return _form(A, C, indices, scale)
+
+
+def assign_subsystems(structure: PoleStructure, indices) -> list[list[int]]:
+    """Positions of the poles given to each subsystem (orders ν_k): conjugate pairs first, each to the
+    first subsystem with two free places, then the real poles in order."""
+    free = list(indices)
+    out: list[list[int]] = [[] for _ in indices]
+    units = [(2, [u, d]) for kind, up, dn in structure.clusters if kind == 2 for u, d in zip(up, dn)]
+    units += [(1, [i]) for kind, idx, _ in structure.clusters if kind == 1 for i in idx]
+    for size, pos in units:
+        k = next((k for k in range(len(free)) if free[k] >= size), None)
+        if k is None:
+            raise ValueError(
+                f"method='canonical': a conjugate pair cannot be split between subsystems of orders "
+                f"{tuple(indices)}; choose real poles for the first-order subsystems or use "
+                "method='robust'."
+            )
+        out[k].extend(pos)
+        free[k] -= size
+    return out
+
+
+def canonical_gain(A, C, pr, pi, structure: PoleStructure, *, tol, rtol, who, indices=None):
+    """Gain of the canonical design (Fig. 3.4): in z = P x each subsystem k gets the observer-companion
+    error dynamics S_k − g_k e_{ν_k}ᵀ with the characteristic polynomial of its poles, i.e.
+    L_z = Γ + G_b R⁻¹ and L = P⁻¹ L_z."""
+    if indices is None:
+        indices, scale = _indices_and_scale(A, C, tol, who)
+    else:
+        scale = (jnp.ones(A.shape[0]), 1.0)
+    cf = _form(A, C, tuple(indices), scale)
+    n, m = A.shape[0], C.shape[0]
+    groups = assign_subsystems(structure, indices)
+    Gb = jnp.zeros((n, m), A.dtype)
+    Fc = jnp.zeros((n, n), A.dtype)
+    start = 0
+    for k, pos in enumerate(groups):
+        nu = indices[k]
+        coeffs = jnp.ones((1,), jnp.complex128)
+        for i in pos:
+            coeffs = jnp.convolve(coeffs, jnp.stack([jnp.ones((), jnp.complex128), -(pr[i] + 1j * pi[i])]))
+        g = jnp.real(coeffs[1:])[::-1]  # s^ν + a_1 s^{ν−1} + … + a_ν  →  g = (a_ν, …, a_1)
+        Gb = Gb.at[start : start + nu, k].set(g)
+        Fc = Fc.at[start : start + nu, start + nu - 1].set(-g)
+        if nu > 1:
+            Fc = Fc.at[start + 1 : start + nu, start : start + nu - 1].add(jnp.eye(nu - 1))
+        start += nu
+    Lz = cf.Gamma + Gb @ jnp.linalg.inv(cf.R)
+    L = jnp.linalg.solve(cf.P, Lz)
+    rc = jnp.asarray(np.repeat(np.arange(m, dtype=np.int32), np.asarray(indices)))
+    lam = jnp.zeros(n, jnp.complex128)
+    for k, g in enumerate(groups):
+        lam = lam.at[k].set(jnp.mean(pr[np.asarray(g)] + 1j * jnp.abs(pi[np.asarray(g)])))
+    err, kappa = _error_estimate(A, C, L, cf.P, Fc, rc, jnp.ones(n, bool), lam)
+    return _finish(L, err, kappa, rtol, who)

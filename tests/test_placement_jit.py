@@ -1,0 +1,221 @@
+"""Placement under jit, vmap and grad; observers built on it (no complex leaf, no NaN); the multi-output
+canonical form of thesis §3.2 against python-control's observable form and its defining structure."""
+
+import warnings
+
+import control
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import obsjax
+from obsjax.design import observable_canonical_form, place, pole_structure
+from obsjax.design._poles import decode, encode
+
+
+def match(eig, poles) -> float:
+    """Largest relative distance |λ̂ − λ| / |λ| between two multisets (greedy matching)."""
+    rest = list(np.asarray(eig, complex))
+    worst = 0.0
+    for p in np.asarray(poles, complex):
+        d = [abs(p - q) for q in rest]
+        k = int(np.argmin(d))
+        worst = max(worst, d[k] / max(abs(p), 1e-300))
+        rest.pop(k)
+    return worst
+
+
+def eig_error(A, C, L, poles) -> float:
+    return match(np.linalg.eigvals(A - L @ C), poles)
+
+
+# ---------------------------------------------------------------- derivatives, jit, vmap
+def test_gradient_mimo_against_central_differences():
+    """d‖L‖²/d(A, C, poles) for n = 6, m = 2 (real poles and a conjugate pair, the pair through its
+    real encoding) against central differences of the re-optimised placement."""
+    rng = np.random.default_rng(7)
+    A, C = rng.standard_normal((6, 6)), rng.standard_normal((2, 6))
+    poles = np.array([-1 + 1j, -1 - 1j, -2.0, -3.0, -4 + 2j, -4 - 2j])
+    structure = pole_structure(poles)
+    enc = encode(poles, structure)
+
+    @jax.jit
+    def f(A, C, e):
+        re, im = decode(e, structure)
+        return jnp.sum(place(A, C, re + 1j * im, structure=structure) ** 2)
+
+    grads = jax.grad(f, argnums=(0, 1, 2))(jnp.asarray(A), jnp.asarray(C), jnp.asarray(enc))
+    args = [A, C, enc]
+    h = 1e-6
+    for k, g in enumerate(grads):
+        fd = np.zeros(args[k].size)
+        for i in range(args[k].size):
+            up, dn = [np.array(a, copy=True) for a in args], [np.array(a, copy=True) for a in args]
+            up[k].flat[i] += h
+            dn[k].flat[i] -= h
+            fd[i] = (f(*map(jnp.asarray, up)) - f(*map(jnp.asarray, dn))) / (2 * h)
+        np.testing.assert_allclose(np.ravel(g), fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
+def test_jit_vmap_over_pole_sets_matches_a_loop():
+    rng = np.random.default_rng(9)
+    A, C = rng.standard_normal((5, 5)), rng.standard_normal((2, 5))
+    sets = -rng.uniform(0.5, 4.0, (6, 5))
+    Ls = jax.jit(jax.vmap(lambda p: place(A, C, p)))(jnp.asarray(sets))
+    for p, L in zip(sets, Ls):
+        np.testing.assert_allclose(L, place(A, C, p), rtol=1e-9, atol=1e-12)
+        assert eig_error(A, C, np.asarray(L), p) < 1e-10
+    # complex pole sets: one pattern, declared once
+    pairs = np.array([[-1 + 1j, -1 - 1j, -2.0, -3 + 0.5j, -3 - 0.5j], [-2 + 2j, -2 - 2j, -1.0, -4 + 1j, -4 - 1j]])
+    stc = pole_structure(pairs[0])
+    Lc = jax.vmap(lambda p: place(A, C, p, structure=stc))(jnp.asarray(pairs))
+    for p, L in zip(pairs, Lc):
+        assert eig_error(A, C, np.asarray(L), p) < 1e-10
+
+
+def test_under_jit_bad_values_raise():
+    rng = np.random.default_rng(10)
+    A, C = rng.standard_normal((4, 4)), rng.standard_normal((2, 4))
+    stc = pole_structure([-1 + 1j, -1 - 1j, -2.0, -3.0])
+    f = jax.jit(lambda p: place(A, C, p, structure=stc))
+    assert np.all(np.isfinite(f(jnp.array([-1 + 1j, -1 - 1j, -2.0, -3.0]))))
+    with pytest.raises(Exception, match="closed under conjugation"):
+        f(jnp.array([-1 + 1j, -1 + 2j, -2.0, -3.0])).block_until_ready()
+    with pytest.raises(Exception, match="must be finite"):
+        jax.jit(lambda p: place(A, C, p))(jnp.array([-1.0, jnp.nan, -2.0, -3.0])).block_until_ready()
+    # an unobservable pair traced under jit: refused at run time, never a silent NaN
+    Au = np.diag([1.0, 2.0, 3.0, 4.0])
+    Cu = np.array([[1.0, 1.0, 1.0, 0.0], [0.0, 1.0, 1.0, 0.0]])  # x4 unobservable
+    g = jax.jit(lambda A, C: place(A, C, jnp.array([-1.0, -2.0, -3.0, -5.0])))
+    with pytest.raises(Exception, match="does not place the poles"):
+        g(jnp.asarray(Au), jnp.asarray(Cu)).block_until_ready()
+
+
+def test_design_refuses_float32_mode():
+    """With OBSJAX_NO_X64=1 a design raises instead of returning a float32 gain."""
+    import subprocess
+    import sys
+
+    code = (
+        "import obsjax, numpy as np\n"
+        "try:\n"
+        "    obsjax.design.place(np.array([[-2., 1.], [0., -1.]]), np.array([[1., 0.]]), [-3., -4.])\n"
+        "except RuntimeError as e:\n"
+        "    print('refused:', 'float64' in str(e))\n"
+    )
+    env = {**__import__("os").environ, "OBSJAX_NO_X64": "1", "JAX_ENABLE_X64": "0"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, env=env, timeout=300
+    )
+    assert "refused: True" in out.stdout, out.stdout + out.stderr
+
+
+# ---------------------------------------------------------------- observers: no complex leaf, no NaN
+def test_complex_poles_never_reach_diffrax():
+    plant = obsjax.LTI([[0.0, 1.0], [-2.0, -0.3]], [[0.0], [1.0]], [[1.0, 0.0]])
+    obs = obsjax.Luenberger.from_poles(plant, [-3 + 2j, -3 - 2j])
+    assert all(not jnp.iscomplexobj(x) for x in jax.tree_util.tree_leaves(obs))
+    np.testing.assert_allclose(obs.spectrum, [-3 + 2j, -3 - 2j])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # diffrax warns on complex leaves
+        tr = obsjax.simulate(plant, obs, jnp.array([1.0, 0.0]), jnp.zeros(2), jnp.linspace(0.0, 2.0, 5))
+    assert int(tr.status) == 0
+    eig = np.linalg.eigvals(np.asarray(obs.observer_matrix))
+    assert match(eig, [-3 + 2j, -3 - 2j]) < 1e-12
+
+
+def test_mimo_luenberger_error_obeys_the_placed_spectrum():
+    """A 4-state, 2-output plant: the simulated error equals exp((A − LC) t) x̃(0)."""
+    import scipy.linalg
+
+    rng = np.random.default_rng(12)
+    A, C = rng.standard_normal((4, 4)), rng.standard_normal((2, 4))
+    plant = obsjax.LTI(A, np.zeros((4, 1)), C)
+    obs = obsjax.Luenberger.from_poles(plant, [-2.0, -3.0, -4 + 1j, -4 - 1j])
+    ts = jnp.linspace(0.0, 2.0, 5)
+    x0 = np.array([1.0, -1.0, 0.5, 0.0])
+    tr = obsjax.simulate(plant, obs, x0, np.zeros(4), ts, rtol=1e-10, atol=1e-12)
+    F = np.asarray(obs.observer_matrix)
+    ref = np.stack([scipy.linalg.expm(F * t) @ (-x0) for t in np.asarray(ts)])
+    np.testing.assert_allclose(tr.error, ref, atol=1e-8)
+
+
+# ---------------------------------------------------------------- thesis §3.2: the canonical form
+A4 = np.array([[-2, 1, 0, 0], [0, -2, 1, 0], [0, 0, -1, 1], [-1, 0, 0, 0.0]])
+B4 = np.array([[0.0], [0.0], [0.0], [1.0]])
+C4 = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
+
+
+def test_canonical_form_single_output_is_python_controls_observable_form():
+    rng = np.random.default_rng(13)
+    A, C = rng.standard_normal((5, 5)), rng.standard_normal((1, 5))
+    cf = observable_canonical_form(A, C)
+    so, _ = control.observable_form(control.ss(A, np.zeros((5, 1)), C, 0))
+    J = np.eye(5)[::-1]  # the same form with the states in reverse order
+    np.testing.assert_allclose(J @ np.asarray(cf.A) @ J, so.A, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(cf.C) @ J, so.C, atol=1e-12)
+    assert cf.indices == (5,)
+
+
+@pytest.mark.parametrize("seed,n,m", [(14, 7, 3), (15, 6, 2), (16, 4, 2)])
+def test_canonical_form_structure_3_1c(seed, n, m):
+    """The defining structure of (3.1c) and Fig. 3.3, and the spectrum of A kept."""
+    rng = np.random.default_rng(seed)
+    A, C = rng.standard_normal((n, n)), rng.standard_normal((m, n))
+    cf = observable_canonical_form(A, C)
+    nu = cf.indices
+    assert nu == obsjax.design.observability_indices(A, C)
+    Az, Cz, P = np.asarray(cf.A), np.asarray(cf.C), np.asarray(cf.P)
+    ends = np.cumsum(nu) - 1
+    S = np.zeros((n, n))
+    start = 0
+    for v in nu:
+        S[start + 1 : start + v, start : start + v - 1] = np.eye(v - 1)
+        start += v
+    # A_z = S + Γ C_z : ones on each block's sub-diagonal, free entries only in the output columns
+    np.testing.assert_allclose(Az, S + np.asarray(cf.Gamma) @ Cz, atol=1e-8)
+    free = np.zeros((n, n), bool)
+    free[:, ends] = True
+    np.testing.assert_allclose(np.where(free | (S > 0), 0.0, Az), 0.0, atol=1e-8)
+    # C_z = R E with R unit lower triangular
+    E = np.eye(n)[ends]
+    R = np.asarray(cf.R)
+    np.testing.assert_allclose(Cz, R @ E, atol=1e-10)
+    np.testing.assert_allclose(np.triu(R, 1), 0.0, atol=0)
+    np.testing.assert_allclose(np.diag(R), 1.0)
+    # (3.1c) itself: c_k A^{ν_k} = Σ α_ij(k) c_j A^i, with α_{ν_k, j}(k) = 0 for j ≥ k
+    for k in range(m):
+        ak = np.asarray(cf.alpha[k])
+        lhs = C[k] @ np.linalg.matrix_power(A, nu[k])
+        rhs = sum(ak[i, j] * C[j] @ np.linalg.matrix_power(A, i) for i in range(nu[k] + 1) for j in range(m))
+        np.testing.assert_allclose(lhs, rhs, atol=1e-8 * np.abs(lhs).max())
+        assert np.all(ak[nu[k], k:] == 0.0)
+    np.testing.assert_allclose(P @ A, Az @ P, atol=1e-8 * np.abs(P).max() * np.abs(A).max())
+    np.testing.assert_allclose(
+        np.sort_complex(np.linalg.eigvals(Az)), np.sort_complex(np.linalg.eigvals(A)), atol=1e-7
+    )
+
+
+def test_canonical_placement_and_section_3_2_example():
+    """place(..., method='canonical') = m single-output designs (Fig. 3.4); on the fourth-order
+    example of §3.2 (subsystem (3.2) and a second block consistent with (3.5)-(3.7)) the reduced-order
+    observer with poles {-3, -3} is the thesis's: G = [[1, 0], [0, 3]], x̂2 = x1 - Z (3.6),
+    x̂4 = 3 x3 - 6 w."""
+    cf = observable_canonical_form(A4, C4)
+    assert cf.indices == (2, 2)
+    poles = [-3.0, -4.0, -5.0, -6.0]
+    L = np.asarray(place(A4, C4, poles, method="canonical"))
+    assert eig_error(A4, C4, L, poles) < 1e-9
+    ro = obsjax.ReducedOrder.from_poles(obsjax.LTI(A4, B4, C4), [-3.0, -3.0], Dc=[[0, 1, 0, 0], [0, 0, 0, 1.0]])
+    np.testing.assert_allclose(ro.gain, [[1.0, 0.0], [0.0, 3.0]], atol=1e-12)
+    # the thesis's T rows: (3.3) T = [1, -1] for (x1, x2), and w = (3 x3 - x4)/6 for (x3, x4)
+    T1 = obsjax.design.sylvester(A4[:2, :2], [[-3.0]], [[1.0, 0.0]])
+    np.testing.assert_allclose(T1, [[1.0, -1.0]], atol=1e-12)
+    T2 = obsjax.design.sylvester(A4[2:, 2:], [[-3.0]], [[1.0, 0.0]])
+    np.testing.assert_allclose(T2, [[0.5, -1.0 / 6.0]], atol=1e-12)
+
+
+def test_canonical_method_keeps_pairs_in_one_subsystem():
+    with pytest.raises(ValueError, match="conjugate pair cannot be split"):
+        place(np.diag([1.0, 2.0]), np.eye(2), [-1 + 1j, -1 - 1j], method="canonical")
