@@ -265,8 +265,8 @@ def _vector_field(t, z, args):
 
 def _solver_fn(observer, hold, opt, sched, m):
     solver = _diffrax.solver_of(opt)
-    ctrl = _diffrax.controller_of(opt, sched.t0, sched.t1) if opt.adaptive else diffrax.ConstantStepSize()
-    event = _diffrax._event_of(opt.adjoint)
+    # the guarded controller ends a diverging solve early (status NONFINITE), as in simulate
+    ctrl = _diffrax.controller_of(opt, sched.t0, sched.t1)
     adjoint = {} if opt.adjoint is None else {"adjoint": opt.adjoint}
 
     term = diffrax.ODETerm(_vector_field)
@@ -275,7 +275,7 @@ def _solver_fn(observer, hold, opt, sched, m):
         z, k, zm = carry
         sol = diffrax.diffeqsolve(
             term, solver, s0, s1, opt.dt0, z, args=(observer, hold, k, m), saveat=diffrax.SaveAt(ts=save_ts, t1=True),
-            stepsize_controller=ctrl, max_steps=opt.max_steps, throw=False, event=event, **adjoint,
+            stepsize_controller=ctrl, max_steps=opt.max_steps, throw=False, **adjoint,
         )
         zs = tmap(lambda a: a[:-1], sol.ys)
         at_start = save_ts == jax.lax.stop_gradient(s0)

@@ -165,10 +165,9 @@ class Luenberger(AbstractObserver):
 
     def prepare(self):
         if self.L is not None:
-            L = eqx.error_if(
-                self.L, ~jnp.all(jnp.isfinite(self.L)), "Luenberger: the gain `L` must be finite."
-            )
-            return eqx.tree_at(lambda o: o.L, self, L)
+            # a traced non-finite gain is not raised here: the trajectory's status says NONFINITE (per
+            # member under vmap), and simulate(throw=True) raises on it
+            return self
         return eqx.tree_at(lambda o: o.L, self, self.gain, is_leaf=lambda x: x is None)
 
     @property
@@ -298,10 +297,7 @@ class ReducedOrder(AbstractObserver):
 
     def prepare(self):
         if self.G is not None:
-            G = eqx.error_if(
-                self.G, ~jnp.all(jnp.isfinite(self.G)), "ReducedOrder: the gain `G` must be finite."
-            )
-            return eqx.tree_at(lambda o: o.G, self, G)
+            return self  # a traced non-finite gain: the trajectory's status (NONFINITE), as for L
         return eqx.tree_at(lambda o: o.G, self, self.gain, is_leaf=lambda x: x is None)
 
     def init(self, t0, xhat0, y0):
