@@ -164,7 +164,7 @@ class MonteCarloResult:
 
     # -- per-trajectory arrays (keep="all") ----------------------------------------------------------
 
-    def _rows(self, name: str):
+    def _rows(self, name: str, field: str | None = None):
         if self._per_trajectory is None:
             raise AttributeError(
                 f"MonteCarloResult.{name} is not available: this study ran with keep='summary' "
@@ -172,7 +172,7 @@ class MonteCarloResult:
                 "them back chunk by chunk with result.iter_chunks() (needs `checkpoint`), or run "
                 "with keep='all'."
             )
-        return getattr(self._per_trajectory, name)
+        return getattr(self._per_trajectory, field or name)
 
     @property
     def error_norm(self) -> np.ndarray:
@@ -193,7 +193,7 @@ class MonteCarloResult:
     @property
     def ok(self) -> np.ndarray:
         """(N,) mask of the successful trajectories."""
-        return self._rows("status") == 0
+        return self._rows("ok", "status") == 0
 
     # -- statistics (both modes) ----------------------------------------------------------------------
 
