@@ -22,6 +22,8 @@ BENCHMARKS = {
     "m": "multihost_local.py",
     "g": "g_numba_dopri5.py",
     "h": "h_first_call.py",
+    "f": "f_forward_gradient.py",
+    "s": "s_streaming_study.py",
 }
 
 

@@ -26,7 +26,7 @@ BACKTRACK = 0.5
 
 #: ``mode="auto"`` differentiates in forward mode when the tuned leaves hold at most this many real
 #: scalars (a complex entry counts twice), in reverse mode otherwise
-#: (``benchmarks/results/i_forward_gradient.md`` measures where the two cross).
+#: (``benchmarks/results/f_forward_gradient.md`` measures where the two cross).
 FORWARD_MODE_MAX_SCALARS = 4
 
 _MODES = ("auto", "forward", "reverse")
@@ -490,10 +490,10 @@ def tune(
     - `mode`: how ∇J is computed: ``"reverse"`` (``jax.value_and_grad`` through the solves, with
       diffrax's default ``RecursiveCheckpointAdjoint``), ``"forward"`` (``jax.jacfwd``: one tangent
       per tuned real scalar, carried through the solves with ``diffrax.ForwardMode()``) or
-      ``"auto"`` (the default): forward mode when the tuned leaves hold at most
-      :data:`FORWARD_MODE_MAX_SCALARS` real scalars (a complex entry counts twice; e.g. (γ, p0, T)
-      or ε), reverse mode otherwise (a gain matrix, many poles).  The cost of forward mode grows
-      with the number of scalars, that of reverse mode does not.  Both give the derivative of the
+      ``"auto"`` (the default): forward mode when the tuned leaves hold at most four real scalars
+      (``FORWARD_MODE_MAX_SCALARS``; a complex entry counts twice; e.g. (γ, p0, T) or ε), reverse
+      mode otherwise (a gain matrix, many poles).  The cost of forward mode grows with the number
+      of scalars, that of reverse mode does not (``benchmarks/results/f_forward_gradient.md``).  Both give the derivative of the
       same discrete solution, so they agree to round-off.  An ``adjoint`` in ``simulate_kwargs``
       decides under ``"auto"`` (``diffrax.ForwardMode()`` forward, ``RecursiveCheckpointAdjoint``
       or ``BacksolveAdjoint`` reverse); one that cannot do the requested mode is refused.
