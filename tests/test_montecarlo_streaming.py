@@ -205,3 +205,84 @@ def test_a_study_without_successes_streams_nan_statistics():
     assert np.all(np.isnan(st.bands)) and np.all(np.isnan(st.error_norm_mean))
     s = st.summary()
     assert np.isnan(s["final_median"]) and np.isnan(s["ise_mean"]) and np.isnan(s["conv_median"])
+
+
+# ---- several processes: the loaded chunks are broadcast one at a time and folded by every process ----------
+
+_WORKER = r"""
+import hashlib, json, os, sys
+import jax
+jax.distributed.initialize(coordinator_address="127.0.0.1:" + sys.argv[1], num_processes=2,
+                           process_id=int(sys.argv[2]), initialization_timeout=120)
+import jax.numpy as jnp, jax.random as jr, numpy as np
+import obsjax
+
+plant = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+obs = obsjax.Luenberger.from_poles(plant, [-2.0, -3.0])
+def x0s(k):
+    return jr.normal(k, (2,))
+def xh0(k):
+    return jnp.zeros(2)
+kw = dict(x0_sampler=x0s, xhat0_sampler=xh0, ts=np.linspace(0.0, 2.0, 9), chunk_size=32,
+          progress=False, keep="summary", simulate_kwargs={"adaptive": False, "dt0": 0.1})
+ck = os.path.join(sys.argv[3], "ck_p%d" % jax.process_index())
+part = obsjax.monte_carlo(plant, obs, jr.PRNGKey(5), 100, checkpoint=ck, max_chunks=2, **kw)
+res = obsjax.monte_carlo(plant, obs, jr.PRNGKey(5), 100, checkpoint=ck, **kw)
+out = dict(part=part.n_done, computed=res.n_computed, n_done=res.n_done, bands=res.bands.tolist(),
+           mean=res.error_norm_mean.tolist(), k0=res._stream.norms.k0,
+           counts=hashlib.sha256(res._stream.norms.counts.tobytes()).hexdigest(),
+           written=os.path.isdir(ck))
+print("RESULT " + json.dumps(out), flush=True)
+"""
+
+
+def test_two_processes_stream_like_one(tmp_path):
+    import hashlib
+    import json
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = str(s.getsockname()[1])
+    script = tmp_path / "worker.py"
+    script.write_text(_WORKER)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=root)
+    env["XLA_FLAGS"] = " ".join(
+        f for f in env.get("XLA_FLAGS", "").split() if "force_host_platform_device_count" not in f
+    )
+    logs = [open(tmp_path / f"p{i}.log", "w") for i in range(2)]  # noqa: SIM115 (closed below)
+    procs = [subprocess.Popen([sys.executable, str(script), port, str(i), str(tmp_path)], env=env,
+                              stdout=logs[i], stderr=subprocess.STDOUT)
+             for i in range(2)]  # fmt: skip
+    outs = []
+    try:
+        for p in procs:
+            p.wait(timeout=240)
+    finally:
+        for p in procs:  # only the processes started here
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        for log in logs:
+            log.close()
+    for i, p in enumerate(procs):
+        text = (tmp_path / f"p{i}.log").read_text()
+        assert p.returncode == 0, text[-3000:]
+        outs.append(json.loads(next(ln for ln in text.splitlines() if ln.startswith("RESULT "))[7:]))
+    # one process, same study
+    ns = {}
+    exec(_WORKER.split("import obsjax\n", 1)[1].split("ck = ")[0], {"obsjax": obsjax, "jr": jr, "jnp": jnp,
+                                                                    "np": np}, ns)  # fmt: skip
+    one = obsjax.monte_carlo(ns["plant"], ns["obs"], jr.PRNGKey(5), 100, **ns["kw"])
+    for o in outs:
+        assert o["part"] == 64 and o["computed"] == 36 and o["n_done"] == 100
+        # every process folded every chunk exactly once: the same integer counts
+        assert o["k0"] == one._stream.norms.k0
+        assert o["counts"] == hashlib.sha256(one._stream.norms.counts.tobytes()).hexdigest()
+        np.testing.assert_array_equal(o["bands"], one.bands)
+        np.testing.assert_allclose(o["mean"], one.error_norm_mean, rtol=1e-13)
+    assert [o["written"] for o in outs] == [True, False]  # process 0 alone holds the checkpoint
