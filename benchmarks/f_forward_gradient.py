@@ -98,9 +98,9 @@ def _measure(obs, plant, where, x0s, xh0s, ts, kw, max_segments, repeat, fd=Fals
     v_f, g_f = fmd(theta0)
     g_r = np.concatenate([np.ravel(np.asarray(g)) for g in g_r])
     g_f = np.concatenate([np.ravel(np.asarray(g)) for g in g_f])
-    out = dict(best=best, med=med, first=first, g_rev=g_r, g_fwd=g_f,
-               rel=float(np.max(np.abs(g_f - g_r) / np.maximum(np.abs(g_r), 1e-300))),
-               dval=abs(float(v_f) - float(v_r)) / abs(float(v_r)))  # fmt: skip
+    out = {"best": best, "med": med, "first": first, "g_rev": g_r, "g_fwd": g_f,
+           "rel": float(np.max(np.abs(g_f - g_r) / np.maximum(np.abs(g_r), 1e-300))),
+           "dval": abs(float(v_f) - float(v_r)) / abs(float(v_r))}  # fmt: skip
     if fd:
         th = np.concatenate([np.ravel(np.asarray(t)) for t in theta0])
         sizes = [int(np.size(t)) for t in theta0]
@@ -175,8 +175,6 @@ def crossover_rows(repeat, ns, batch=256):
 
 def main(repeat=7, quick=False):
     load = C.Load()
-    import numpy as np
-
     from obsjax.tuning._tune import FORWARD_MODE_MAX_SCALARS
 
     batch = 64

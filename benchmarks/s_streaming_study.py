@@ -85,34 +85,44 @@ def child(n, keep, ckpt):
     print("RESULT " + json.dumps(out), flush=True)
 
 
+def _polar(lam, x=None):
+    """For x̃ ~ N(0, diag(lam)): E‖x̃‖, or (x given) P(‖x̃‖ ≤ x) and the density of ‖x̃‖ at x, by
+    polar coordinates (‖x̃‖ = r·sqrt(ρ(θ)), r ~ Rayleigh(1), θ ~ U(0, 2π), independent)."""
+    import numpy as np
+    import scipy.integrate as si
+
+    def rho(th):
+        return lam[0] * np.cos(th) ** 2 + lam[1] * np.sin(th) ** 2
+
+    def avg(f):
+        return si.quad(f, 0.0, 2 * np.pi)[0] / (2 * np.pi)
+
+    if x is None:
+        return np.sqrt(np.pi / 2) * avg(lambda th: np.sqrt(rho(th)))
+    cdf = avg(lambda th: 1 - np.exp(-(x**2) / (2 * rho(th))))
+    pdf = avg(lambda th: x / rho(th) * np.exp(-(x**2) / (2 * rho(th))))
+    return cdf, pdf
+
+
 def exact_stats(ts):
     """E‖x̃(t)‖, the std of ‖x̃(t)‖, its median and its density at the median, for x̃(t) = −exp(Ft) x0,
     x0 ~ N(0, I)."""
     import numpy as np
-    import scipy.integrate as si
     import scipy.linalg as sl
     import scipy.optimize as so
 
-    plant, obs = problem()
+    _, obs = problem()
     F = np.asarray(obs.observer_matrix)
     mean, std, med, dens = [], [], [], []
     for t in ts:
         E = sl.expm(F * t)
         lam = np.linalg.eigvalsh(E @ E.T)
-
-        def rad(th):
-            return lam[0] * np.cos(th) ** 2 + lam[1] * np.sin(th) ** 2
-
-        # ‖x̃‖ = r·sqrt(rad(θ)), r ~ Rayleigh(1) (E r = sqrt(π/2)), θ ~ U(0, 2π) independent
-        m = np.sqrt(np.pi / 2) * si.quad(lambda th: np.sqrt(rad(th)), 0, 2 * np.pi)[0] / (2 * np.pi)
+        m = _polar(lam)
         second = lam.sum()  # E‖x̃‖² = trace Σ
-        cdf = lambda x: si.quad(lambda th: 1 - np.exp(-(x**2) / (2 * rad(th))), 0, 2 * np.pi)[0] / (2 * np.pi)  # noqa: E731
         mean.append(m)
         std.append(np.sqrt(second - m**2))
-        med.append(so.brentq(lambda x: cdf(x) - 0.5, 1e-12, 10 * np.sqrt(second)))
-        x = med[-1]
-        dens.append(si.quad(lambda th: x / rad(th) * np.exp(-(x**2) / (2 * rad(th))), 0, 2 * np.pi)[0]
-                    / (2 * np.pi))  # fmt: skip
+        med.append(so.brentq(lambda x, lam=lam: _polar(lam, x)[0] - 0.5, 1e-12, 10 * np.sqrt(second)))
+        dens.append(_polar(lam, med[-1])[1])
     return np.array(mean), np.array(std), np.array(med), np.array(dens)
 
 
@@ -123,7 +133,8 @@ def run_child(n, keep, workdir):
     cmd = ["/usr/bin/time", "-v", sys.executable, os.path.abspath(__file__), "--child", str(n), keep]
     if ckpt:
         cmd.append(ckpt)
-    p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=os.path.dirname(__file__))
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=os.path.dirname(__file__),
+                       check=False)
     if p.returncode != 0:
         raise RuntimeError(f"child {n} {keep} failed:\n{p.stdout[-3000:]}\n{p.stderr[-3000:]}")
     out = json.loads(next(ln for ln in p.stdout.splitlines() if ln.startswith("RESULT "))[7:])

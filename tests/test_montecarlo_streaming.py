@@ -273,11 +273,12 @@ def test_two_processes_stream_like_one(tmp_path):
         text = (tmp_path / f"p{i}.log").read_text()
         assert p.returncode == 0, text[-3000:]
         outs.append(json.loads(next(ln for ln in text.splitlines() if ln.startswith("RESULT "))[7:]))
-    # one process, same study
-    ns = {}
-    exec(_WORKER.split("import obsjax\n", 1)[1].split("ck = ")[0], {"obsjax": obsjax, "jr": jr, "jnp": jnp,
-                                                                    "np": np}, ns)  # fmt: skip
-    one = obsjax.monte_carlo(ns["plant"], ns["obs"], jr.PRNGKey(5), 100, **ns["kw"])
+    # one process, the same study (the worker's definitions)
+    plant = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+    one = obsjax.monte_carlo(plant, obsjax.Luenberger.from_poles(plant, [-2.0, -3.0]), jr.PRNGKey(5), 100,
+                             x0_sampler=lambda k: jr.normal(k, (2,)), xhat0_sampler=np.zeros(2),
+                             ts=np.linspace(0.0, 2.0, 9), chunk_size=32, progress=False, keep="summary",
+                             simulate_kwargs={"adaptive": False, "dt0": 0.1})  # fmt: skip
     for o in outs:
         assert o["part"] == 64 and o["computed"] == 36 and o["n_done"] == 100
         # every process folded every chunk exactly once: the same integer counts
