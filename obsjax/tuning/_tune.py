@@ -493,7 +493,11 @@ def tune(
       ``"auto"`` (the default): forward mode when the tuned leaves hold at most four real scalars
       (``FORWARD_MODE_MAX_SCALARS``; a complex entry counts twice; e.g. (γ, p0, T) or ε), reverse
       mode otherwise (a gain matrix, many poles).  The cost of forward mode grows with the number
-      of scalars, that of reverse mode does not (``benchmarks/results/f_forward_gradient.md``).  Both give the derivative of the
+      of scalars, that of reverse mode does not; which one is cheaper also depends on the solve
+      (``benchmarks/results/f_forward_gradient.md``): with adaptive steps forward mode was the
+      cheaper up to about 8 scalars, but fixed steps on a grid known before tracing run as one
+      ``lax.scan`` whose reverse pass is cheap, and for a cheap linear plant reverse mode was the
+      cheaper from 2 scalars on: pass ``mode="reverse"`` there.  Both give the derivative of the
       same discrete solution, so they agree to round-off.  An ``adjoint`` in ``simulate_kwargs``
       decides under ``"auto"`` (``diffrax.ForwardMode()`` forward, ``RecursiveCheckpointAdjoint``
       or ``BacksolveAdjoint`` reverse); one that cannot do the requested mode is refused.
