@@ -24,6 +24,8 @@ BENCHMARKS = {
     "g": "g_numba_dopri5.py",
     "h": "h_first_call.py",
     "i": "i_recorded_data.py",
+    "j": "j_forward_gradient.py",
+    "s": "s_streaming_study.py",
 }
 
 

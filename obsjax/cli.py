@@ -416,14 +416,20 @@ BENCHMARKS = {
     "d": "monte_carlo sharded over 2 host devices against 1 (vmapped and lock-step kernels); with "
     "--large N an N-trajectory study and its peak memory",
     "e": "LTI Luenberger observer: obsjax against python-control (place + input_output_response)",
+    "f": "robust MIMO pole placement (n = 4, 10, 20, m = 2, 1000 pole sets, jit(vmap(place))) against a "
+    "SciPy place_poles loop: eigenvalue-error distribution, gain ratio, time",
     "g": "Chen & Yen batch (4096 trajectories, 40 resets, rtol 1e-6): the adaptive back-ends against a "
     "hand-written numba Dormand-Prince 5(4); throughput, accuracy, step counts (needs the `bench` extra)",
     "h": "time to first result in fresh processes: obsjax demo, the first tune step, the first Monte-Carlo "
     "chunk, with the compilation cache off, cold and warm",
     "i": "estimate with the continuous-discrete Kalman filter over 1e5 samples and vmapped over 1000 "
     "experiments against a NumPy/SciPy loop and filterpy (needs the `bench` extra)",
+    "j": "one tune step in forward mode (jax.jacfwd through diffrax.ForwardMode) and in reverse mode "
+    "against the forward pass; where the two modes cross",
     "m": "monte_carlo in 2 jax.distributed processes on localhost against 1 process: agreement, resume "
     "from process 0's checkpoint, timings",
+    "s": "a 1e7-trajectory monte_carlo(keep='summary') study in a fresh process: peak resident memory "
+    "flat in N against keep='all', wall time, streamed statistics against the closed form",
 }
 
 

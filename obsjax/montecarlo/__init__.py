@@ -35,6 +35,7 @@ from ._montecarlo import summarise as summarise
 from ._noisy import NoisyOutput as NoisyOutput
 from ._noisy import noisy_batch as noisy_batch
 from ._noisy import with_noise as with_noise
+from ._streaming import LogHistogram as LogHistogram
 
 # Every public name imported above (keep this line last: names added above it are exported too).
 __all__ = [

@@ -160,9 +160,10 @@ def _write_meta(path: str, fp: str, study_id, n: int, chunk: int, n_chunks: int)
     _atomic_write(path, lambda fh: fh.write(data))
 
 
-def read_checkpoint(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done) -> bool:
-    """Load the finished chunks of directory `ckpt` into `norms`, `status`, `done` (in place), or
-    start it.  Returns True when it holds a different study (the caller raises).
+def read_checkpoint(ckpt, fp, study_id, n, chunk, n_chunks, T, done, on_chunk) -> bool:
+    """Hand the finished chunks of directory `ckpt` to ``on_chunk(c, lo, hi, error_norm, status)``
+    one at a time (rows lo:hi of the study) and mark them in `done` (in place), or start the
+    directory.  Returns True when it holds a different study (the caller raises).
 
     A damaged chunk (unreadable, wrong content, checksum mismatch, renamed) is named in a
     :class:`CheckpointWarning` and left to be recomputed (and atomically replaced).  A damaged
@@ -175,7 +176,6 @@ def read_checkpoint(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
     meta, problem = _read_meta(meta_path)
     if meta is not None and meta.get("fingerprint") != fp:
         return True
-    T = norms.shape[1]
     for c in range(n_chunks):
         path = chunk_path(ckpt, c)
         if not os.path.exists(path):
@@ -196,7 +196,7 @@ def read_checkpoint(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
                 stacklevel=3,
             )
             continue
-        norms[lo:hi], status[lo:hi] = en, st
+        on_chunk(c, lo, hi, en, st)
         done[c] = True
     if meta is None:
         if problem is not None:

@@ -9,6 +9,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -21,9 +22,12 @@ from .._config import require_x64
 from .._integrate import _validate
 from .._simulate import NONFINITE, SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch
+from ._checkpoint import _read_chunk
+from ._checkpoint import chunk_path as _chunk_path
 from ._checkpoint import read_checkpoint as _resume
 from ._checkpoint import write_chunk
 from ._fingerprint import fingerprint
+from ._streaming import DEFAULT_SKETCH_RTOL, LogHistogram
 
 DEFAULT_QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
 
@@ -84,6 +88,13 @@ def _sampler(s, name):
 # ----------------------------------------------------------------------------------------------------------
 
 
+class _PerTrajectory(NamedTuple):
+    error_norm: np.ndarray
+    status: np.ndarray
+    convergence_time: np.ndarray
+    ise: np.ndarray
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class MonteCarloResult:
     """Outcome of :func:`obsjax.monte_carlo` (host NumPy arrays; a plain container, not a pytree).
@@ -96,6 +107,7 @@ class MonteCarloResult:
       2 here even if the solver reported success: it is a failure, never a statistic.
     - `quantiles`: the quantile levels of `bands`.
     - `bands`: (Q, T) quantiles of ‖x̃(t)‖ over the *successful* trajectories at each save time.
+    - `error_norm_mean`: (T,) mean of ‖x̃(t)‖ over the successful trajectories.
     - `convergence_time`: (N,) time (relative to ``ts[0]``) after which ‖x̃‖ stays at or below the
       convergence threshold: the crossing of the threshold after the last save time above it,
       interpolated between that save time and the next one (log-linearly: exact for an exponential
@@ -106,25 +118,82 @@ class MonteCarloResult:
     - `n`: requested number of trajectories; `n_done`: number computed so far (``complete`` when equal).
     - `elapsed`: wall-clock seconds spent computing in this call (excludes chunks loaded from a
       checkpoint); `n_computed`: trajectories computed in this call.
+    - `keep`: ``"all"`` (the per-trajectory arrays are in memory) or ``"summary"`` (a streaming
+      study: see below).
+    - `sketch_rtol`: the relative accuracy α of the quantile sketches of a streaming study (None
+      when ``keep="all"``).
 
     Failures are *counted* (`n_failed`, `failure_fraction`), never averaged into the statistics: the
     bands, convergence times, ISE and :meth:`summary` use the successful rows only (`ok`), so every
     statistic is finite whenever at least one trajectory succeeded.
+
+    **Streaming results** (``monte_carlo(..., keep="summary")``).  The per-trajectory arrays
+    `error_norm`, `status`, `convergence_time`, `ise` and the mask `ok` are not kept: reading one
+    raises ``AttributeError`` naming what to do instead (:meth:`iter_chunks` reads them back from
+    the checkpoint directory, chunk by chunk).  Everything else is available:
+
+    - exact (equal to the in-memory result up to the order of floating-point sums): `n_done`,
+      `n_failed`, `failure_fraction`, `converged_fraction`, `error_norm_mean`, the ``"n"``,
+      ``"failed"``, ``"failure_fraction"``, ``"converged_fraction"`` and ``"ise_mean"`` entries of
+      :meth:`summary`;
+    - from relative-accuracy sketches (:class:`obsjax.montecarlo.LogHistogram`): `bands`,
+      :meth:`band`, :meth:`convergence_quantiles`, the final-error and convergence-time quantiles
+      and the ISE CVaR of :meth:`summary`, and :meth:`plot`.  Each such value v̂ satisfies
+      |v̂ − v| ≤ `sketch_rtol`·|v| + floor against the value v of the in-memory study, floor being
+      2.2e-308 (values below it count as zero) unless the sketch had to fold its lowest bins
+      (:attr:`sketch_floor`).
     """
 
     ts: np.ndarray
-    error_norm: np.ndarray
-    status: np.ndarray
     quantiles: tuple
     bands: np.ndarray
-    convergence_time: np.ndarray
-    ise: np.ndarray
+    error_norm_mean: np.ndarray
     conv_tol: float
     conv_relative: bool
     n: int
     n_done: int
     elapsed: float
     n_computed: int
+    keep: str = "all"
+    sketch_rtol: float | None = None
+    _per_trajectory: _PerTrajectory | None = dataclasses.field(default=None, repr=False)
+    _stream: Any = dataclasses.field(default=None, repr=False)
+    _store: tuple | None = dataclasses.field(default=None, repr=False)
+
+    # -- per-trajectory arrays (keep="all") ----------------------------------------------------------
+
+    def _rows(self, name: str, field: str | None = None):
+        if self._per_trajectory is None:
+            raise AttributeError(
+                f"MonteCarloResult.{name} is not available: this study ran with keep='summary' "
+                "(streaming statistics; the per-trajectory results were not kept in memory). Read "
+                "them back chunk by chunk with result.iter_chunks() (needs `checkpoint`), or run "
+                "with keep='all'."
+            )
+        return getattr(self._per_trajectory, field or name)
+
+    @property
+    def error_norm(self) -> np.ndarray:
+        return self._rows("error_norm")
+
+    @property
+    def status(self) -> np.ndarray:
+        return self._rows("status")
+
+    @property
+    def convergence_time(self) -> np.ndarray:
+        return self._rows("convergence_time")
+
+    @property
+    def ise(self) -> np.ndarray:
+        return self._rows("ise")
+
+    @property
+    def ok(self) -> np.ndarray:
+        """(N,) mask of the successful trajectories."""
+        return self._rows("ok", "status") == 0
+
+    # -- statistics (both modes) ----------------------------------------------------------------------
 
     @property
     def complete(self) -> bool:
@@ -132,6 +201,8 @@ class MonteCarloResult:
 
     @property
     def n_failed(self) -> int:
+        if self._stream is not None:
+            return self._stream.n_failed
         return int(np.sum(self.status > 0))
 
     @property
@@ -140,13 +211,18 @@ class MonteCarloResult:
         return self.n_failed / max(self.n_done, 1)
 
     @property
-    def ok(self) -> np.ndarray:
-        """(N,) mask of the successful trajectories."""
-        return self.status == SUCCESS
+    def sketch_floor(self) -> float:
+        """The absolute part of the sketches' error bound (0 for ``keep="all"``): 2.2e-308, or the
+        lower edge of the lowest bin kept where a sketch folded its lowest bins."""
+        if self._stream is None:
+            return 0.0
+        return self._stream.floor
 
     @property
     def converged_fraction(self) -> float:
         """Share of the successful trajectories that settle below the threshold within the horizon."""
+        if self._stream is not None:
+            return self._stream.converged_fraction
         ct = self.convergence_time[self.ok]
         return float(np.mean(np.isfinite(ct))) if ct.size else float("nan")
 
@@ -157,36 +233,76 @@ class MonteCarloResult:
 
     def band(self, q: float) -> np.ndarray:
         """The q-quantile of ‖x̃(t)‖ over successful trajectories, (T,)."""
+        if self._stream is not None:
+            return self._stream.norms.quantile((q,))[0]
         return _quantiles(self.error_norm[self.ok], (q,))[0]
 
     def convergence_quantiles(self, qs: Sequence[float] = (0.5, 0.95)) -> np.ndarray:
         """Quantiles of the convergence time over successful trajectories (``inf`` counts as slowest)."""
+        if self._stream is not None:
+            return self._stream.conv.quantile(qs, method="lower")[:, 0]
         ct = self.convergence_time[self.ok]
         if ct.size == 0:
             return np.full(len(qs), np.nan)
         return np.quantile(ct, qs, method="lower")
 
+    def _final_quantiles(self, qs) -> np.ndarray:
+        if self._stream is not None:
+            return self._stream.norms.quantile(qs)[:, -1]
+        fin = self.error_norm[self.ok, -1]
+        return np.quantile(fin, qs) if fin.size else np.full(len(qs), np.nan)
+
+    def _ise_mean_cvar(self, cvar_alpha: float):
+        if self._stream is not None:
+            st = self._stream
+            k = max(1, int(math.ceil((1 - cvar_alpha) * st.n_ok))) if st.n_ok else 0
+            mean = st.ise_sum / st.n_ok if st.n_ok else float("nan")
+            return mean, (st.ise.top_mean(k) if k else float("nan"))
+        ise = self.ise[self.ok]
+        k = max(1, int(math.ceil((1 - cvar_alpha) * ise.size))) if ise.size else 0
+        mean = float(np.mean(ise)) if ise.size else float("nan")
+        return mean, (float(np.mean(np.sort(ise)[-k:])) if k else float("nan"))
+
     def summary(self, cvar_alpha: float = 0.95) -> dict:
         """Headline numbers: counts, final-error quantiles, convergence-time quantiles, ISE mean and CVaR."""
-        ok = self.ok
-        fin = self.error_norm[ok, -1]
-        ise = self.ise[ok]
-        k = max(1, int(math.ceil((1 - cvar_alpha) * ise.size))) if ise.size else 0
+        fin = self._final_quantiles((0.5, 0.95))
         cq = self.convergence_quantiles((0.5, 0.95))
+        ise_mean, ise_cvar = self._ise_mean_cvar(cvar_alpha)
         return {
             "n": self.n_done,
             "failed": self.n_failed,
             "failure_fraction": self.failure_fraction,
-            "final_median": float(np.median(fin)) if fin.size else float("nan"),
-            "final_p95": float(np.quantile(fin, 0.95)) if fin.size else float("nan"),
+            "final_median": float(fin[0]),
+            "final_p95": float(fin[1]),
             "conv_median": float(cq[0]),
             "conv_p95": float(cq[1]),
             "converged_fraction": self.converged_fraction,
-            "ise_mean": float(np.mean(ise)) if ise.size else float("nan"),
-            f"ise_cvar{int(round(cvar_alpha * 100))}": float(np.mean(np.sort(ise)[-k:]))
-            if k
-            else float("nan"),
+            "ise_mean": ise_mean,
+            f"ise_cvar{int(round(cvar_alpha * 100))}": ise_cvar,
         }
+
+    def iter_chunks(self):
+        """The per-trajectory results of a checkpointed study, read back from its directory one
+        chunk at a time (memory bounded by a chunk, also for ``keep="summary"``): yields
+        ``(start, error_norm, status)``, the rows ``start, start + 1, …`` as `error_norm` and
+        `status` hold them in memory (failed rows NaN, overflowing rows status 2).  Each chunk is
+        verified (checksum, fingerprint, index) as on resume; a chunk missing or damaged since the
+        study ran raises ``ValueError``.  Needs ``monte_carlo(..., checkpoint=...)``."""
+        if self._store is None:
+            raise ValueError(
+                "iter_chunks() reads the checkpoint directory, but this study ran without "
+                "`checkpoint`: pass checkpoint=<directory> to monte_carlo."
+            )
+        ckpt, fp, chunk, done = self._store
+        T = self.ts.shape[0]
+        for c in np.flatnonzero(done):
+            lo, hi = int(c) * chunk, min((int(c) + 1) * chunk, self.n)
+            path = _chunk_path(ckpt, int(c))
+            en, st, why = _read_chunk(path, fp, int(c), hi - lo, T)
+            if why is not None:
+                raise ValueError(f"checkpoint file {path!r} cannot be read back: {why}.")
+            norms, status, _, _ = _process_rows(self.ts, en, st, self.conv_tol, self.conv_relative)
+            yield lo, norms, status
 
     def plot(self, axes=None, label: str | None = None, color=None, time_unit: str = "s"):
         """Quantile bands of ‖x̃(t)‖ (log scale: median, 25–75 % and 5–95 % shaded, or the outermost
@@ -223,12 +339,17 @@ class MonteCarloResult:
         ax0.set_ylabel(r"estimation error $\|\tilde x(t)\|$")
         ax0.set_title(f"N = {self.n_done}, failed {self.n_failed} ({self.failure_fraction:.2%})")
         ax0.legend(fontsize=8)
-        ct = self.convergence_time[self.ok]
-        finite = ct[np.isfinite(ct)]
+        if self._stream is not None:
+            finite, weights = self._stream.conv.histogram()  # bin representatives and counts
+        else:
+            ct = self.convergence_time[self.ok]
+            finite, weights = ct[np.isfinite(ct)], None
         if finite.size:
+            n_fin = int(finite.size if weights is None else weights.sum())
             ax1.hist(
                 finite,
-                bins=min(50, max(5, int(np.sqrt(finite.size)))),
+                weights=weights,
+                bins=min(50, max(5, int(np.sqrt(n_fin)))),
                 color=color,
                 alpha=0.6,
                 label=label,
@@ -243,10 +364,11 @@ class MonteCarloResult:
     def __repr__(self) -> str:
         s = self.summary()
         state = "" if self.complete else f", INCOMPLETE {self.n_done}/{self.n}"
+        kept = "" if self.keep == "all" else f", streamed (sketch rtol {self.sketch_rtol:g})"
         return (
             f"MonteCarloResult(n={s['n']}{state}, failed={s['failed']} ({s['failure_fraction']:.2%}), "
             f"final ‖x̃‖ median={s['final_median']:.3e} p95={s['final_p95']:.3e}, "
-            f"convergence time median={s['conv_median']:.3g} p95={s['conv_p95']:.3g})"
+            f"convergence time median={s['conv_median']:.3g} p95={s['conv_p95']:.3g}{kept})"
         )
 
 
@@ -284,6 +406,80 @@ def _trapz_sq(ts, norms):
         return np.sum(0.5 * (sq[:, 1:] + sq[:, :-1]) * np.diff(ts), axis=1)
 
 
+def _process_rows(ts, error_norm, status, conv_tol, conv_relative):
+    """Per-trajectory rows as a result holds them: (norms with failed rows NaN, status with
+    overflowing rows re-labelled 2, convergence time, ISE), NaN for failures (and for rows not yet
+    computed, status −1)."""
+    norms = np.array(error_norm, dtype=float, copy=True)
+    status = np.array(status, copy=True).astype(np.int32)
+    ise_all = _trapz_sq(ts, norms)
+    overflow = (status == SUCCESS) & ~(np.all(np.isfinite(norms), axis=1) & np.isfinite(ise_all))
+    status[overflow] = NONFINITE  # the solver finished, the error did not stay finite
+    ok = status == SUCCESS
+    norms[~ok] = np.nan
+    ct = np.full(status.shape, np.nan)
+    ise = np.full(status.shape, np.nan)
+    if ok.any():
+        ct[ok] = _convergence_time(ts, norms[ok], conv_tol, conv_relative)
+        ise[ok] = ise_all[ok]
+    return norms, status, ct, ise
+
+
+class _Streaming:
+    """The streaming statistics of a study (``keep="summary"``), fed one chunk at a time: exact
+    counts and sums, and relative-accuracy sketches for the quantiles."""
+
+    def __init__(self, ts, conv_tol, conv_relative, rtol):
+        self.ts = np.asarray(ts, dtype=float)
+        self.conv_tol, self.conv_relative = conv_tol, conv_relative
+        self.n_done = 0
+        self.status_counts: dict[int, int] = {}
+        self.n_ok = 0
+        self.n_converged = 0
+        self.norm_sum = np.zeros(self.ts.shape[0])
+        self.ise_sum = 0.0
+        self.norms = LogHistogram(self.ts.shape[0], rtol)
+        self.conv = LogHistogram(1, rtol)
+        self.ise = LogHistogram(1, rtol)
+
+    def add(self, error_norm, status) -> None:
+        norms, status, ct, ise = _process_rows(
+            self.ts, error_norm, status, self.conv_tol, self.conv_relative
+        )
+        done = status >= 0
+        self.n_done += int(done.sum())
+        for code, cnt in zip(*np.unique(status[done], return_counts=True)):
+            self.status_counts[int(code)] = self.status_counts.get(int(code), 0) + int(cnt)
+        ok = status == 0
+        if not ok.any():
+            return
+        self.n_ok += int(ok.sum())
+        self.n_converged += int(np.isfinite(ct[ok]).sum())
+        self.norm_sum += norms[ok].sum(axis=0)
+        self.ise_sum += float(ise[ok].sum())
+        self.norms.add(norms[ok])
+        self.conv.add(ct[ok])
+        self.ise.add(ise[ok])
+
+    @property
+    def n_failed(self) -> int:
+        return int(sum(c for code, c in self.status_counts.items() if code > 0))
+
+    @property
+    def converged_fraction(self) -> float:
+        return self.n_converged / self.n_ok if self.n_ok else float("nan")
+
+    @property
+    def floor(self) -> float:
+        return max(float(np.finfo(np.float64).tiny), self.norms.floor, self.conv.floor, self.ise.floor)
+
+    @property
+    def mean(self) -> np.ndarray:
+        if not self.n_ok:
+            return np.full(self.ts.shape[0], np.nan)
+        return self.norm_sum / self.n_ok
+
+
 def summarise(
     ts,
     error_norm,
@@ -302,38 +498,47 @@ def summarise(
     re-labelled status 2 (non-finite) and counted as failed; the statistics use the other rows only.
     """
     ts = np.asarray(ts, dtype=float)
-    norms = np.array(error_norm, dtype=float, copy=True)
-    status = np.array(status, copy=True).astype(np.int32)
-    if norms.ndim != 2 or status.shape != (norms.shape[0],) or norms.shape[1] != ts.shape[0]:
+    shape_n, shape_s = np.shape(error_norm), np.shape(status)
+    if len(shape_n) != 2 or shape_s != (shape_n[0],) or shape_n[1] != ts.shape[0]:
         raise ValueError(
             f"`error_norm` must be (N, T) with T = len(ts) = {ts.shape[0]} and `status` (N,), got "
-            f"{norms.shape} and {status.shape}."
+            f"{shape_n} and {shape_s}."
         )
-    done = status >= 0
-    ise_all = _trapz_sq(ts, norms)
-    overflow = (status == SUCCESS) & ~(np.all(np.isfinite(norms), axis=1) & np.isfinite(ise_all))
-    status[overflow] = NONFINITE  # the solver finished, the error did not stay finite
-    ok = status == SUCCESS
-    norms[~ok] = np.nan
-    ct = np.full(status.shape, np.nan)
-    ise = np.full(status.shape, np.nan)
-    if ok.any():
-        ct[ok] = _convergence_time(ts, norms[ok], conv_tol, conv_relative)
-        ise[ok] = ise_all[ok]
+    norms, status, ct, ise = _process_rows(ts, error_norm, status, conv_tol, conv_relative)
+    ok = status == 0
+    mean = np.mean(norms[ok], axis=0) if ok.any() else np.full(ts.shape[0], np.nan)
     return MonteCarloResult(
         ts=ts,
-        error_norm=norms,
-        status=status,
         quantiles=tuple(float(q) for q in quantiles),
         bands=_quantiles(norms[ok], quantiles),
-        convergence_time=ct,
-        ise=ise,
+        error_norm_mean=mean,
         conv_tol=float(conv_tol),
         conv_relative=bool(conv_relative),
         n=int(status.shape[0] if n is None else n),
-        n_done=int(done.sum()),
+        n_done=int((status >= 0).sum()),
         elapsed=float(elapsed),
         n_computed=int(n_computed),
+        _per_trajectory=_PerTrajectory(norms, status, ct, ise),
+    )
+
+
+def _streamed_result(acc: _Streaming, quantiles, n, elapsed, n_computed, store, rtol):
+    """The :class:`MonteCarloResult` of a streaming study."""
+    return MonteCarloResult(
+        ts=acc.ts,
+        quantiles=tuple(float(q) for q in quantiles),
+        bands=acc.norms.quantile(quantiles),
+        error_norm_mean=acc.mean,
+        conv_tol=float(acc.conv_tol),
+        conv_relative=bool(acc.conv_relative),
+        n=int(n),
+        n_done=acc.n_done,
+        elapsed=float(elapsed),
+        n_computed=int(n_computed),
+        keep="summary",
+        sketch_rtol=float(rtol),
+        _stream=acc,
+        _store=store,
     )
 
 
@@ -544,6 +749,8 @@ def monte_carlo(
     simulate_kwargs=None,
     lockstep=False,
     study_id: str | None = None,
+    keep: str = "all",
+    sketch_rtol: float = DEFAULT_SKETCH_RTOL,
 ) -> MonteCarloResult:
     """Monte-Carlo study of an observer: N trajectories with random initial states, initial estimates,
     measurement noise and (optionally) plant parameters.
@@ -554,7 +761,7 @@ def monte_carlo(
 
     **Execution.**  The N trajectories are processed in chunks of ``chunk_size`` (device memory stays
     bounded by one chunk; the host keeps only ‖x̃(t)‖ on the save grid, N × T floats, so use a coarse
-    ``ts`` for N = 10⁶).  Within a chunk the trajectories are vmapped; with several devices the chunk is
+    ``ts`` for N = 10⁶, or ``keep="summary"`` beyond).  Within a chunk the trajectories are vmapped; with several devices the chunk is
     split across a 1-D device mesh with ``jax.shard_map``, each device running its own vmapped adaptive
     solve, so that a shard waits only for its own slowest trajectory (automatic sharding of a vmapped
     adaptive solve would synchronise every step of the while loop across devices).  One compiled kernel
@@ -585,6 +792,21 @@ def monte_carlo(
       recomputed; a damaged ``meta.json`` is named likewise and rewritten once every chunk present
       has been verified to carry this study's fingerprint.  A checkpoint written by an earlier
       format is refused.
+
+    **Streaming** (``keep="summary"``): studies larger than memory.  Each chunk is folded into
+    streaming statistics as soon as it is computed (or loaded from the checkpoint) and then dropped,
+    so host memory stays bounded by one chunk and the statistics, whatever N: exact counts and sums
+    (failures, the converged fraction, the mean of ‖x̃(t)‖ and of the ISE) and, for the quantiles
+    (the bands, the convergence-time quantiles, the final-error quantiles and the ISE CVaR of
+    :meth:`MonteCarloResult.summary`), logarithmic histograms with relative accuracy
+    ``sketch_rtol`` = α (:class:`obsjax.montecarlo.LogHistogram`): every such value is within
+    α·|v| + 2.2e-308 of the in-memory study's.  The per-trajectory results are not kept in memory:
+    with ``checkpoint`` they are on disk, in the checkpoint's chunk files (the same files, the same
+    fingerprint, so a checkpoint written by either mode is resumed by either), and
+    :meth:`MonteCarloResult.iter_chunks` reads them back chunk by chunk; without ``checkpoint`` they
+    are discarded.  Reading a per-trajectory field of a streaming result (`error_norm`, `status`,
+    `convergence_time`, `ise`, `ok`) raises ``AttributeError``.  A streaming study resumes like
+    any other: the finished chunks are read back one at a time and folded in.
 
     **Several hosts.**  Call ``jax.distributed.initialize(coordinator_address, num_processes,
     process_id)`` in every process before anything else touches JAX (on CPU the cross-process
@@ -636,6 +858,10 @@ def monte_carlo(
     - `simulate_kwargs`: extra keyword arguments of :func:`obsjax.simulate` (``solver``, ``rtol``,
       ``atol``, ``dt0``, ``adaptive``, ``max_steps``); ``throw`` is always ``False`` (failures are counted
       from the per-trajectory ``status``).
+    - `keep`: ``"all"`` (default: the per-trajectory arrays are returned) or ``"summary"``
+      (streaming statistics in memory bounded by a chunk; see **Streaming**).
+    - `sketch_rtol`: the relative accuracy α of the streaming quantiles (``keep="summary"``),
+      default 10⁻³; the sketches take about T · ln(10)/(2α) · 8 bytes per decade that ‖x̃‖ spans.
 
     **Returns:** a :class:`MonteCarloResult`.
 
@@ -675,6 +901,14 @@ def monte_carlo(
         raise ValueError(
             f"`param_sampler` must be a callable (key, plant) -> plant, got {type(param_sampler).__name__}."
         )
+    if keep not in ("all", "summary"):
+        raise ValueError(f"`keep` must be 'all' or 'summary', got {keep!r}.")
+    if not (isinstance(sketch_rtol, (float, int, np.floating)) and 0.0 < sketch_rtol < 0.5):
+        raise ValueError(
+            f"`sketch_rtol` (the relative accuracy of the streaming quantiles) must be in (0, 0.5), "
+            f"got {sketch_rtol!r}."
+        )
+    sketch_rtol = float(sketch_rtol)
     if study_id is not None and (not isinstance(study_id, str) or not study_id):
         raise ValueError(f"`study_id` must be a non-empty string or None, got {study_id!r}.")
     if lockstep and param_sampler is not None:
@@ -747,9 +981,24 @@ def monte_carlo(
 
     n_chunks = int(math.ceil(n / chunk))
     T_len = ts_arr.shape[0]
-    norms = np.full((n, T_len), np.nan)
-    status = np.full((n,), -1, dtype=np.int32)
     done = np.zeros(n_chunks, dtype=bool)
+    if keep == "all":
+        norms = np.full((n, T_len), np.nan)
+        status = np.full((n,), -1, dtype=np.int32)
+
+        def fold(c, lo, hi, en, st):
+            norms[lo:hi], status[lo:hi] = en, st
+
+        def n_failed():
+            return int(np.sum(status > 0))
+    else:  # streaming: memory bounded by a chunk (and the sketches)
+        acc = _Streaming(ts_arr, conv_tol, conv_relative, sketch_rtol)
+
+        def fold(c, lo, hi, en, st):
+            acc.add(en, st)
+
+        def n_failed():
+            return acc.n_failed
 
     # Several processes (jax.distributed): process 0 alone reads and writes the checkpoint; the other
     # processes receive the list of finished chunks and their results from it (a collective), so all of
@@ -778,13 +1027,15 @@ def monte_carlo(
             lockstep=f"lockstep, {D} devices" if lockstep else "independent",
         )
         mismatch, failure = False, None
+        # a streaming study with several processes folds the loaded chunks once they are broadcast
+        load = fold if (n_proc == 1 or keep == "all") else (lambda *a: None)
         if lead:
             if n_proc == 1:
-                mismatch = _resume(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
+                mismatch = _resume(ckpt, fp, study_id, n, chunk, n_chunks, T_len, done, load)
             else:
                 # any failure is told to the other processes before it is raised, or they would wait
                 try:
-                    mismatch = _resume(ckpt, fp, study_id, n, chunk, n_chunks, norms, status, done)
+                    mismatch = _resume(ckpt, fp, study_id, n, chunk, n_chunks, T_len, done, load)
                 except Exception as e:  # noqa: BLE001
                     failure = e
         if n_proc > 1:
@@ -807,7 +1058,15 @@ def monte_carlo(
         if n_proc > 1:
             for c in np.flatnonzero(done):
                 lo, hi = c * chunk, min((c + 1) * chunk, n)
-                norms[lo:hi], status[lo:hi] = _broadcast_from_lead((norms[lo:hi], status[lo:hi]))
+                if keep == "all":
+                    norms[lo:hi], status[lo:hi] = _broadcast_from_lead((norms[lo:hi], status[lo:hi]))
+                    continue
+                en, st = np.full((hi - lo, T_len), np.nan), np.full(hi - lo, -1, np.int32)
+                if lead:  # verified by _resume above; read again, one chunk in memory at a time
+                    en, st, why = _read_chunk(_chunk_path(ckpt, int(c)), fp, int(c), hi - lo, T_len)
+                    if why is not None:
+                        raise ValueError(f"checkpoint chunk {c} changed while it was loaded: {why}.")
+                fold(c, lo, hi, *_broadcast_from_lead((en, st)))
 
     todo = [c for c in range(n_chunks) if not done[c]]
     if max_chunks is not None:
@@ -845,17 +1104,20 @@ def monte_carlo(
             en, st = multihost_utils.process_allgather((en, st), tiled=True)
         en = np.asarray(jax.block_until_ready(en))[: hi - lo]
         st = np.asarray(st)[: hi - lo]
-        norms[lo:hi] = en
-        status[lo:hi] = st
+        fold(c, lo, hi, en, st)
+        done[c] = True
         computed += hi - lo
         if ckpt is not None and lead:
             write_chunk(ckpt, c, fp, en, st)
         if bar is not None:
-            bar.set_postfix(failed=int(np.sum(status > 0)))
+            bar.set_postfix(failed=n_failed())
     elapsed = time.perf_counter() - t_start
     if bar is not None:
         bar.close()
-    return summarise(
+    store = None if ckpt is None else (ckpt, fp, chunk, done.copy())
+    if keep == "summary":
+        return _streamed_result(acc, qs, n, elapsed, computed, store, sketch_rtol)
+    result = summarise(
         ts_arr,
         norms,
         status,
@@ -866,6 +1128,7 @@ def monte_carlo(
         elapsed=elapsed,
         n_computed=computed,
     )
+    return dataclasses.replace(result, _store=store)
 
 
 def comparison_table(results: dict, cvar_alpha: float = 0.95) -> str:

@@ -6,6 +6,7 @@ import math
 import warnings
 from typing import Any
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -20,6 +21,13 @@ from .._simulate import SUCCESS, _check_ts, num_segments, simulate
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
 BACKTRACK = 0.5
+
+#: ``mode="auto"`` differentiates in forward mode when the tuned leaves hold at most this many real
+#: scalars (a complex entry counts twice), in reverse mode otherwise
+#: (``benchmarks/results/j_forward_gradient.md`` measures where the two cross).
+FORWARD_MODE_MAX_SCALARS = 4
+
+_MODES = ("auto", "forward", "reverse")
 
 
 class TuneWarning(UserWarning):
@@ -106,10 +114,14 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
     """J(θ) and ∇J for :func:`tune`.  Module-level, with every array an argument: calls that differ
     only in array values (initial gains, scenarios, risk weights, keys) reuse one compilation.
     ``spec`` holds the static rest (where, loss, single, plant_batched, noise, u, max_segments,
-    simulate_kwargs, and ts as a tuple of floats: simulate needs concrete save times)."""
-    where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts = spec
+    simulate_kwargs, ts as a tuple of floats: simulate needs concrete save times, and the mode of
+    differentiation, ``"forward"`` or ``"reverse"``)."""
+    where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts, mode = spec
     ts = np.asarray(ts, dtype=float)  # concrete inside the trace
     plant_axis = eqx.if_array(0) if plant_batched else None
+    sim_kwargs = dict(simulate_kwargs)
+    if mode == "forward" and "adjoint" not in sim_kwargs:
+        sim_kwargs["adjoint"] = diffrax.ForwardMode()
 
     def J(th):
         new = tuple(th) if signs is None else tuple(s * jnp.exp(t) for s, t in zip(signs, th))
@@ -127,7 +139,7 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
                 key=k,
                 throw=False,
                 max_segments=max_segments,
-                **dict(simulate_kwargs),
+                **sim_kwargs,
             )
             val = jnp.asarray(loss(traj))
             if val.shape != () or not jnp.issubdtype(val.dtype, jnp.floating):
@@ -141,7 +153,61 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
         losses = eqx.filter_vmap(one, in_axes=(plant_axis, 0, 0, 0))(plant, x0s, xhat0s, keys)
         return _sorted_weighted(losses, weights)
 
+    if mode == "forward":
+        return _forward_value_and_grad(J, theta)
     return jax.value_and_grad(J)(theta)
+
+
+def _forward_value_and_grad(J, theta):
+    """J(θ) and ∇J by forward mode: one ``jax.jvp`` per real coordinate of θ, vmapped
+    (``jax.jacfwd``), the value computed once beside them.  A complex entry z = a + ib is two real
+    coordinates; its gradient is returned as ∂J/∂a − i ∂J/∂b, the convention of ``jax.grad``."""
+    cplx = tuple(jnp.iscomplexobj(t) for t in theta)
+    reals = tuple(jnp.stack([t.real, t.imag]) if c else t for t, c in zip(theta, cplx))
+
+    def Jr(r):
+        val = J(tuple(x[0] + 1j * x[1] if c else x for x, c in zip(r, cplx)))
+        return val, val
+
+    jac, val = jax.jacfwd(Jr, has_aux=True)(reals)
+    grads = tuple(g[0] - 1j * g[1] if c else g for g, c in zip(jac, cplx))
+    return val, grads
+
+
+def n_real_scalars(leaves) -> int:
+    """The number of real scalars in `leaves` (a complex entry counts twice): what tune's
+    ``mode="auto"`` compares with ``FORWARD_MODE_MAX_SCALARS``."""
+    return int(sum(np.size(x) * (2 if np.iscomplexobj(x) else 1) for x in leaves))
+
+
+def _resolve_mode(mode, leaves0, simulate_kwargs) -> str:
+    """``"forward"`` or ``"reverse"`` from tune's `mode`, the tuned leaves and a given adjoint."""
+    if mode not in _MODES:
+        raise ValueError(f"`mode` must be 'auto', 'forward' or 'reverse', got {mode!r}.")
+    adjoint = simulate_kwargs.get("adjoint")
+    forward_ok = adjoint is None or isinstance(
+        adjoint, (diffrax.ForwardMode, diffrax.DirectAdjoint)
+    )
+    reverse_ok = not isinstance(adjoint, diffrax.ForwardMode)
+    if mode == "forward" and not forward_ok:
+        raise ValueError(
+            "`mode='forward'` needs an adjoint that supports forward mode, but "
+            f"`simulate_kwargs['adjoint']` is {type(adjoint).__name__}: drop it (tune then uses "
+            "diffrax.ForwardMode()) or pass diffrax.ForwardMode() or diffrax.DirectAdjoint()."
+        )
+    if mode == "reverse" and not reverse_ok:
+        raise ValueError(
+            "`mode='reverse'` cannot differentiate through `simulate_kwargs['adjoint']` = "
+            "diffrax.ForwardMode() (forward mode only): use mode='forward' or 'auto', or drop the "
+            "adjoint."
+        )
+    if mode != "auto":
+        return mode
+    if not forward_ok:
+        return "reverse"
+    if not reverse_ok:
+        return "forward"
+    return "forward" if n_real_scalars(leaves0) <= FORWARD_MODE_MAX_SCALARS else "reverse"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -372,6 +438,7 @@ def tune(
     rtol=None,
     patience=10,
     max_rejections=8,
+    mode="auto",
 ) -> TuneResult:
     """Tune observer gains by gradient descent through simulated error trajectories.
 
@@ -408,6 +475,20 @@ def tune(
       ``rtol·|reference|``, the reference being the loss at the last such improvement; ``steps`` is
       then only a bound.  ``rtol=None`` (the default) runs the whole budget.
     - `max_rejections`: stop after this many consecutive rejected points (see below).
+    - `mode`: how ∇J is computed: ``"reverse"`` (``jax.value_and_grad`` through the solves, with
+      diffrax's default ``RecursiveCheckpointAdjoint``), ``"forward"`` (``jax.jacfwd``: one tangent
+      per tuned real scalar, carried through the solves with ``diffrax.ForwardMode()``) or
+      ``"auto"`` (the default): forward mode when the tuned leaves hold at most four real scalars
+      (``FORWARD_MODE_MAX_SCALARS``; a complex entry counts twice; e.g. (γ, p0, T) or ε), reverse
+      mode otherwise (a gain matrix, many poles).  The cost of forward mode grows with the number
+      of scalars, that of reverse mode does not; which one is cheaper also depends on the solve
+      (``benchmarks/results/j_forward_gradient.md``): with adaptive steps forward mode was the
+      cheaper up to about 8 scalars, but fixed steps on a grid known before tracing run as one
+      ``lax.scan`` whose reverse pass is cheap, and for a cheap linear plant reverse mode was the
+      cheaper from 2 scalars on: pass ``mode="reverse"`` there.  Both give the derivative of the
+      same discrete solution, so they agree to round-off.  An ``adjoint`` in ``simulate_kwargs``
+      decides under ``"auto"`` (``diffrax.ForwardMode()`` forward, ``RecursiveCheckpointAdjoint``
+      or ``BacksolveAdjoint`` reverse); one that cannot do the requested mode is refused.
 
     **Guarantees.**  The arguments are checked before anything is traced (the objects and numbers
     first, then the data, then what ``where`` selects); each bad one raises ``ValueError`` naming it
@@ -444,7 +525,7 @@ def tune(
     object each time).
 
     **Returns:** :class:`TuneResult` (`observer`, `history`, `converged`, `stop_reason`,
-    `steps_taken`).
+    `steps_taken`); ``history["mode"]`` says which mode computed the gradients.
 
     **Example:**::
 
@@ -465,6 +546,7 @@ def tune(
     batch = x0s.shape[0]
     weights = jnp.asarray(risk_weights(risk, batch))
     leaves0, single = _selected_leaves(observer, where)
+    mode = _resolve_mode(mode, leaves0, simulate_kwargs)
     optimizer = optax.adam(1e-2) if optimizer is None else optimizer
     keys = jr.split(jr.PRNGKey(0) if key is None else key, batch)
 
@@ -503,7 +585,9 @@ def tune(
             ns = num_segments(T, 0.0, span)
             need = int(2 ** math.ceil(math.log2(max(ns, 1))))
             seg_bucket[0] = need if seg_bucket[0] is None else max(seg_bucket[0], need)
-        spec = (where, loss, single, plant_batched, noise, u, seg_bucket[0], spec_kwargs, ts_key)
+        spec = (
+            where, loss, single, plant_batched, noise, u, seg_bucket[0], spec_kwargs, ts_key, mode,
+        )  # fmt: skip
         try:
             val, grads = _value_and_grad(
                 theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec
@@ -524,10 +608,12 @@ def tune(
             return None, val, None, "the gradient is not finite"
         return obs, val, grads, None
 
-    return _descend(
+    result = _descend(
         evaluate, build, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
         progress,
     )  # fmt: skip
+    result.history["mode"] = mode
+    return result
 
 
 def _checked_message(e: Exception) -> str:

@@ -1,0 +1,133 @@
+"""tune's forward-mode gradients (``mode="forward"``, chosen by ``"auto"`` for a few scalars): equal to
+reverse mode and to central differences of a plain simulation; the same tuning run."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import optax
+import pytest
+
+import obsjax
+from obsjax.tuning import _tune
+
+# Chen & Yen's example with the least-squares reset observer: (γ, p0, T), T moves the reset instants.
+CY = obsjax.chen_yen_example()
+LSR = obsjax.LeastSquaresReset(CY, 20.0, 0.1, 0.3)
+TS_CY = np.linspace(0.0, 2.9, 20)  # no save time is a reset instant 0.3k (the loss is smooth in T)
+X0_CY = np.array([[0.5, -1.0], [1.5, 0.3]])
+XH_CY = np.tile([5.0, -5.0], (2, 1))
+WHERE_CY = lambda o: (o.gamma, o.p0, o.T)
+
+PLANT = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+TS = jnp.linspace(0.0, 3.0, 31)
+X0S = jr.normal(jr.PRNGKey(0), (4, 2)) * 2.0
+XH0S = jnp.zeros((4, 2))
+
+
+def _tune_gradient(mode, p=(20.0, 0.1, 0.3)):
+    """(J, ∇J) at (γ, p0, T) = p as tune computes them (its compiled kernel), in the given mode."""
+    leaves0, single = _tune._selected_leaves(LSR, WHERE_CY)
+    theta = tuple(jnp.asarray(v, dtype=leaf.dtype) for v, leaf in zip(p, leaves0))
+    spec = (WHERE_CY, obsjax.losses.ise, single, False, None, None, 16, (), tuple(float(t) for t in TS_CY),
+            mode)  # fmt: skip
+    val, grads = _tune._value_and_grad(
+        theta, None, LSR, CY, jnp.asarray(X0_CY), jnp.asarray(XH_CY), jr.split(jr.PRNGKey(0), 2),
+        jnp.asarray(_tune.risk_weights("mean", 2)), spec,
+    )  # fmt: skip
+    return float(val), np.array([float(g) for g in grads])
+
+
+def test_forward_gradient_of_gamma_p0_T_equals_reverse_mode_and_central_differences():
+    p0 = np.array([20.0, 0.1, 0.3])
+    v_fwd, g_fwd = _tune_gradient("forward")
+    v_rev, g_rev = _tune_gradient("reverse")
+    assert v_fwd == pytest.approx(v_rev, rel=1e-13)
+    # both modes differentiate the same discrete solution: equal to round-off
+    np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-8)
+    # central differences of the loss (values from the same kernel: no further compilation)
+    fd = []
+    for i in range(3):
+        h = 1e-5 * p0[i]
+        e = np.zeros(3)
+        e[i] = h
+        fd.append((_tune_gradient("forward", p0 + e)[0] - _tune_gradient("forward", p0 - e)[0]) / (2 * h))
+    np.testing.assert_allclose(g_fwd, fd, rtol=2e-4)
+    assert np.all(np.abs(g_fwd) > 1e-3)  # every component is a real check
+
+
+def test_forward_mode_with_a_complex_leaf_follows_jax_grad_convention():
+    """J(z) = Σ |z_k|² + 3 Im z_k + (Re z_k)³: ∂J/∂a = 2a + 3a², ∂J/∂b = 2b + 3; jax.grad returns
+    ∂J/∂a − i ∂J/∂b, and so must forward mode (the optimizer sees the same update)."""
+    z = jnp.array([-1.0 + 2.0j, -0.5 - 0.25j])
+    r = jnp.array([0.7, -1.3])
+
+    def J(th):
+        zz, rr = th
+        return jnp.sum(jnp.abs(zz) ** 2 + 3 * zz.imag + zz.real**3) + jnp.sum(jnp.sin(rr))
+
+    val, (gz, gr) = _tune._forward_value_and_grad(J, (z, r))
+    a, b = np.real(z), np.imag(z)
+    np.testing.assert_allclose(np.asarray(gz), (2 * a + 3 * a**2) - 1j * (2 * b + 3), rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(gr), np.cos(np.asarray(r)), rtol=1e-14)
+    ref_val, (rz, rr) = jax.value_and_grad(J)((z, r))
+    assert float(val) == pytest.approx(float(ref_val), rel=1e-15)
+    np.testing.assert_allclose(np.asarray(gz), np.asarray(rz), rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(gr), np.asarray(rr), rtol=1e-14)
+
+
+def test_auto_mode_counts_real_scalars():
+    one, three = jnp.ones(()), jnp.ones(3)
+    assert _tune.n_real_scalars((one, one, one)) == 3
+    assert _tune.n_real_scalars((jnp.ones(2, complex),)) == 4
+    k = _tune.FORWARD_MODE_MAX_SCALARS
+    assert _tune._resolve_mode("auto", (jnp.ones(k),), {}) == "forward"
+    assert _tune._resolve_mode("auto", (jnp.ones(k + 1),), {}) == "reverse"
+    assert _tune._resolve_mode("auto", (jnp.ones((k, k)),), {}) == "reverse"
+    assert _tune._resolve_mode("forward", (jnp.ones(50),), {}) == "forward"
+    assert _tune._resolve_mode("reverse", (three,), {}) == "reverse"
+    # a given adjoint decides under "auto"
+    rc = {"adjoint": diffrax.RecursiveCheckpointAdjoint()}
+    assert _tune._resolve_mode("auto", (three,), rc) == "reverse"
+    assert _tune._resolve_mode("auto", (jnp.ones(50),), {"adjoint": diffrax.ForwardMode()}) == "forward"
+
+
+@pytest.mark.parametrize(
+    "mode,kwargs,match",
+    [
+        ("sideways", {}, "`mode` must be 'auto', 'forward' or 'reverse'"),
+        ("forward", {"adjoint": diffrax.RecursiveCheckpointAdjoint()}, "supports forward mode"),
+        ("forward", {"adjoint": diffrax.BacksolveAdjoint()}, "supports forward mode"),
+        ("reverse", {"adjoint": diffrax.ForwardMode()}, "cannot differentiate"),
+    ],
+)
+def test_a_mode_the_adjoint_cannot_do_is_refused_before_tracing(mode, kwargs, match):
+    traces = []
+
+    def loss(traj):
+        traces.append(1)
+        return obsjax.losses.ise(traj)
+
+    with pytest.raises(ValueError, match=match):
+        obsjax.tune(obsjax.Luenberger.from_poles(PLANT, [-1.0, -2.0]), PLANT, where=lambda o: o.poles,
+                    loss=loss, x0s=X0S, xhat0s=XH0S, ts=TS, steps=2, progress=False, mode=mode,
+                    simulate_kwargs=kwargs)  # fmt: skip
+    assert not traces
+
+
+def test_tune_runs_the_same_in_forward_and_reverse_mode():
+    where = lambda o: o.poles
+    obs = obsjax.Luenberger.from_poles(PLANT, [-1.0, -1.5])
+    runs = {}
+    for mode in ("auto", "forward", "reverse"):
+        runs[mode] = obsjax.tune(obs, PLANT, where=where, loss=obsjax.losses.ise, x0s=X0S, xhat0s=XH0S,
+                                 ts=TS, steps=6, optimizer=optax.adam(0.1), progress=False, mode=mode)
+    assert runs["auto"].history["mode"] == "forward"  # two poles: a few scalars
+    assert runs["reverse"].history["mode"] == "reverse"
+    f, r = runs["forward"].history, runs["reverse"].history
+    assert f["skipped"] == r["skipped"] == 0
+    np.testing.assert_allclose(f["loss"], r["loss"], rtol=1e-10)
+    np.testing.assert_allclose(f["params"][0], r["params"][0], rtol=1e-9)
+    np.testing.assert_array_equal(runs["auto"].history["params"][0], f["params"][0])
+    assert f["loss"][-1] < f["loss"][0]
