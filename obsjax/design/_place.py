@@ -23,7 +23,7 @@ from ._poles import (
     jordan_summary,
     pole_structure,
 )
-from ._robust import _MAXITER, make_layout, robust_gain
+from ._robust import _MAXITER, after, make_layout, robust_gain
 
 #: Default bound on the a-posteriori relative eigenvalue error of a placed gain.
 PLACE_RTOL = 1e-6
@@ -212,6 +212,7 @@ def _error_estimate(A, C, L, T, F, rc, defective, lam):
     a matrix that close).  Each error is relative to max(|λ|, 10⁻³·max(‖A‖_F, max|λ|)).  Returns
     (largest relative error, Frobenius condition number of T)."""
     T, L = jax.lax.stop_gradient(T), jax.lax.stop_gradient(L)
+    T = after(L, T)  # one batched factorisation at a time (see `_robust.after`)
     n = A.shape[0]
     ncl = n  # cluster ids < n; unused ids are ignored below
     Acl = A - L @ C

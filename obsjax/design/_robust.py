@@ -143,6 +143,18 @@ def make_layout(blocks: tuple[Block, ...], n_poles: int) -> tuple[Layout, int]:
     return lay, max(b.length for b in blocks)
 
 
+def after(dep, x):
+    """``x``, made to depend on ``dep`` (an ``optimization_barrier``), so that the LAPACK call that
+    consumes x runs after the one that produced dep.
+
+    XLA runs independent operations concurrently on the CPU thread pool, and the batched LAPACK kernels of
+    jaxlib 0.10 split a large batch over that pool and wait for it from inside a pool thread: two such
+    kernels at once can take every thread of a small pool and wait forever (seen with 2 cores and a
+    ``vmap`` over a few hundred pole sets).  The placement therefore keeps its batched factorisations
+    on one chain of data dependencies: at most one runs at a time."""
+    return jax.lax.optimization_barrier((dep, x))[1]
+
+
 #: Newton is started from this many fixed pseudo-random points; the minimiser kept is the one with the
 #: least φ + log‖L‖ (Tits-Yang local minima of nearly equal φ can differ several-fold in gain).
 _STARTS = 4
@@ -176,7 +188,7 @@ def _bases_qr(A, C, lam, a, c):
     Nf = jnp.conj(Q[:, n:]).T
     _, Rh = jnp.linalg.qr(jnp.conj(Nf[:, :n]).T)
     N = jnp.linalg.solve(jnp.conj(Rh).T, Nf)
-    R1 = R[:n]
+    R1 = after(N, R[:n])  # one factorisation at a time (see `after`)
     P = jax.scipy.linalg.solve_triangular(R1, jnp.conj(Q[:n, :n]).T, lower=False) / a
     return N, P, jnp.min(jnp.abs(jnp.diagonal(R1)))
 
@@ -318,8 +330,11 @@ def _newton(x0, K, Tfix, lay, m, maxiter):
         aw = jnp.abs(w)
         keep = aw > 1e-9 * jnp.max(aw)
         d = -V @ jnp.where(keep, (V.T @ g) / jnp.where(keep, aw, 1.0), 0.0) * (1.0 - fixed)
-        f0 = _phi(x, K, Tfix, lay)
-        vals = jax.vmap(lambda a: _phi(x + a * d, K, Tfix, lay))(alphas)
+        # φ at x and along d in one batched call after the Hessian's (see `after`)
+        steps = jnp.concatenate([jnp.zeros(1, alphas.dtype), alphas])
+        pts = jax.vmap(lambda a: jnp.where(a == 0, x, x + a * d))(steps)
+        both = jax.vmap(lambda p: _phi(p, K, Tfix, lay))(pts)
+        f0, vals = both[0], both[1:]
         vals = jnp.where(jnp.isfinite(vals), vals, jnp.inf)
         k = jnp.argmin(vals)
         gn = jnp.linalg.norm(g)
@@ -373,7 +388,8 @@ def forward(lay: Layout, A, C, pr, pi, *, m: int, depth: int, maxiter: int = _MA
         x0s = jax.vmap(lambda x: _normalise(x, lay, m))(jnp.asarray(_init(n, m), A.dtype))
         xs, its, gns = jax.vmap(lambda x0: _newton(x0, K, Tfix, lay, m, maxiter))(x0s)
         Ls = jax.vmap(lambda x: _gain(A, C, _T(x, K, Tfix), F))(xs)
-        score = jax.vmap(lambda x: _phi(x, K, Tfix, lay))(xs) + jnp.log(jnp.linalg.norm(Ls, axis=(1, 2)))
+        phis = jax.vmap(lambda x: _phi(x, K, Tfix, lay))(after(Ls, xs))
+        score = phis + jnp.log(jnp.linalg.norm(Ls, axis=(1, 2)))
         score = jnp.where(jnp.isfinite(score), score, jnp.inf)
         converged = its < maxiter  # a start still running at maxiter is used only if all are
         k = jnp.argmin(jnp.where(converged | ~jnp.any(converged), score, jnp.inf))
