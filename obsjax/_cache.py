@@ -5,10 +5,14 @@ takes seconds.  With the persistent compilation cache, compiled executables are 
 directory and read back by later processes that compile the same program (same jax/jaxlib version,
 backend, flags and HLO).
 
-Importing obsjax does not turn the cache on (no global side effect beyond float64).  The ``obsjax``
-command turns it on (the test suite only with ``OBSJAX_TEST_COMPILATION_CACHE=1``: XLA:CPU once aborted
-a CI run inside ``executable.serialize()`` while writing an entry); a library user calls
-:func:`enable_compilation_cache` once.
+Importing obsjax does not turn the cache on (no global side effect beyond float64), and neither do
+the ``obsjax`` command (unless ``OBSJAX_COMPILATION_CACHE=1``), the test suite (unless
+``OBSJAX_TEST_COMPILATION_CACHE=1``) or the notebooks: a library user calls
+:func:`enable_compilation_cache` once.  The reason is a crash that no Python code can catch: with
+jaxlib 0.10.2 on the CPU, XLA aborted the whole process (SIGABRT) once inside
+``executable.serialize()`` while writing an entry and once inside ``deserialize_executable`` while
+reading one written by an earlier process, both in long test runs.  Opt in where the time saved is
+worth that risk; ``OBSJAX_NO_COMPILATION_CACHE=1`` overrides every opt-in.
 
 What is not cached: JAX writes no entry for a program that carries host callbacks
 (``jax.debug.print``, progress bars, and ``eqx.error_if``'s checks, which ``throw=True`` adds), nor
@@ -25,6 +29,8 @@ import jax
 
 #: environment variable that turns every obsjax-initiated use of the cache off
 OPT_OUT = "OBSJAX_NO_COMPILATION_CACHE"
+#: environment variable that asks the ``obsjax`` command to turn the cache on
+OPT_IN = "OBSJAX_COMPILATION_CACHE"
 #: environment variable naming the cache directory (overrides the default)
 DIR_ENV = "OBSJAX_COMPILATION_CACHE_DIR"
 #: programs that compile faster than this are not written (JAX's own default is 1 s)
@@ -37,6 +43,11 @@ def _flag(name: str):
 
 def _opted_out() -> bool:
     return os.environ.get(OPT_OUT, "").strip().lower() not in ("", "0", "false", "no")
+
+
+def requested_by_environment() -> bool:
+    """Whether ``OBSJAX_COMPILATION_CACHE`` asks for the cache (``1``, ``true`` or ``yes``)."""
+    return os.environ.get(OPT_IN, "").strip().lower() in ("1", "true", "yes")
 
 
 def default_cache_dir() -> str:
@@ -71,8 +82,8 @@ def enable_compilation_cache(
     to that directory.
 
     Opt out with the environment variable ``OBSJAX_NO_COMPILATION_CACHE=1``: this function then
-    changes nothing and returns ``None`` (the ``obsjax`` command calls it, so the variable turns the
-    cache off for it too).  JAX's own ``JAX_ENABLE_COMPILATION_CACHE=false`` is
+    changes nothing and returns ``None`` (also when ``OBSJAX_COMPILATION_CACHE=1`` asks the ``obsjax``
+    command for it).  JAX's own ``JAX_ENABLE_COMPILATION_CACHE=false`` is
     respected the same way.
 
     The cache directory is trusted: an executable read from it runs in this process, so it must not

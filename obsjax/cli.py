@@ -534,10 +534,12 @@ def main(argv=None) -> int:
     )
     p_bench.add_argument("--dir", default=None, help="the benchmarks directory")
     args = parser.parse_args(argv)
-    # JAX's persistent compilation cache for this process (OBSJAX_NO_COMPILATION_CACHE=1 opts out).
-    from ._cache import enable_compilation_cache
+    # JAX's persistent compilation cache only on request (OBSJAX_COMPILATION_CACHE=1): XLA:CPU (jaxlib
+    # 0.10.2) aborted whole processes while writing and while reading entries (see obsjax/_cache.py).
+    from ._cache import enable_compilation_cache, requested_by_environment
 
-    enable_compilation_cache()
+    if requested_by_environment():
+        enable_compilation_cache()
 
     if args.command == "demo":
         demo(args.out, n=args.n, steps=args.steps, batch=args.batch, seed=args.seed)

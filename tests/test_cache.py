@@ -94,18 +94,20 @@ def test_opt_out(tmp_path, monkeypatch):
     line = _python(
         "import jax; from obsjax import cli; cli.main(['reproduce', '--list']); "
         "print(jax.config.jax_compilation_cache_dir)",
-        **{_cache.OPT_OUT: "1", _cache.DIR_ENV: str(d)},
+        **{_cache.OPT_OUT: "1", _cache.OPT_IN: "1", _cache.DIR_ENV: str(d)},
     )
-    assert line == "None" and not d.exists()
+    assert line == "None" and not d.exists()  # the opt-out wins over the command's opt-in
 
 
-def test_the_command_line_turns_it_on(tmp_path):
+def test_the_command_line_turns_it_on_only_on_request(tmp_path):
     d = str(tmp_path / "cli")
-    line = _python(
+    code = (
         "import jax; from obsjax import cli; cli.main(['reproduce', '--list']); "
-        "print(jax.config.jax_compilation_cache_dir)",
-        **{_cache.DIR_ENV: d},
+        "print(jax.config.jax_compilation_cache_dir)"
     )
+    assert _python(code, **{_cache.DIR_ENV: d, _cache.OPT_IN: ""}) == "None"
+    assert not os.path.exists(d)
+    line = _python(code, **{_cache.DIR_ENV: d, _cache.OPT_IN: "1"})
     assert line == d and os.path.isdir(d)
 
 
