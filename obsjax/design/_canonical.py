@@ -37,9 +37,9 @@ class ObservableCanonicalForm(NamedTuple):
     - `P` (n, n): z = P x, the states of the subsystems block by block (z_{k,1} … z_{k,ν_k}).
     - `A` (n, n) = P A P⁻¹ = S + Γ C_z;  `C` (m, n) = C P⁻¹ = R E.
     - `indices`: (ν_1, …, ν_m).
-    - `alpha`: tuple of m arrays, alpha[k] of shape (ν_k + 1, m) with alpha[k][i, j] = α_ij(k) of (3.1c).
+    - `alpha`: tuple of m arrays, ``alpha[k]`` of shape (ν_k + 1, m) with ``alpha[k][i, j]`` = α_ij(k) of (3.1c).
     - `R` (m, m): unit lower triangular, y = R ȳ with ȳ_k = z_{k,ν_k} (the subsystem outputs of Fig. 3.3).
-    - `Gamma` (n, m): Γ[(k, l), j] = α_{l−1,j}(k), the output injections of Fig. 3.3.
+    - `Gamma` (n, m): ``Gamma[(k, l), j]`` = α_{l−1,j}(k), the output injections of Fig. 3.3.
     """
 
     P: jax.Array
