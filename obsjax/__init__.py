@@ -4,11 +4,17 @@ Importing obsjax turns on JAX's float64 mode (``jax_enable_x64``), because contr
 in double precision; this is the one global side effect of the import.  Set the environment variable
 ``OBSJAX_NO_X64=1`` before the import to opt out (public entry points then raise instead of computing in
 float32).
+
+Importing obsjax also warns (:class:`JaxlibWarning`) when the installed jaxlib is a release known to
+compute wrong results on the CPU (0.10.2); it changes no setting.
 """
 
+from ._config import JaxlibWarning as JaxlibWarning
+from ._config import check_jaxlib as _check_jaxlib
 from ._config import enable_x64 as _enable_x64
 
 _enable_x64()
+_check_jaxlib()
 
 from . import analysis as analysis
 from . import design as design

@@ -8,11 +8,12 @@ backend, flags and HLO).
 Importing obsjax does not turn the cache on (no global side effect beyond float64), and neither do
 the ``obsjax`` command (unless ``OBSJAX_COMPILATION_CACHE=1``), the test suite (unless
 ``OBSJAX_TEST_COMPILATION_CACHE=1``) or the notebooks: a library user calls
-:func:`enable_compilation_cache` once.  The reason is a crash that no Python code can catch: with
-jaxlib 0.10.2 on the CPU, XLA aborted the whole process (SIGABRT) once inside
-``executable.serialize()`` while writing an entry and once inside ``deserialize_executable`` while
-reading one written by an earlier process, both in long test runs.  Opt in where the time saved is
-worth that risk; ``OBSJAX_NO_COMPILATION_CACHE=1`` overrides every opt-in.
+:func:`enable_compilation_cache` once.  It was made opt-in after XLA aborted whole test runs
+(SIGABRT) once inside ``executable.serialize()`` and once inside ``deserialize_executable``.  The cause was jaxlib 0.10.2's
+YNNPACK fusions crashing on an XLA worker thread (the main thread's traceback lands wherever it happens to
+be; see :data:`obsjax._config.BAD_CPU_JAXLIB`), which the project now excludes; the cache stays opt-in
+until it has run through the whole suite on a supported release.  ``OBSJAX_NO_COMPILATION_CACHE=1``
+overrides every opt-in.
 
 What is not cached: JAX writes no entry for a program that carries host callbacks
 (``jax.debug.print``, progress bars, and ``eqx.error_if``'s checks, which ``throw=True`` adds), nor

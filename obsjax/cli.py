@@ -534,8 +534,8 @@ def main(argv=None) -> int:
     )
     p_bench.add_argument("--dir", default=None, help="the benchmarks directory")
     args = parser.parse_args(argv)
-    # JAX's persistent compilation cache only on request (OBSJAX_COMPILATION_CACHE=1): XLA:CPU (jaxlib
-    # 0.10.2) aborted whole processes while writing and while reading entries (see obsjax/_cache.py).
+    # JAX's persistent compilation cache only on request (OBSJAX_COMPILATION_CACHE=1; see obsjax/_cache.py
+    # for why it is opt-in).
     from ._cache import enable_compilation_cache, requested_by_environment
 
     if requested_by_environment():
