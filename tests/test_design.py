@@ -108,8 +108,62 @@ def test_trajectory_linearization_builds_for_indices_2_1():
     assert obs.indices == (2, 1)
 
 
+def test_trajectory_linearization_for_the_static_third_state():
+    """The issue's plant: a 2-chain and a static third state, y = (x1, x3).  The TLO finds (2, 1)
+    itself, and its error obeys the placed PD-spectrum: for this LTI plant the canonical form is
+    constant, so x̃ decays like exp((A + K_o C) t) (checked against SciPy's expm)."""
+    import scipy.linalg
+
+    A = jnp.array([[0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    C = jnp.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    model = obsjax.Nonlinear(lambda t, x, u: A @ x, lambda t, x, u: C @ x, n=3, m=2)
+    obs = obsjax.TrajectoryLinearization(model, [-1.0, -2.0, -3.0], 1.0, 1.0)
+    assert obs.indices == (2, 1)
+    ts = jnp.linspace(0.0, 2.0, 3)
+    x0 = jnp.array([1.0, -1.0, 0.5])
+    tr = obsjax.simulate(model, obs, x0, jnp.zeros(3), ts, rtol=1e-10, atol=1e-12)
+    assert int(tr.status) == 0
+    Ko = np.asarray(obs.gain(0.0, jnp.zeros(3)))
+    Acl = np.asarray(A) + Ko @ np.asarray(C)
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(Acl).real), [-3.0, -2.0, -1.0], atol=1e-9)
+    ref = np.stack([scipy.linalg.expm(Acl * float(t)) @ (-np.asarray(x0)) for t in ts])
+    np.testing.assert_allclose(np.asarray(tr.xhat - tr.x), ref, atol=1e-7)
+
+
 # ---------------------------------------------------------------- rank decisions: scale invariance
 SCALES = [1e-3, 1.0, 1e3]
+
+
+def _ltv_margins(c, d):
+    from obsjax.design import ltv_observer_canonical_form, pd_controller_gain, strong_observability
+
+    A = jnp.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -3.0]])
+    C = jnp.array([[1.0, 0.0, 0.0]])
+    # time in a unit c times shorter: A_c(t) = c A(c t); outputs in a unit d times smaller
+    At = lambda t: c * A * (1.0 + 0.2 * jnp.sin(c * t))
+    Ct = lambda t: d * C
+    t = 0.5 / c
+    strong = strong_observability(At, Ct, [0.0, t])
+    form = float(ltv_observer_canonical_form(At, Ct, t).margin)
+    rho = jnp.array([-1.0, -2.0, -3.0])
+    ctrl = float(pd_controller_gain(lambda s: At(s).T, lambda s: Ct(s).T, rho, 1.0, t).margin)
+    Q = np.asarray(obsjax.design.ltv_observability_matrix(At, Ct, t))
+    return strong, form, ctrl, abs(np.linalg.det(Q.T @ Q))
+
+
+@pytest.mark.parametrize("c", SCALES)
+@pytest.mark.parametrize("d", SCALES)
+def test_ltv_margins_do_not_depend_on_units(c, d):
+    """The LTV decisions (strong observability, the canonical form's margin, the TLC's strong
+    controllability) are those of the staircase: unchanged under a change of time unit
+    (A(t) → cA(ct)) and of output unit (C → dC, B → dB), whereas
+    Huang & Zhu's |det QᵀQ| moves by c⁶d⁶ (below the old threshold 1e-10 for the slow plant)."""
+    strong, form, ctrl, det = _ltv_margins(c, d)
+    strong1, form1, ctrl1, det1 = _ltv_margins(1.0, 1.0)
+    np.testing.assert_allclose(strong, strong1, rtol=1e-9)
+    np.testing.assert_allclose([form, ctrl], [form1, ctrl1], rtol=1e-9)
+    assert form1 > 1e-3 and ctrl1 > 1e-3
+    np.testing.assert_allclose(det, det1 * c**6 * d**6, rtol=1e-6)
 
 
 @pytest.mark.parametrize("c", SCALES)

@@ -1,12 +1,17 @@
 """Observability of LTI pairs: the observability matrix, and every rank decision of the package.
 
 All rank decisions about a pair (A, C) -- observability, the observability indices of thesis §3.2, the
-Jordan structure that pole placement can give, the solvability of a functional observer -- are made by one
+Jordan structure that pole placement can give, the order ν − 1 of a functional observer -- are made by one
 mechanism, :func:`observability_staircase`: an orthogonal staircase (observability Hessenberg) form of
 the *balanced* pair, computed by a block Arnoldi sweep in the lexicographic order of thesis §3.2, steps
 (a)-(e).  Its decisions compare a new direction with the direction it came from (relative thresholds), on
 the pair scaled to unit norm, so they do not change when A → cA (a change of time unit) or C → dC (a
 change of output unit), nor under a diagonal change of state units (balancing).
+
+The independence test itself is :func:`lexicographic_step` (a residual outside the directions kept,
+against a relative threshold); the LTV side (the indices and strong observability of Huang & Zhu's
+canonical form, the TLO, the TLC) runs the same step on the rows [C; 𝓛C; …], and checks that must run
+under ``jit`` use its traced twin :func:`relative_residuals`.
 """
 
 from __future__ import annotations

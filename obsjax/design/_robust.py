@@ -144,25 +144,31 @@ def make_layout(blocks: tuple[Block, ...], n_poles: int) -> tuple[Layout, int]:
 
 
 def after(dep, x):
-    """``x``, made to depend on ``dep`` (an ``optimization_barrier``), so that the LAPACK call that
+    """``x``, made to depend on ``dep``, so that the LAPACK call that
     consumes x runs after the one that produced dep.
 
     XLA runs independent operations concurrently on the CPU thread pool, and the batched LAPACK kernels of
     jaxlib 0.10 split a large batch over that pool and wait for it from inside a pool thread: two such
     kernels at once can take every thread of a small pool and wait forever (seen with 2 cores and a
     ``vmap`` over a few hundred pole sets).  The placement therefore keeps its batched factorisations
-    on one chain of data dependencies: at most one runs at a time."""
-    return jax.lax.optimization_barrier((dep, x))[1]
+    on one chain of data dependencies: at most one runs at a time.  (An ``optimization_barrier`` does
+    not do it: XLA's CPU pipeline removes it before the thunks are scheduled; x + 0·s with s a finite
+    reduction of dep is a true dependency and leaves x unchanged.)"""
+    s = jnp.nan_to_num(jnp.sum(jnp.real(jnp.asarray(dep))), nan=0.0, posinf=0.0, neginf=0.0)
+    return x + (0.0 * s).astype(x.dtype)
 
 
-#: Newton is started from this many fixed pseudo-random points; the minimiser kept is the one with the
-#: least φ + log‖L‖ (Tits-Yang local minima of nearly equal φ can differ several-fold in gain).
-_STARTS = 4
+#: Newton is started from this many fixed points; the minimiser kept is the one with the least
+#: φ + log‖L‖ (Tits-Yang local minima of nearly equal φ can differ several-fold in gain).
+_STARTS = 8
 
 
 def _init(n: int, m: int, starts: int = _STARTS) -> np.ndarray:
-    """Deterministic starts (starts, n·m): fixed pseudo-random directions."""
-    return np.random.default_rng(20261122 + 97 * n + m).standard_normal((starts, n * m))
+    """Deterministic starts (starts, n·m): the sum of each row's basis vectors (SciPy's start for
+    Tits-Yang), then fixed pseudo-random directions."""
+    x = np.random.default_rng(20261122 + 97 * n + m).standard_normal((starts, n * m))
+    x[0] = 1.0
+    return x
 
 
 # --------------------------------------------------------------------------------------------------
