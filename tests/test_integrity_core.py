@@ -139,6 +139,22 @@ def test_decreasing_ts_under_jit_never_integrates_backwards():
         jax.block_until_ready(f(jnp.asarray(TS).at[3].set(TS[2])))
 
 
+def test_traced_dt0_is_checked_under_jit():
+    """A traced initial/fixed step: a positive one integrates as the concrete one does; zero, negative
+    and NaN raise with a message naming `dt0`, whatever `throw` says (never a silent stall or NaN)."""
+    for adaptive in (True, False):
+        f = jax.jit(
+            lambda dt0, adaptive=adaptive: obsjax.simulate(
+                PLANT, OBS, X0, XH0, TS, dt0=dt0, adaptive=adaptive, throw=False
+            ).error_norm
+        )
+        ref = sim(PLANT, OBS, X0, XH0, TS, dt0=0.05, adaptive=adaptive).error_norm
+        np.testing.assert_allclose(f(jnp.asarray(0.05)), ref, rtol=1e-12, atol=1e-14)
+        for bad in (0.0, -0.1, np.nan):
+            with pytest.raises(Exception, match="`dt0` must be finite and > 0"):
+                jax.block_until_ready(f(jnp.asarray(bad)))
+
+
 # ---------------------------------------------------------------- statuses that tell the truth, early
 
 
