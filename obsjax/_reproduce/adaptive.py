@@ -844,7 +844,7 @@ def reproduce_chapter4(outdir: str) -> list[str]:
     for i in range(3):
         axes[0].axhline(K[i], color="k", lw=0.5, ls=":", label="true values" if i == 0 else None)
     axes[0].set(xlabel="time t (s)", ylabel="parameter estimates K̂", title="estimates K̂ of (4.2)")
-    axes[0].legend(ncol=2, fontsize=8)
+    axes[0].legend(ncol=2, fontsize=8, loc="upper right")
     null = np.array([0.0, 2.0, -1.0]) / np.sqrt(5.0)
     for w, c in (("rich", "C0"), ("poor", "C3")):
         ts, Kt, _, _ = runs[w]
@@ -869,6 +869,7 @@ def reproduce_chapter4(outdir: str) -> list[str]:
     axes[2].set(xlabel="window k (T = 2π s)", ylabel="per-window excitation", ylim=(1e-18, 10),
                 title="richness per window, (4.21)(i)-(ii); ≤ 1e-15 is rounding (zero)")
     axes[2].legend(fontsize=8)
+    axes[2].xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     fig.suptitle("Identification law (4.2): α = (1, sin t, cos 2t) rich, α = (1, sin t, 2 sin t) poor")
     fig.tight_layout()
     paths.append(_save(fig, outdir, "adaptive_ch4_identifier.png"))
@@ -937,6 +938,7 @@ def reproduce_chapter4(outdir: str) -> list[str]:
     axes[2].set(xlabel=f"window k (T = 2π s, from t = {t0:g} s)", ylabel="per-window excitation",
                 title=r"B = −[√γ₁ $x_p$; √γ₂ u]: (4.21)(i) a and (ii) ε₀")
     axes[2].legend(fontsize=8)
+    axes[2].xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     fig.suptitle(r"Scalar error system (4.20): $\dot x_p = -x_p + 2u$ identified by (4.4)-(4.7), K = 2, γ₁ = γ₂ = 4")
     fig.tight_layout()
     paths.append(_save(fig, outdir, "adaptive_ch4_morgan_narendra.png"))
