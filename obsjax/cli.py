@@ -103,6 +103,12 @@ def run_reproductions(modules, outdir: str, values: bool = True) -> int:
             with announce_figures():
                 paths = module.reproduce(os.path.join(outdir, mod))
             print(f"    {len(paths)} figure(s) in {time.perf_counter() - t0:.1f} s", flush=True)
+            # each document compiles its own programs; XLA:CPU keeps every executable's code in memory
+            # mappings of its own, so drop them between documents (a long process can otherwise reach
+            # the kernel's vm.max_map_count, after which XLA's allocations fail)
+            import jax
+
+            jax.clear_caches()
             if values and hasattr(module, "paper_values"):
                 print("    the document's values against obsjax's:", flush=True)
                 rows = module.paper_values()
