@@ -36,3 +36,12 @@ def _release_compiled_programs():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+try:  # property tests draw the same examples on every run: a CI result can be reproduced
+    from hypothesis import settings as _hyp_settings
+
+    _hyp_settings.register_profile("obsjax", derandomize=True, print_blob=True)
+    _hyp_settings.load_profile("obsjax")
+except ImportError:  # pragma: no cover - hypothesis is a test extra
+    pass
