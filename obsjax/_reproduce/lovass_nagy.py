@@ -375,7 +375,7 @@ def reproduce(outdir: str) -> list[str]:
     ax[2].set_ylim(bottom=0)
     ax[2].legend(fontsize=8)
     for a in ax:
-        a.set_xlabel("t")
+        a.set_xlabel("time t (s)")
         a.grid(True, which="both", alpha=0.3)
     fig.suptitle(
         r"Lovass-Nagy full-state observers, $\dot T = FT - TA + GC$ integrated with the observer",
@@ -392,7 +392,7 @@ def reproduce(outdir: str) -> list[str]:
         a.semilogy(st["N"], st[f"{tag}_cost1"] + 1e-16, "o-", label="cost (1): Σ_k ‖·‖∞")
         a.semilogy(st["N"], st[f"{tag}_cost2"] + 1e-16, "s-", label="cost (2): stacked ‖·‖∞")
         a.semilogy(st["N"], st[f"{tag}_ls"] + 1e-16, "^-", label="least squares")
-        a.set_xlabel("window length N")
+        a.set_xlabel("window length N (samples)")
         a.set_ylabel("max_k ‖x(k) − x̂(k)‖")
         a.set_title(title)
         a.grid(True, which="both", alpha=0.3)
