@@ -1,13 +1,18 @@
 """pytest configuration for the whole repository (tests/ and the notebooks run by nbmake).
 
 JAX's persistent compilation cache is NOT turned on for the test run by default: two CI runs aborted
-(SIGABRT) with jaxlib 0.10.2, once inside ``executable.serialize()``; the cause was that release's
-YNNPACK fusions (now excluded, see obsjax/_config.py), and the cache stays opt-in until proven on a
-supported release.  ``OBSJAX_TEST_COMPILATION_CACHE=1`` turns it
-on for a local run (and, through the environment, for the notebook kernels that nbmake starts).
+(SIGABRT), once inside ``executable.serialize()``.  The causes were the memory mappings that compiled
+programs accumulate (see ``_release_compiled_programs``) and jaxlib 0.10.2's YNNPACK fusions (now
+excluded, see obsjax/_config.py); the cache stays opt-in until proven through a whole run.
+``OBSJAX_TEST_COMPILATION_CACHE=1`` turns it on for a local run (and, through the environment, for the
+notebook kernels that nbmake starts).
 """
 
+import gc
 import os
+
+import jax
+import pytest
 
 from obsjax._cache import cache_environment, enable_compilation_cache
 
@@ -16,11 +21,6 @@ if os.environ.get("OBSJAX_TEST_COMPILATION_CACHE", "").strip().lower() in ("1", 
     if _CACHE_DIR is not None:
         os.environ.update(cache_environment(_CACHE_DIR))
 
-
-import gc
-
-import jax
-import pytest
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -81,6 +81,8 @@ def run_reproductions(modules, outdir: str, values: bool = True) -> int:
     """Run each document module's ``reproduce(outdir/<module>)``, announcing every figure as it is written,
     then print its ``paper_values()`` as a table (the document's value, obsjax's value, the relative
     difference) and a summary line.  Returns 1 if a module failed or a value is out of tolerance, else 0."""
+    import jax
+
     from ._reproduce._report import announce_figures, format_table, summary_line
 
     present = set(available_reproductions())
@@ -103,12 +105,6 @@ def run_reproductions(modules, outdir: str, values: bool = True) -> int:
             with announce_figures():
                 paths = module.reproduce(os.path.join(outdir, mod))
             print(f"    {len(paths)} figure(s) in {time.perf_counter() - t0:.1f} s", flush=True)
-            # each document compiles its own programs; XLA:CPU keeps every executable's code in memory
-            # mappings of its own, so drop them between documents (a long process can otherwise reach
-            # the kernel's vm.max_map_count, after which XLA's allocations fail)
-            import jax
-
-            jax.clear_caches()
             if values and hasattr(module, "paper_values"):
                 print("    the document's values against obsjax's:", flush=True)
                 rows = module.paper_values()
@@ -119,7 +115,11 @@ def run_reproductions(modules, outdir: str, values: bool = True) -> int:
             failures.append(mod)
             print(f"[fail] {mod}:")
             traceback.print_exc()
-            continue
+        finally:
+            # each document compiles its own programs; XLA:CPU keeps every executable's code in memory
+            # mappings of its own, so drop them between documents (a long process can otherwise reach
+            # the kernel's vm.max_map_count, after which XLA's allocations fail)
+            jax.clear_caches()
     if todo:
         done = len(todo) - len(failures)
         line = f"Summary: {done} of {len(todo)} document module(s) reproduced"
