@@ -113,7 +113,11 @@ def run(n, sets, m=2, seed=0):
     def errors(Lx):
         return np.array([_match(np.linalg.eigvals(A - l @ Cm), p) for l, p in zip(Lx, P)])
 
+    def exact(Lx):  # (error, its accuracy) of the exact A − LC, refined in extended precision
+        return np.array([obsjax.analysis.placement_error(A, Cm, l, p, return_accuracy=True) for l, p in zip(Lx, P)])
+
     e_ours, e_scipy = errors(L), errors(Ls)
+    (x_ours, a_ours), (x_scipy, a_scipy) = exact(L).T, exact(Ls).T
     ratio = np.linalg.norm(L, axis=(1, 2)) / np.linalg.norm(Ls, axis=(1, 2))
     row = dict(
         n=n,
@@ -122,6 +126,14 @@ def run(n, sets, m=2, seed=0):
         reach_ours=float(np.mean(e_ours <= 1e-8)),
         reach_scipy=float(np.mean(e_scipy <= 1e-8)),
         missed=int(np.sum((e_scipy <= 1e-8) & (e_ours > 1e-8))),
+        x_ours=_quantiles(x_ours),
+        x_scipy=_quantiles(x_scipy),
+        x_reach_ours=float(np.mean(x_ours <= 1e-8)),
+        x_reach_scipy=float(np.mean(x_scipy <= 1e-8)),
+        x_missed=int(np.sum((x_scipy <= 1e-8) & (x_ours > 1e-8))),
+        x_missed_sets=[(int(k), float(x_ours[k]), float(x_scipy[k])) for k in np.where((x_scipy <= 1e-8) & (x_ours > 1e-8))[0]],
+        x_acc=float(max(np.max(a_ours), np.max(a_scipy))),
+        x_close=int(np.sum((np.abs(x_ours - 1e-8) <= a_ours) | (np.abs(x_scipy - 1e-8) <= a_scipy))),
         ratio=(np.median(ratio), np.max(ratio)),
         refused=refused,
         nonfinite=int(np.sum(~np.all(np.isfinite(L), axis=(1, 2)))),
@@ -148,6 +160,29 @@ def main(sets=1000, ns=(4, 10, 20)):
     lines = [
         f"One random pair (A, C) per n (m = 2), {sets} pole sets (a quarter of the poles in conjugate pairs).",
         "Relative eigenvalue error max_k |λ̂_k − λ_k|/|λ_k| of A − LC: median / 90 % / 99 % / max.",
+        "",
+        "**The gain's own error** (the issue's target): λ̂ are the eigenvalues of the exact A − LC for the float64",
+        "gain as returned, by `obsjax.analysis.placement_error` (float64 eigenpairs refined by Newton's method with",
+        "long-double residuals; checked against integer matrices of known spectrum in tests/test_accuracy.py, and",
+        "against 40-digit mpmath on sample sets at n = 10 when it was written: same values to 2 %).",
+        "",
+        "| n | obsjax error | SciPy (Tits-Yang) error | reach 1e-8: obsjax / SciPy | obsjax > 1e-8 where SciPy ≤ 1e-8 | sets within the refinement's accuracy of 1e-8 | worst accuracy of the refined errors |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['n']} | {q(r['x_ours'])} | {q(r['x_scipy'])} | {r['x_reach_ours']:.1%} / {r['x_reach_scipy']:.1%} "
+            f"| **{r['x_missed']}** | {r['x_close']} | {r['x_acc']:.1e} |"
+        )
+    for r in rows:
+        for k, eo, es in r["x_missed_sets"]:
+            lines.append(f"\n- n = {r['n']}, set {k}: obsjax {eo:.2e}, SciPy {es:.2e}.")
+    lines += [
+        "",
+        "**As float64 `numpy.linalg.eigvals(A - L @ C)` sees it** (the measurement of the earlier tables): its own",
+        "rounding ε·κ_k·‖A − LC‖/|λ_k| is about 1e-7 for the κ_k ~ 1e6-1e8 of these placements at n = 10, 20, so at",
+        "the 1e-8 line it decides by rounding, not by the gain (e.g. a gain placing its poles to 9e-11 reads 1.0e-8).",
+        "Kept for comparison, with the gain-size ratio and the refusals of obsjax's own a-posteriori check:",
         "",
         "| n | obsjax error | SciPy (Tits-Yang) error | reach 1e-8: obsjax / SciPy | obsjax > 1e-8 where SciPy ≤ 1e-8 | ‖L‖ obsjax / SciPy: median, max | refused at rtol 1e-6 | non-finite |",
         "|---|---|---|---|---|---|---|---|",

@@ -28,7 +28,30 @@ def match(eig, poles) -> float:
 
 
 def eig_error(A, C, L, poles) -> float:
-    return match(np.linalg.eigvals(A - L @ C), poles)
+    """The gain's own error: eigenvalues of the exact A − LC, refined in extended precision (the
+    float64 eigvals adds a rounding of ε·κ_k·‖A − LC‖ that reaches 1e-8 for n ≥ 10).  Repeated poles
+    cannot be refined one by one: their float64 values are used."""
+    p = np.asarray(poles, complex)
+    gaps = np.where(np.eye(len(p), dtype=bool), np.inf, np.abs(p[:, None] - p[None, :]))
+    if np.min(gaps) <= 1e-6 * np.max(np.abs(p)):
+        return match(np.linalg.eigvals(A - np.asarray(L) @ C), poles)
+    return obsjax.analysis.placement_error(A, C, np.asarray(L), poles)
+
+
+def fragility(A, C, L, poles) -> float:
+    """max_k ε·s_k·‖A − LC‖_F/|λ_k| (s_k the eigenvalue condition number): how far the eigenvalues
+    move when A, L, C are perturbed at float64's rounding level, whatever the gain's own error."""
+    w, V = np.linalg.eig(A - np.asarray(L) @ C)
+    s = np.linalg.norm(V, axis=0) * np.linalg.norm(np.linalg.inv(V), axis=1)
+    return float(np.max(np.finfo(float).eps * s * np.linalg.norm(A - np.asarray(L) @ C) / np.abs(w)))
+
+
+def refusal_is_justified(A, C, poles):
+    """place refuses (default rtol 1e-6) on its a-posteriori estimate, which is at the float64 noise
+    floor ε·s_k·‖A − LC‖: a refusal must mean that SciPy's placement is as fragile (within the 10×
+    slack between our Frobenius estimate and this one), or badly placed."""
+    Ls = scipy_gain(A, C, poles)
+    assert fragility(A, C, Ls, poles) > 1e-7 or eig_error(A, C, Ls, poles) > 1e-8
 
 
 def scipy_gain(A, C, poles, method="YT"):
@@ -62,10 +85,7 @@ def check_against_scipy(A, C, poles, L):
     Ls = scipy_gain(A, C, poles)
     theirs = eig_error(A, C, Ls, poles)
     if theirs <= 1e-8:
-        # 1e-8, or within 2x of SciPy's error where SciPy itself is near the threshold (a sharp 1e-8 line
-        # between two backward-stable methods fails on rounding: n = 7, m = 1, a unique gain, gave 1.26e-8
-        # against SciPy's 7.2e-9)
-        assert ours <= max(1e-8, 2.0 * theirs), (ours, theirs)
+        assert ours <= 1e-8, (ours, theirs)
         assert np.linalg.norm(L) <= 2.0 * np.linalg.norm(Ls), (np.linalg.norm(L), np.linalg.norm(Ls))
     else:  # where SciPy does not reach 1e-8, a returned gain must still be at least as good
         assert ours <= max(theirs, 1e-6), (ours, theirs)
@@ -91,8 +111,10 @@ def test_random_systems_against_scipy_and_python_control(seed, n, m, cf):
     assume(np.min(np.abs(poles[:, None] - poles[None, :]) + 10 * np.eye(n)) > 0.05)
     try:
         L = place(A, C, poles)
-    except ValueError:  # refused: then SciPy's gain must be badly placed too
-        assert eig_error(A, C, scipy_gain(A, C, poles), poles) > 1e-8
+    except ValueError:  # refused: then SciPy's gain must be as fragile or badly placed
+        refusal_is_justified(A, C, poles)
+        # and with the check off, the gain itself meets the target
+        check_against_scipy(A, C, poles, place(A, C, poles, rtol=np.inf))
         return
     check_against_scipy(A, C, poles, L)
     K = control.place(A.T, C.T, poles)  # python-control (the same robust criterion, from SciPy)
@@ -120,8 +142,8 @@ def test_structured_systems(name, A, C, poles):
         L = place(A, C, poles)
     except ValueError as e:  # refused only where the problem is too ill-conditioned for SciPy too
         assert "does not place the poles" in str(e)
-        assert eig_error(A, C, scipy_gain(A, C, poles), poles) > 1e-8
-        assert np.asarray(place(A, C, poles, rtol=1e-1)).shape == C.T.shape  # accepted on request
+        refusal_is_justified(A, C, poles)
+        check_against_scipy(A, C, poles, place(A, C, poles, rtol=np.inf))  # accepted on request
         return
     check_against_scipy(A, C, poles, L)
 
@@ -151,7 +173,7 @@ def test_scaled_A(c):
         check_against_scipy(c * A, C, poles, L)
     except ValueError as e:
         assert "does not place the poles" in str(e)
-        assert eig_error(c * A, C, scipy_gain(c * A, C, poles), poles) > 1e-8
+        refusal_is_justified(c * A, C, poles)
     L0 = np.asarray(place(A, C, poles))
     for d in (1e-3, 1e3):
         Lc = np.asarray(place(c * A, d * C, c * poles))

@@ -1,7 +1,9 @@
 """Analysis of plants and observers.
 
 - LTI: `obsv` (observability matrix), `is_observable`, `observability_staircase` (the orthogonal
-  staircase form of the balanced pair: every rank decision of the package) and `pbh_margin`.
+  staircase form of the balanced pair: every rank decision of the package), `pbh_margin`, and
+  `closed_loop_eigvals` / `placement_error` (eigenvalues of A − LC in extended precision: how
+  accurately a gain places its poles).
 - LTV (Chen & Yen, 1999): `transition_matrix` Φ(t, τ) (2), `observability_gramian` (4),
   `uniform_observability_constants` ((2), (3), (16), (17)), `regressor_gramian` (16),
   `is_persistently_exciting` (Definition 2, (7)), `chen_yen_bound` (the Theorem's contraction factor per
@@ -35,6 +37,8 @@ from ._ltv import observability_gramian as observability_gramian
 from ._ltv import regressor_gramian as regressor_gramian
 from ._ltv import transition_matrix as transition_matrix
 from ._ltv import uniform_observability_constants as uniform_observability_constants
+from ._accuracy import closed_loop_eigvals as closed_loop_eigvals
+from ._accuracy import placement_error as placement_error
 from ._morgan_narendra import MorganNarendra as MorganNarendra
 from ._morgan_narendra import morgan_narendra as morgan_narendra
 

@@ -348,6 +348,10 @@ def place(
     **Trust.**  The result is checked a posteriori: with E = T(A − LC) − FT every eigenvalue of A − LC
     lies within ‖E T⁻¹‖ of a requested one (plus the rounding in forming E); a bound above ``rtol``
     times max(‖A‖, ‖F‖), or a non-finite gain, raises ``ValueError`` (``eqx.error_if`` under jit).
+    Computed in float64, this estimate cannot fall below the rounding level ε·s_k·‖A − LC‖ (s_k the
+    eigenvalue's condition number): it measures how far the eigenvalues move when A, C or L change at
+    float64's rounding level, so a refusal may come where the exact eigenvalues of A − LC are closer
+    (:func:`obsjax.analysis.placement_error` measures those); ``rtol=numpy.inf`` accepts such a gain.
 
     **Rank decisions** (observability, indices, the Jordan structure) use
     :func:`obsjax.analysis.observability_staircase` with ``tol``; a nearly unobservable pair raises
