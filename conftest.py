@@ -1,11 +1,12 @@
 """pytest configuration for the whole repository (tests/ and the notebooks run by nbmake).
 
-JAX's persistent compilation cache is NOT turned on for the test run by default: two CI runs aborted
-(SIGABRT), once inside ``executable.serialize()``.  The causes were the memory mappings that compiled
-programs accumulate (see ``_release_compiled_programs``) and jaxlib 0.10.2's YNNPACK fusions (now
-excluded, see obsjax/_config.py); the cache stays opt-in until proven through a whole run.
-``OBSJAX_TEST_COMPILATION_CACHE=1`` turns it on for a local run (and, through the environment, for the
-notebook kernels that nbmake starts).
+JAX's persistent compilation cache is on for the test run (the user cache directory, see
+``obsjax._cache.default_cache_dir``; ``OBSJAX_NO_COMPILATION_CACHE=1`` turns it off), and through the
+environment for the notebook kernels that nbmake starts.  Besides speeding up a second run, it serves
+the first: the compiled programs dropped after each module (``_release_compiled_programs``) are read
+back instead of compiled again when a later module needs them.  (It was opt-in while two CI runs aborted
+inside cache writes; the causes were the memory mappings that compiled programs accumulate and jaxlib
+0.10.2's YNNPACK fusions, both dealt with, see obsjax/_config.py.)
 """
 
 import gc
@@ -16,11 +17,9 @@ import pytest
 
 from obsjax._cache import cache_environment, enable_compilation_cache
 
-if os.environ.get("OBSJAX_TEST_COMPILATION_CACHE", "").strip().lower() in ("1", "true", "yes"):
-    _CACHE_DIR = enable_compilation_cache()
-    if _CACHE_DIR is not None:
-        os.environ.update(cache_environment(_CACHE_DIR))
-
+_CACHE_DIR = enable_compilation_cache()  # None when opted out
+if _CACHE_DIR is not None:
+    os.environ.update(cache_environment(_CACHE_DIR))
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -5,15 +5,13 @@ takes seconds.  With the persistent compilation cache, compiled executables are 
 directory and read back by later processes that compile the same program (same jax/jaxlib version,
 backend, flags and HLO).
 
-Importing obsjax does not turn the cache on (no global side effect beyond float64), and neither do
-the ``obsjax`` command (unless ``OBSJAX_COMPILATION_CACHE=1``), the test suite (unless
-``OBSJAX_TEST_COMPILATION_CACHE=1``) or the notebooks: a library user calls
-:func:`enable_compilation_cache` once.  It was made opt-in after XLA aborted whole test runs
-(SIGABRT) once inside ``executable.serialize()`` and once inside ``deserialize_executable``.  The cause was jaxlib 0.10.2's
-YNNPACK fusions crashing on an XLA worker thread (the main thread's traceback lands wherever it happens to
-be; see :data:`obsjax._config.BAD_CPU_JAXLIB`), which the project now excludes; the cache stays opt-in
-until it has run through the whole suite on a supported release.  ``OBSJAX_NO_COMPILATION_CACHE=1``
-overrides every opt-in.
+Importing obsjax does not turn the cache on (no global side effect beyond float64).  The ``obsjax``
+command, the test suite and the notebooks turn it on (the notebooks with a call in their first cell);
+a library user calls :func:`enable_compilation_cache` once.  ``OBSJAX_NO_COMPILATION_CACHE=1`` turns
+every one of these off.  (It was opt-in while two CI runs aborted inside ``executable.serialize()``
+and ``deserialize_executable``; the causes were jaxlib 0.10.2's YNNPACK fusions crashing on an XLA
+worker thread, see :data:`obsjax._config.BAD_CPU_JAXLIB`, and the memory mappings that compiled
+programs accumulate in a long process, see the README's "Long processes": both dealt with.)
 
 What is not cached: JAX writes no entry for a program that carries host callbacks
 (``jax.debug.print``, progress bars, and ``eqx.error_if``'s checks, which ``throw=True`` adds), nor
@@ -30,8 +28,6 @@ import jax
 
 #: environment variable that turns every obsjax-initiated use of the cache off
 OPT_OUT = "OBSJAX_NO_COMPILATION_CACHE"
-#: environment variable that asks the ``obsjax`` command to turn the cache on
-OPT_IN = "OBSJAX_COMPILATION_CACHE"
 #: environment variable naming the cache directory (overrides the default)
 DIR_ENV = "OBSJAX_COMPILATION_CACHE_DIR"
 #: programs that compile faster than this are not written (JAX's own default is 1 s)
@@ -44,11 +40,6 @@ def _flag(name: str):
 
 def _opted_out() -> bool:
     return os.environ.get(OPT_OUT, "").strip().lower() not in ("", "0", "false", "no")
-
-
-def requested_by_environment() -> bool:
-    """Whether ``OBSJAX_COMPILATION_CACHE`` asks for the cache (``1``, ``true`` or ``yes``)."""
-    return os.environ.get(OPT_IN, "").strip().lower() in ("1", "true", "yes")
 
 
 def default_cache_dir() -> str:
@@ -83,8 +74,8 @@ def enable_compilation_cache(
     to that directory.
 
     Opt out with the environment variable ``OBSJAX_NO_COMPILATION_CACHE=1``: this function then
-    changes nothing and returns ``None`` (also when ``OBSJAX_COMPILATION_CACHE=1`` asks the ``obsjax``
-    command for it).  JAX's own ``JAX_ENABLE_COMPILATION_CACHE=false`` is
+    changes nothing and returns ``None`` (the ``obsjax`` command, the test suite and the notebooks
+    call it, so the variable turns the cache off for all of them).  JAX's own ``JAX_ENABLE_COMPILATION_CACHE=false`` is
     respected the same way.
 
     The cache directory is trusted: an executable read from it runs in this process, so it must not

@@ -540,12 +540,10 @@ def main(argv=None) -> int:
     )
     p_bench.add_argument("--dir", default=None, help="the benchmarks directory")
     args = parser.parse_args(argv)
-    # JAX's persistent compilation cache only on request (OBSJAX_COMPILATION_CACHE=1; see obsjax/_cache.py
-    # for why it is opt-in).
-    from ._cache import enable_compilation_cache, requested_by_environment
+    # JAX's persistent compilation cache, on unless OBSJAX_NO_COMPILATION_CACHE=1 (see obsjax/_cache.py)
+    from ._cache import enable_compilation_cache
 
-    if requested_by_environment():
-        enable_compilation_cache()
+    enable_compilation_cache()
 
     if args.command == "demo":
         demo(args.out, n=args.n, steps=args.steps, batch=args.batch, seed=args.seed)

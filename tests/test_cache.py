@@ -94,20 +94,18 @@ def test_opt_out(tmp_path, monkeypatch):
     line = _python(
         "import jax; from obsjax import cli; cli.main(['reproduce', '--list']); "
         "print(jax.config.jax_compilation_cache_dir)",
-        **{_cache.OPT_OUT: "1", _cache.OPT_IN: "1", _cache.DIR_ENV: str(d)},
+        **{_cache.OPT_OUT: "1", _cache.DIR_ENV: str(d)},
     )
-    assert line == "None" and not d.exists()  # the opt-out wins over the command's opt-in
+    assert line == "None" and not d.exists()  # the command respects the opt-out
 
 
-def test_the_command_line_turns_it_on_only_on_request(tmp_path):
+def test_the_command_line_turns_it_on_by_default(tmp_path):
     d = str(tmp_path / "cli")
     code = (
         "import jax; from obsjax import cli; cli.main(['reproduce', '--list']); "
         "print(jax.config.jax_compilation_cache_dir)"
     )
-    assert _python(code, **{_cache.DIR_ENV: d, _cache.OPT_IN: ""}) == "None"
-    assert not os.path.exists(d)
-    line = _python(code, **{_cache.DIR_ENV: d, _cache.OPT_IN: "1"})
+    line = _python(code, **{_cache.DIR_ENV: d})
     assert line == d and os.path.isdir(d)
 
 
@@ -126,8 +124,8 @@ def test_bad_threshold():
 
 
 def test_the_test_run_and_its_kernels_use_it():
-    if _cache._opted_out() or not os.environ.get("OBSJAX_TEST_COMPILATION_CACHE"):
-        pytest.skip("the test run did not opt in to the compilation cache")
+    if _cache._opted_out() or not jax.config.jax_enable_compilation_cache:
+        pytest.skip("the test run opted out of the compilation cache")
     d = jax.config.jax_compilation_cache_dir
     assert d and os.path.isdir(d) and os.environ["JAX_COMPILATION_CACHE_DIR"] == d
     # a child process (a notebook kernel started by nbmake) inherits the directory
