@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -109,3 +112,38 @@ def positive(value, name: str):
 
 def _fmt(shape) -> str:
     return "(" + ", ".join("k" if s is None else str(s) for s in shape) + ")"
+
+
+@contextlib.contextmanager
+def runtime_checks_as_nan():
+    """Trace with equinox's runtime checks (``eqx.error_if``, also inside diffrax) as NaN instead of a host
+    callback that raises.
+
+    Inside a study every trajectory runs with ``throw=False``, so a check that fires should mark that
+    trajectory failed (non-finite: status 2, counted), not abort the study; in ``tune``'s kernel it makes
+    the loss NaN, so the step is rejected.  Without host callbacks a program can be written to JAX's
+    persistent compilation cache (JAX does not write one that carries them).  It also matters for speed: on the
+    CPU runtime, a multi-device program that contains host callbacks (even in branches never taken, as
+    diffrax's checks of ``SaveAt.ts`` are) runs its device partitions one after another; without them the
+    shards of a ``shard_map`` run in parallel (benchmarks/results/d_sharding.md).  equinox reads its error
+    mode when a check is traced, from ``equinox._errors``; a fresh jitted check function avoids reusing one
+    traced in raise mode.  If equinox's internals differ, this does nothing.
+    """
+    try:
+        import equinox._errors as E
+
+        old = (E.EQX_ON_ERROR, E.branched_error_if_impl_jit)
+    except (ImportError, AttributeError):
+        yield
+        return
+    impl = E.branched_error_if_impl
+
+    def as_nan(x, pred, index, msgs, *, on_error):  # a new function: a new jit cache, no raise-mode reuse
+        return impl(x, pred, index, msgs, on_error="nan" if on_error == "default" else on_error)
+
+    E.EQX_ON_ERROR = "nan"
+    E.branched_error_if_impl_jit = eqx.filter_jit(as_nan)
+    try:
+        yield
+    finally:
+        E.EQX_ON_ERROR, E.branched_error_if_impl_jit = old

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import inspect
 import math
@@ -17,7 +16,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from .._checks import as_float_array
+from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
 from .._integrate import _validate
 from .._simulate import NONFINITE, SUCCESS, _check_ts, num_segments, simulate
@@ -617,37 +616,7 @@ def _wrap_key(key_data, impl):
     return jr.wrap_key_data(key_data) if impl is None else jr.wrap_key_data(key_data, impl=impl)
 
 
-@contextlib.contextmanager
-def _runtime_checks_as_nan():
-    """Trace with equinox's runtime checks (``eqx.error_if``, also inside diffrax) as NaN instead of a host
-    callback that raises.
-
-    Inside a study every trajectory runs with ``throw=False``, so a check that fires should mark that
-    trajectory failed (non-finite: status 2, counted), not abort the study.  It also matters for speed: on the
-    CPU runtime, a multi-device program that contains host callbacks (even in branches never taken, as
-    diffrax's checks of ``SaveAt.ts`` are) runs its device partitions one after another; without them the
-    shards of a ``shard_map`` run in parallel (benchmarks/results/d_sharding.md).  equinox reads its error
-    mode when a check is traced, from ``equinox._errors``; a fresh jitted check function avoids reusing one
-    traced in raise mode.  If equinox's internals differ, this does nothing.
-    """
-    try:
-        import equinox._errors as E
-
-        old = (E.EQX_ON_ERROR, E.branched_error_if_impl_jit)
-    except (ImportError, AttributeError):
-        yield
-        return
-    impl = E.branched_error_if_impl
-
-    def as_nan(x, pred, index, msgs, *, on_error):  # a new function: a new jit cache, no raise-mode reuse
-        return impl(x, pred, index, msgs, on_error="nan" if on_error == "default" else on_error)
-
-    E.EQX_ON_ERROR = "nan"
-    E.branched_error_if_impl_jit = eqx.filter_jit(as_nan)
-    try:
-        yield
-    finally:
-        E.EQX_ON_ERROR, E.branched_error_if_impl_jit = old
+_runtime_checks_as_nan = runtime_checks_as_nan  # (moved to obsjax._checks; tune uses it too)
 
 
 @eqx.filter_jit

@@ -14,7 +14,7 @@ import jax.random as jr
 import numpy as np
 import optax
 
-from .._checks import as_float_array
+from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
 from .._integrate import _validate
 from .._simulate import SUCCESS, _check_ts, num_segments, simulate
@@ -589,9 +589,12 @@ def tune(
             where, loss, single, plant_batched, noise, u, seg_bucket[0], spec_kwargs, ts_key, mode,
         )  # fmt: skip
         try:
-            val, grads = _value_and_grad(
-                theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec
-            )
+            # the kernel's runtime checks as NaN (a firing check rejects the step): no host
+            # callbacks, so the compiled kernel can be saved to the persistent compilation cache
+            with runtime_checks_as_nan():
+                val, grads = _value_and_grad(
+                    theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec
+                )
             val = float(val)
         except (ValueError, RuntimeError) as e:
             # an eqx.error_if that fired at run time (JAX raises it as a RuntimeError, or as a
