@@ -52,6 +52,13 @@ def _pole_sets(rng, n, sets):
     return out
 
 
+def _finite_max(x):
+    import numpy as np
+
+    x = np.asarray(x)
+    return float(np.max(x[np.isfinite(x)])) if np.any(np.isfinite(x)) else float("nan")
+
+
 def _quantiles(x):
     import numpy as np
 
@@ -132,7 +139,8 @@ def run(n, sets, m=2, seed=0):
         x_reach_scipy=float(np.mean(x_scipy <= 1e-8)),
         x_missed=int(np.sum((x_scipy <= 1e-8) & (x_ours > 1e-8))),
         x_missed_sets=[(int(k), float(x_ours[k]), float(x_scipy[k])) for k in np.where((x_scipy <= 1e-8) & (x_ours > 1e-8))[0]],
-        x_acc=float(max(np.max(a_ours), np.max(a_scipy))),
+        x_acc=(_finite_max(a_ours), _finite_max(a_scipy)),
+        x_fallback=(int(np.sum(~np.isfinite(a_ours))), int(np.sum(~np.isfinite(a_scipy)))),
         x_close=int(np.sum((np.abs(x_ours - 1e-8) <= a_ours) | (np.abs(x_scipy - 1e-8) <= a_scipy))),
         ratio=(np.median(ratio), np.max(ratio)),
         refused=refused,
@@ -166,14 +174,21 @@ def main(sets=1000, ns=(4, 10, 20)):
         "long-double residuals; checked against integer matrices of known spectrum in tests/test_accuracy.py, and",
         "against 40-digit mpmath on sample sets at n = 10 when it was written: same values to 2 %).",
         "",
-        "| n | obsjax error | SciPy (Tits-Yang) error | reach 1e-8: obsjax / SciPy | obsjax > 1e-8 where SciPy ≤ 1e-8 | sets within the refinement's accuracy of 1e-8 | worst accuracy of the refined errors |",
-        "|---|---|---|---|---|---|---|",
+        "| n | obsjax error | SciPy (Tits-Yang) error | reach 1e-8: obsjax / SciPy | obsjax > 1e-8 where SciPy ≤ 1e-8 | sets within the refinement's accuracy of 1e-8 | worst accuracy of the refined errors: obsjax / SciPy | not refinable (float64 used): obsjax / SciPy |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['n']} | {q(r['x_ours'])} | {q(r['x_scipy'])} | {r['x_reach_ours']:.1%} / {r['x_reach_scipy']:.1%} "
-            f"| **{r['x_missed']}** | {r['x_close']} | {r['x_acc']:.1e} |"
+            f"| **{r['x_missed']}** | {r['x_close']} | {r['x_acc'][0]:.1e} / {r['x_acc'][1]:.1e} "
+            f"| {r['x_fallback'][0]} / {r['x_fallback'][1]} |"
         )
+    lines += [
+        "",
+        "A gain whose closed-loop eigenvalues cannot be refined one by one (they run together: a gain far off) is",
+        "measured in float64 and counted in the last column; its accuracy is then infinite, so it also counts as",
+        "within the refinement's accuracy of 1e-8.",
+    ]
     for r in rows:
         for k, eo, es in r["x_missed_sets"]:
             lines.append(f"\n- n = {r['n']}, set {k}: obsjax {eo:.2e}, SciPy {es:.2e}.")
