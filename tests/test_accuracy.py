@@ -67,6 +67,8 @@ def test_bad_input_raises():
         closed_loop_eigvals(A, C, np.ones((2, 1)))
     with pytest.raises(ValueError, match="`L` must be finite"):
         closed_loop_eigvals(A, C, np.full((3, 1), np.nan))
+    with pytest.raises(ValueError, match="`iters` must be an integer >= 3"):
+        closed_loop_eigvals(A, C, L, iters=1)
     with pytest.raises(ValueError, match="`poles` must hold n = 3"):
         placement_error(np.diag([-1.0, -2.0, -3.0]), C, 0 * L, [-1.0, -2.0])
 

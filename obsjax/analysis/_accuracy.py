@@ -59,6 +59,8 @@ def closed_loop_eigvals(A, C, L, *, iters: int = 5, return_accuracy: bool = Fals
     obsjax.analysis.closed_loop_eigvals(A, C, L)  # -3, -4 to ~1e-19
     ```
     """
+    if not (isinstance(iters, int) and iters >= 3):
+        raise ValueError(f"`iters` must be an integer >= 3 (the accuracy is read from steps 3 on), got {iters!r}.")
     A, C, L = (np.asarray(x, dtype=np.float64) for x in (A, C, L))
     if A.ndim != 2 or A.shape[0] != A.shape[1]:
         raise ValueError(f"`A` must be square (n, n), got shape {A.shape}.")
@@ -103,7 +105,7 @@ def closed_loop_eigvals(A, C, L, *, iters: int = 5, return_accuracy: bool = Fals
             steps.append(abs(d[n]))
         # after two steps the corrections are rounding noise: their size is the accuracy of the refined
         # value.  No progress at all from the float64 value (above its rounding level) means divergence.
-        noise = max(steps[2:], default=steps[-1])
+        noise = max(steps[2:])
         acc[k] = noise
         if not np.isfinite(noise) or noise > max(0.5 * steps[0], 1e-13 * scale):
             raise RuntimeError(
