@@ -69,6 +69,10 @@ def test_bad_input_raises():
         closed_loop_eigvals(A, C, np.full((3, 1), np.nan))
     with pytest.raises(ValueError, match="`iters` must be an integer >= 3"):
         closed_loop_eigvals(A, C, L, iters=1)
+    with pytest.raises(ValueError, match="`A` must be real"):
+        closed_loop_eigvals(A + 0j, C, L)
+    with pytest.raises(ValueError, match="`poles` must be finite"):
+        placement_error(np.diag([-1.0, -2.0, -3.0]), C, 0 * L, [np.nan, -2.0, -3.0])
     with pytest.raises(ValueError, match="`poles` must hold n = 3"):
         placement_error(np.diag([-1.0, -2.0, -3.0]), C, 0 * L, [-1.0, -2.0])
 

@@ -24,6 +24,17 @@ def _extended() -> bool:
     return bool(np.finfo(np.longdouble).eps < 1e-18)
 
 
+def _real_matrix(x, name: str) -> np.ndarray:
+    """A finite real float64 array (complex input is refused, not cast)."""
+    arr = np.asarray(x)
+    if np.iscomplexobj(arr):
+        raise ValueError(f"`{name}` must be real, got dtype {arr.dtype}.")
+    arr = arr.astype(np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"`{name}` must be finite.")
+    return arr
+
+
 def closed_loop_eigvals(A, C, L, *, iters: int = 5, return_accuracy: bool = False):
     """Eigenvalues of A − L C for the float64 gain as stored, to extended precision.
 
@@ -61,7 +72,7 @@ def closed_loop_eigvals(A, C, L, *, iters: int = 5, return_accuracy: bool = Fals
     """
     if not (isinstance(iters, int) and iters >= 3):
         raise ValueError(f"`iters` must be an integer >= 3 (the accuracy is read from steps 3 on), got {iters!r}.")
-    A, C, L = (np.asarray(x, dtype=np.float64) for x in (A, C, L))
+    A, C, L = (_real_matrix(x, name) for x, name in ((A, "A"), (C, "C"), (L, "L")))
     if A.ndim != 2 or A.shape[0] != A.shape[1]:
         raise ValueError(f"`A` must be square (n, n), got shape {A.shape}.")
     n = A.shape[0]
@@ -69,9 +80,6 @@ def closed_loop_eigvals(A, C, L, *, iters: int = 5, return_accuracy: bool = Fals
         raise ValueError(f"`C` must be (m, {n}), got shape {C.shape}.")
     if L.shape != (n, C.shape[0]):
         raise ValueError(f"`L` must be ({n}, {C.shape[0]}), got shape {L.shape}.")
-    for name, x in (("A", A), ("C", C), ("L", L)):
-        if not np.all(np.isfinite(x)):
-            raise ValueError(f"`{name}` must be finite.")
     if not _extended():
         raise RuntimeError(
             "closed_loop_eigvals: numpy.longdouble is not wider than float64 on this platform "
@@ -150,6 +158,8 @@ def placement_error(A, C, L, poles, *, return_accuracy: bool = False):
     p = np.asarray(poles, complex).reshape(-1)
     if p.shape[0] != len(eig):
         raise ValueError(f"`poles` must hold n = {len(eig)} values, got {p.shape[0]}.")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"`poles` must be finite, got {p.tolist()}.")
     worst, unsure = 0.0, 0.0
     for q in p:
         d = np.abs(np.asarray(eig) - q)
