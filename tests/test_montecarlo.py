@@ -586,7 +586,7 @@ def test_study_kernels_carry_no_host_callbacks():
     with callbacks runs its shards one after another (benchmarks/results/d_sharding.md)."""
     import equinox as eqx
 
-    from obsjax.montecarlo._montecarlo import _runtime_checks_as_nan
+    from obsjax._checks import runtime_checks_as_nan
 
     plant = obsjax.chen_yen_example()
     obs = obsjax.LeastSquaresReset(plant, 20.0, 0.1, 0.25)
@@ -597,7 +597,7 @@ def test_study_kernels_carry_no_host_callbacks():
 
     plain = str(jax.make_jaxpr(f)(jnp.ones(2)))
     assert "callback" in plain  # diffrax checks SaveAt.ts of each reset segment at run time
-    with _runtime_checks_as_nan():
+    with runtime_checks_as_nan():
         inside = str(jax.make_jaxpr(lambda x: f(x))(jnp.ones(2)))  # a new function: no jit-cached trace
         batch = str(
             jax.make_jaxpr(lambda x: obsjax.simulate_batch(plant, obs, x, x, ts, throw=False).error)(

@@ -15,26 +15,10 @@ import obsjax
 from obsjax.design import place
 
 
-def match(eig, poles) -> float:
-    """Largest relative distance |λ̂ − λ| / |λ| between two multisets (greedy matching)."""
-    rest = list(np.asarray(eig, complex))
-    worst = 0.0
-    for p in np.asarray(poles, complex):
-        d = [abs(p - q) for q in rest]
-        k = int(np.argmin(d))
-        worst = max(worst, d[k] / max(abs(p), 1e-300))
-        rest.pop(k)
-    return worst
-
-
 def eig_error(A, C, L, poles) -> float:
     """The gain's own error: eigenvalues of the exact A − LC, refined in extended precision (the
     float64 eigvals adds a rounding of ε·κ_k·‖A − LC‖ that reaches 1e-8 for n ≥ 10).  Repeated poles
-    cannot be refined one by one: their float64 values are used."""
-    p = np.asarray(poles, complex)
-    gaps = np.where(np.eye(len(p), dtype=bool), np.inf, np.abs(p[:, None] - p[None, :]))
-    if np.min(gaps) <= 1e-6 * np.max(np.abs(p)):
-        return match(np.linalg.eigvals(A - np.asarray(L) @ C), poles)
+    cannot be refined one by one: placement_error then uses the float64 eigenvalues."""
     return obsjax.analysis.placement_error(A, C, np.asarray(L), poles)
 
 

@@ -616,9 +616,6 @@ def _wrap_key(key_data, impl):
     return jr.wrap_key_data(key_data) if impl is None else jr.wrap_key_data(key_data, impl=impl)
 
 
-_runtime_checks_as_nan = runtime_checks_as_nan  # (moved to obsjax._checks; tune uses it too)
-
-
 @eqx.filter_jit
 def _chunk_kernel(dyn, key_data, idx, cfg: _Config):
     def local(d, kd, ii):
@@ -1065,7 +1062,7 @@ def monte_carlo(
             idx_dev = jax.make_array_from_callback((chunk,), sharding_in, lambda s, idx=idx: idx[s])
         else:
             idx_dev = jnp.asarray(idx)
-        with _runtime_checks_as_nan():
+        with runtime_checks_as_nan():
             en, st = _chunk_kernel(dyn, key_data, idx_dev, cfg)
         if gather:
             from jax.experimental import multihost_utils
