@@ -22,6 +22,7 @@ process; only XLA's compilation is saved.
 from __future__ import annotations
 
 import os
+import re
 import sys
 
 import jax
@@ -42,13 +43,57 @@ def _opted_out() -> bool:
     return os.environ.get(OPT_OUT, "").strip().lower() not in ("", "0", "false", "no")
 
 
+def host_tag(cpuinfo: str | None = None) -> str:
+    """A short name of this machine's instruction set, the last component of the default directory.
+
+    XLA:CPU compiles for the host it runs on (its instruction-set extensions: AVX-512, …), and jaxlib
+    loads a cached executable compiled on another CPU with no more than a logged error: on a home
+    directory shared by machines of different kinds (a cluster's login and compute nodes) a program
+    compiled on one could stop with an illegal instruction on another.  The default directory is
+    therefore one per kind of CPU: ``<machine>-<12 hex digits>``, a hash of the CPU's vendor, family,
+    model and feature flags (``/proc/cpuinfo`` on Linux; ``platform.processor()`` elsewhere), with the
+    jaxlib version beside them.  `cpuinfo`: the text of ``/proc/cpuinfo`` to use instead of the
+    file's.
+    """
+    import hashlib
+    import platform
+
+    parts = [platform.machine(), platform.system()]
+    try:
+        import jaxlib
+
+        parts.append(getattr(jaxlib, "__version__", ""))
+    except ImportError:  # pragma: no cover - jax always brings jaxlib
+        pass
+    keys = ("vendor_id", "cpu family", "model", "flags", "features", "cpu implementer", "cpu part")
+    seen: dict[str, str] = {}
+    if cpuinfo is None:
+        try:
+            with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+                cpuinfo = f.read()
+        except OSError:
+            cpuinfo = ""
+    for line in cpuinfo.splitlines():
+        k, _, v = line.partition(":")
+        k = k.strip().lower()
+        if k in keys and k not in seen:  # the first processor's entry
+            seen[k] = " ".join(sorted(v.split())) if k in ("flags", "features") else v.strip()
+    if not seen:
+        seen["processor"] = platform.processor()
+    parts += [f"{k}={seen[k]}" for k in sorted(seen)]
+    digest = hashlib.sha256("\n".join(parts).encode()).hexdigest()[:12]
+    return f"{platform.machine() or 'cpu'}-{digest}"
+
+
 def default_cache_dir() -> str:
     """The directory :func:`enable_compilation_cache` uses when given none.
 
-    ``$OBSJAX_COMPILATION_CACHE_DIR`` when set; else the user cache directory:
-    ``$XDG_CACHE_HOME/obsjax/jax-compilation-cache`` (``~/.cache/obsjax/jax-compilation-cache``
-    when ``XDG_CACHE_HOME`` is unset) on Linux, ``~/Library/Caches/obsjax/jax-compilation-cache`` on
-    macOS, ``%LOCALAPPDATA%\\obsjax\\jax-compilation-cache`` on Windows.
+    ``$OBSJAX_COMPILATION_CACHE_DIR`` when set (used as given); else, under the user cache directory,
+    ``obsjax/jax-compilation-cache/<host>``: ``$XDG_CACHE_HOME/obsjax/...`` (``~/.cache/obsjax/...``
+    when ``XDG_CACHE_HOME`` is unset) on Linux, ``~/Library/Caches/obsjax/...`` on macOS,
+    ``%LOCALAPPDATA%\\obsjax\\...`` on Windows, where ``<host>`` is :func:`host_tag` (one directory
+    per kind of CPU, so that a home directory shared by different machines never hands one machine's
+    compiled code to another).
     """
     given = os.environ.get(DIR_ENV, "").strip()
     if given:
@@ -60,7 +105,7 @@ def default_cache_dir() -> str:
         base = os.path.join(home, "Library", "Caches")
     else:
         base = os.environ.get("XDG_CACHE_HOME") or os.path.join(home, ".cache")
-    return os.path.join(base, "obsjax", "jax-compilation-cache")
+    return os.path.join(base, "obsjax", "jax-compilation-cache", host_tag())
 
 
 def enable_compilation_cache(
@@ -80,15 +125,24 @@ def enable_compilation_cache(
 
     The cache directory is trusted: an executable read from it runs in this process, so it must not
     be writable by other users.  It is not size-limited; delete it to free the space (nothing else
-    is lost).
+    is lost).  A directory given explicitly (`path`, ``$OBSJAX_COMPILATION_CACHE_DIR``,
+    ``$JAX_COMPILATION_CACHE_DIR``) should be used by one kind of CPU only (see :func:`host_tag`); the
+    default directory is one per kind.
+
+    On some x86 CPUs (AMD Zen 4, some Intel Xeons) jaxlib 0.9-0.10 logs an error line at every
+    executable it reads from the cache, ``Target machine feature +prefer-no-gather is not supported on
+    the host machine``: ``prefer-no-gather``/``prefer-no-scatter`` are LLVM tuning preferences, not
+    instructions, and the executable, compiled on this machine, runs correctly (jax-ml/jax issue
+    #38445).  The ``obsjax`` command drops exactly these lines from its error output; elsewhere
+    ``TF_CPP_MIN_LOG_LEVEL=3`` set before importing jax silences them (with every other XLA log line).
 
     **Arguments:**
 
     - `path`: cache directory.  ``None``: ``$OBSJAX_COMPILATION_CACHE_DIR`` if set, else a directory
-      already given to JAX (``JAX_COMPILATION_CACHE_DIR``), else a directory under the user cache
-      directory: ``$XDG_CACHE_HOME/obsjax/jax-compilation-cache`` (``~/.cache/...`` when unset) on
-      Linux, ``~/Library/Caches/obsjax/jax-compilation-cache`` on macOS,
-      ``%LOCALAPPDATA%\\obsjax\\...`` on Windows.
+      already given to JAX (``JAX_COMPILATION_CACHE_DIR``), else :func:`default_cache_dir`:
+      ``$XDG_CACHE_HOME/obsjax/jax-compilation-cache/<host>`` (``~/.cache/...`` when unset) on
+      Linux, ``~/Library/Caches/obsjax/jax-compilation-cache/<host>`` on macOS,
+      ``%LOCALAPPDATA%\\obsjax\\...`` on Windows, ``<host>`` naming the kind of CPU.
     - `min_compile_time_secs`: programs whose compilation took less are not written (JAX's default
       is 1 s, above the compile time of most single simulations; 0.2 s by default here).
 
@@ -97,7 +151,7 @@ def enable_compilation_cache(
     **Example:**::
 
         import obsjax
-        obsjax.enable_compilation_cache()   # e.g. ~/.cache/obsjax/jax-compilation-cache
+        obsjax.enable_compilation_cache()   # e.g. ~/.cache/obsjax/jax-compilation-cache/x86_64-3f…
     """
     if not min_compile_time_secs >= 0:
         raise ValueError(f"`min_compile_time_secs` must be >= 0, got {min_compile_time_secs}.")
@@ -131,3 +185,87 @@ def cache_environment(path: str) -> dict[str, str]:
             float(_flag("jax_persistent_cache_min_compile_time_secs"))
         ),
     }
+
+
+#: XLA:CPU's complaint, at every executable read from the cache on some x86 CPUs, about LLVM *tuning*
+#: preferences recorded at compilation (not instruction-set extensions): harmless on the machine that
+#: compiled it (jax-ml/jax issue #38445, openxla/xla issue #44565).  A line naming a real feature is
+#: not matched.
+_BENIGN_LOG = re.compile(
+    rb"cpu_aot_loader\.cc:\d+\] Loading XLA:CPU AOT result\. Target machine feature "
+    rb"\+(prefer-no-gather|prefer-no-scatter) is not +supported on the host machine"
+)
+#: the start of an absl/glog line (``E1123 09:06:28.463150   23527 file.cc:195] ...``), possibly cut
+_LOG_PREFIX = re.compile(rb"^[IWEF](\d{0,4}|\d{4} [\d:.]*( +\d*)?)$|^[IWEF]\d{4} [\d:.]+ +\d+ ")
+
+
+class quiet_benign_cache_log:
+    """Context manager: drop XLA's harmless ``+prefer-no-gather``/``+prefer-no-scatter`` lines (see
+    :func:`enable_compilation_cache`) from what this process, and the processes it starts, write to
+    file descriptor 2; everything else passes unchanged and in order.  Used by the ``obsjax`` command.
+
+    File descriptor 2 is pointed at a pipe read by a thread that forwards to the original standard
+    error: complete lines unless they match exactly the benign message, and an unfinished line at
+    once unless it may be the start of a log line (progress bars that redraw with ``\\r`` are not
+    held back).  Where the pipe cannot be set up it does nothing.
+    """
+
+    def __init__(self, fd: int = 2):
+        self.fd = fd
+        self._saved = None
+
+    def __enter__(self):
+        import threading
+
+        try:
+            sys.stderr.flush()
+            saved = os.dup(self.fd)
+            r, w = os.pipe()
+            os.dup2(w, self.fd)
+            os.close(w)
+        except (OSError, ValueError, AttributeError):
+            return self
+        self._saved, self._r = saved, r
+        self._thread = threading.Thread(target=self._pump, name="obsjax-stderr", daemon=True)
+        self._thread.start()
+        return self
+
+    def _write(self, data: bytes) -> None:
+        while data:
+            try:
+                n = os.write(self._saved, data)
+            except OSError:
+                return
+            data = data[n:]
+
+    def _pump(self) -> None:
+        buf = b""
+        while True:
+            try:
+                chunk = os.read(self._r, 65536)
+            except OSError:
+                chunk = b""
+            if not chunk:
+                break
+            buf += chunk
+            *lines, buf = buf.split(b"\n")
+            out = b"".join(line + b"\n" for line in lines if not _BENIGN_LOG.search(line))
+            if buf and not _LOG_PREFIX.match(buf):
+                out, buf = out + buf, b""
+            self._write(out)
+        if buf and not _BENIGN_LOG.search(buf):
+            self._write(buf)
+
+    def __exit__(self, *exc):
+        if self._saved is None:
+            return False
+        try:
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        os.dup2(self._saved, self.fd)  # closes the pipe's last write end in this process
+        self._thread.join(timeout=10.0)
+        os.close(self._r)
+        os.close(self._saved)
+        self._saved = None
+        return False

@@ -540,11 +540,18 @@ def main(argv=None) -> int:
     )
     p_bench.add_argument("--dir", default=None, help="the benchmarks directory")
     args = parser.parse_args(argv)
-    # JAX's persistent compilation cache, on unless OBSJAX_NO_COMPILATION_CACHE=1 (see obsjax/_cache.py)
-    from ._cache import enable_compilation_cache
+    # JAX's persistent compilation cache, on unless OBSJAX_NO_COMPILATION_CACHE=1 (see obsjax/_cache.py);
+    # jaxlib's harmless complaint at every executable read back on some CPUs is dropped from stderr
+    import contextlib
 
-    enable_compilation_cache()
+    from ._cache import enable_compilation_cache, quiet_benign_cache_log
 
+    on = enable_compilation_cache() is not None
+    with quiet_benign_cache_log() if on else contextlib.nullcontext():
+        return _run(parser, args)
+
+
+def _run(parser, args) -> int:
     if args.command == "demo":
         demo(args.out, n=args.n, steps=args.steps, batch=args.batch, seed=args.seed)
         return 0

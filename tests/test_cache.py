@@ -113,7 +113,9 @@ def test_default_directory(tmp_path, monkeypatch):
     monkeypatch.delenv(_cache.DIR_ENV, raising=False)
     if sys.platform.startswith("linux"):
         monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-        assert _cache.default_cache_dir() == str(tmp_path / "obsjax" / "jax-compilation-cache")
+        assert _cache.default_cache_dir() == str(
+            tmp_path / "obsjax" / "jax-compilation-cache" / _cache.host_tag()
+        )
     monkeypatch.setenv(_cache.DIR_ENV, str(tmp_path / "mine"))
     assert _cache.default_cache_dir() == str(tmp_path / "mine")
 
@@ -137,3 +139,58 @@ def test_the_test_run_and_its_kernels_use_it():
         timeout=120,
     )
     assert child.stdout.strip() == d
+
+
+_CPU = "processor\t: {i}\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\nflags\t\t: {flags}\n\n"
+
+
+def test_one_directory_per_kind_of_cpu():
+    """The default directory's last component names the CPU's instruction set: two machines that
+    differ in one feature flag never share compiled code, and the order of the flags does not
+    matter."""
+    a = _cache.host_tag(_CPU.format(i=0, flags="fpu sse2 avx2 avx512f") * 2)
+    b = _cache.host_tag(_CPU.format(i=0, flags="fpu sse2 avx2"))
+    c = _cache.host_tag(_CPU.format(i=0, flags="avx512f avx2 sse2 fpu"))
+    assert a != b and a == c
+    assert _cache.host_tag(_CPU.format(i=0, flags="fpu").replace("25", "23")) != _cache.host_tag(
+        _CPU.format(i=0, flags="fpu")
+    )  # another CPU family
+    import re
+
+    assert re.fullmatch(r"[\w.-]+-[0-9a-f]{12}", a)
+    assert _cache.host_tag() == _cache.host_tag()  # stable within a machine
+
+
+_FILTER = r"""
+import os, sys
+from obsjax._cache import quiet_benign_cache_log
+benign = (b"E1123 09:06:28.463150   23527 cpu_aot_loader.cc:195] Loading XLA:CPU AOT result. Target "
+          b"machine feature +%s is not  supported on the host machine. Machine type used for XLA:CPU "
+          b"compilation doesn't match the machine type for execution. This could lead to execution "
+          b"errors such as SIGILL.\n")
+with quiet_benign_cache_log():
+    os.write(2, b"first\n")
+    os.write(2, benign % b"prefer-no-gather")
+    os.write(2, b"\rprogress 1/2")
+    os.write(2, b"\rprogress 2/2\n")
+    os.write(2, benign % b"avx512fp16")  # a real instruction-set extension: kept
+    os.write(2, benign[:40])  # a benign line written in two pieces
+    os.write(2, benign[40:] % b"prefer-no-scatter")
+    print("from python", file=sys.stderr)
+    os.system("echo from a child >&2")
+    os.write(2, b"last, no newline")
+print("done", file=sys.stderr)
+"""
+
+
+def test_the_command_drops_only_the_benign_loader_complaint():
+    out = subprocess.run(
+        [sys.executable, "-c", _FILTER], check=True, capture_output=True, env=_env(), timeout=120
+    )
+    err = out.stderr.decode()
+    assert "prefer-no-gather" not in err and "prefer-no-scatter" not in err, err
+    assert "+avx512fp16 is not" in err  # a line about a real feature still reaches the user
+    order = ["first\n", "\rprogress 1/2\rprogress 2/2\n", "avx512fp16", "from python\n",
+             "from a child\n", "last, no newline", "done\n"]  # fmt: skip
+    pos = [err.index(s) for s in order]
+    assert pos == sorted(pos), err
