@@ -89,3 +89,16 @@ def test_placement_error_falls_back_to_float64_with_infinite_accuracy():
     A = np.array([[-1.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -3.0]])
     err, acc = placement_error(A, np.zeros((1, 3)), np.zeros((3, 1)), [-1.0, -1.0, -3.0], return_accuracy=True)
     assert err < 1e-7 and acc == np.inf
+
+
+def test_a_pole_at_the_origin_is_measured_against_the_size_of_the_problem():
+    """A requested pole at 0 placed to rounding reads as a small error, not as 1e293 (the distance
+    divided by the smallest positive float)."""
+    A = np.array([[0.0, 1.0], [-2.0, -3.0]])
+    C = np.array([[1.0, 0.0]])
+    L = np.asarray(obsjax.design.place(A, C, [0.0, -1.0]))
+    assert obsjax.analysis.placement_error(A, C, L, [0.0, -1.0]) < 1e-10  # L = [-2, 4] is exact
+    # a gain that misses the origin by 1e-5 (1e-3 of the largest pole, 1) reads as 1e-2
+    off = np.asarray(obsjax.design.place(A, C, [-1e-5, -1.0]))
+    err = obsjax.analysis.placement_error(A, C, off, [0.0, -1.0])
+    assert err == pytest.approx(1e-2, rel=1e-6)

@@ -243,3 +243,11 @@ def test_rosenbrock_forces_jordan_chains_when_indices_are_unequal():
     np.testing.assert_allclose(np.poly(A - L @ C), np.poly(poles), atol=1e-7)
 
 
+
+
+@pytest.mark.parametrize("rtol", [-1.0, 0.0, float("nan")])
+def test_rtol_must_be_positive(rtol):
+    A = np.array([[0.0, 1.0], [-2.0, -3.0]])
+    C = np.array([[1.0, 0.0]])
+    with pytest.raises(ValueError, match="`rtol` must be a positive number"):
+        obsjax.design.place(A, C, [-1.0, -2.0], rtol=rtol)

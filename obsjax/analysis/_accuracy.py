@@ -134,9 +134,11 @@ def closed_loop_eigvals(A, C, L, *, iters: int = 5, return_accuracy: bool = Fals
 
 
 def placement_error(A, C, L, poles, *, return_accuracy: bool = False):
-    """Largest relative distance max_k |λ̂_k − λ_k| / |λ_k| between the eigenvalues λ̂ of A − LC
-    (:func:`closed_loop_eigvals`, extended precision) and the requested ``poles`` (matched greedily,
-    each requested pole to its nearest unused eigenvalue).
+    """Largest relative distance max_k |λ̂_k − λ_k| / max(|λ_k|, s) between the eigenvalues λ̂ of
+    A − LC (:func:`closed_loop_eigvals`, extended precision) and the requested ``poles`` (matched
+    greedily, each requested pole to its nearest unused eigenvalue), s = 10⁻³·max_k |λ_k| (10⁻³·‖A‖_F
+    when every pole is 0): a pole at or near the origin is measured against the size of the
+    spectrum, not divided by zero.
 
     This is the error of the gain itself; ``numpy.linalg.eigvals`` adds its own rounding
     ε·κ_k·‖A − LC‖/|λ_k|, which for ill-conditioned placements exceeds the gain's error.
@@ -161,10 +163,13 @@ def placement_error(A, C, L, poles, *, return_accuracy: bool = False):
     if not np.all(np.isfinite(p)):
         raise ValueError(f"`poles` must be finite, got {p.tolist()}.")
     worst, unsure = 0.0, 0.0
+    # a pole at (or near) the origin is measured against the size of the problem, as `place` does
+    top = float(np.max(np.abs(p), initial=0.0))
+    floor = 1e-3 * (top if top > 0 else float(np.linalg.norm(np.asarray(A, float))))
     for q in p:
         d = np.abs(np.asarray(eig) - q)
         k = int(np.argmin(d))
-        size = max(abs(q), np.finfo(float).tiny)
+        size = max(abs(q), floor, np.finfo(float).tiny)
         worst = max(worst, float(d[k] / size))
         unsure = max(unsure, float(acc[k] / size))
         eig.pop(k)

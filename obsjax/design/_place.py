@@ -376,6 +376,14 @@ def place(
     **Example:** thesis example (2.8), poles {−3, −3}: ``place([[-2, 1], [0, -1]], [[1, 0]], [-3, -3])``
     gives L = [[3], [4]] (a Jordan chain: one output, a double pole).
     """
+    rtol_ok = True
+    if not isinstance(rtol, jax.core.Tracer):  # a traced rtol is compared under jit as it is
+        try:
+            rtol_ok = float(rtol) > 0.0  # inf accepts every finite gain; NaN and negatives are refused
+        except (TypeError, ValueError):
+            rtol_ok = False
+    if not rtol_ok:
+        raise ValueError(f"place: `rtol` must be a positive number (or numpy.inf), got {rtol!r}.")
     A, C = design_pair(A, C, "place")
     n = A.shape[0]
     p = pole_vector(poles, n)
