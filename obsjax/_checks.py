@@ -96,11 +96,28 @@ def is_concrete(x) -> bool:
 
 
 def concrete_value(x):
-    """Concrete numpy value of ``x`` or ``None`` when it is traced (inside jit)."""
+    """Concrete numpy value of ``x`` or ``None`` when it is traced (inside jit).
+
+    Outside ``jit``, a leaf being differentiated (``jax.grad``/``jvp`` run eagerly) still has a concrete
+    primal, and this returns it: right for checks and for sizes, wrong for anything the result must stay
+    differentiable in (use :func:`static_value` there).
+    """
     try:
         return np.asarray(_concrete_or_error(None, x))
     except Exception:  # noqa: BLE001
         return None
+
+
+def static_value(x):
+    """NumPy value of ``x`` when it is a constant of the computation, ``None`` when any leaf is a JAX tracer.
+
+    Unlike :func:`concrete_value`, a leaf traced by an eager ``jax.grad``/``jvp``/``vmap`` counts as traced:
+    a quantity read here (a reset period, breakpoint instants) is frozen into NumPy, so its derivative would
+    be lost silently.  Code that builds structure from such a value must take its traced path instead.
+    """
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(x)):
+        return None
+    return concrete_value(x)
 
 
 def positive(value, name: str):

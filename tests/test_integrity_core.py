@@ -315,3 +315,50 @@ def test_lockstep_evicts_a_finite_member_that_alone_drags_the_step_down():
     ok = np.asarray(alone.status) == 0
     assert np.all(np.isfinite(np.asarray(lock.error)[3, :2]))  # finite until it ran out of steps
     np.testing.assert_allclose(np.asarray(lock.error)[ok], np.asarray(alone.error)[ok], atol=1e-7)
+
+
+# ---------------------------------------------------------------- a derivative in the reset period, eagerly
+
+
+def _lsr_cost(T):
+    lsr = obsjax.LeastSquaresReset(PLANT, gamma=2.0, p0=1.0, T=0.37)
+    o = eqx.tree_at(lambda o: o.T, lsr, T)
+    return obsjax.losses.ise(sim(PLANT, o, X0, XH0, TS, adaptive=False, dt0=0.01, max_segments=8))
+
+
+def _fw_cost(T):
+    model = obsjax.LTI(A=[[0.0, 1.0], [0.0, 0.0]], B=[[0.0], [1.0]], C=[[2.0, 0.0]])
+    o = eqx.tree_at(lambda o: o.T, obsjax.FiniteWindow(model, T=1.037), T)
+    u = obsjax.signals.multisine([1.0], [1.3])
+    tr = sim(model, o, jnp.array([1.0, 0.5]), jnp.zeros(2), np.linspace(0.0, 2.5, 26), u=u, rtol=1e-10, atol=1e-12,
+             max_segments=64)
+    return obsjax.losses.ise(tr)
+
+
+@pytest.mark.parametrize("cost, T0", [(_lsr_cost, 0.37), (_fw_cost, 1.037)], ids=["lsr-fixed", "window-adaptive"])
+def test_eager_gradient_in_the_reset_period_moves_the_resets(cost, T0):
+    """jax.grad without jit: T's primal value is concrete, but the reset instants t0 + kT must still carry
+    its derivative (they were read as constants: dJ/dT = 0 with fixed steps, a wrong value with adaptive
+    ones).  Checked against jit(grad) and a central difference."""
+    eager = float(jax.grad(cost)(jnp.asarray(T0)))
+    jitted = float(jax.jit(jax.grad(cost))(jnp.asarray(T0)))
+    f = jax.jit(cost)
+    h = 1e-5
+    fd = float((f(T0 + h) - f(T0 - h)) / (2 * h))
+    assert abs(fd) > 1e-3
+    assert eager == pytest.approx(jitted, rel=1e-9)
+    assert eager == pytest.approx(fd, rel=1e-5)
+
+
+@pytest.mark.parametrize("kw", [dict(adaptive=False, dt0=0.01), dict(rtol=1e-10, atol=1e-12)], ids=["fixed", "adaptive"])
+def test_eager_gradient_in_the_save_times(kw):
+    """d/ds of a cost over the save times s·ts, without jit: the fixed-step grid was built from the primal
+    times and gave 0.  Against jit(grad) and a central difference."""
+    def cost(s):
+        tr = sim(PLANT, OBS, X0, XH0, jnp.asarray(TS) * s, **kw)
+        return jnp.sum(tr.error ** 2) + jnp.sum(tr.x ** 2)
+
+    eager = float(jax.grad(cost)(1.0))
+    assert eager == pytest.approx(float(jax.jit(jax.grad(cost))(1.0)), rel=1e-9)
+    f = jax.jit(cost)
+    assert eager == pytest.approx(float((f(1.0 + 1e-5) - f(1.0 - 1e-5)) / 2e-5), rel=1e-5)

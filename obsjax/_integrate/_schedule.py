@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import concrete_value
+from .._checks import concrete_value, static_value
 
 MAX_RESET_SEGMENTS = 100_000
 
@@ -121,7 +121,7 @@ def _events(event_times, t0, t1, ts_np):
         raw = event_times(t0, t1)
     if raw is None:
         return None
-    v = concrete_value(raw)
+    v = static_value(raw)  # times that depend on a differentiated leaf stay traced
     ev = jnp.asarray(raw, dtype=jnp.result_type(float))
     if ev.ndim != 1:
         raise ValueError(f"`observer.event_times(t0, t1)` must return a 1-D array, got shape {ev.shape}.")
@@ -151,7 +151,7 @@ def build(ts, ts_np, T, n_reset, jumps, event_times) -> Schedule:
     """Merge resets (n_reset − 1 of them), plant jumps and observer events into a :class:`Schedule`."""
     tol = tolerance(ts_np[-1] - ts_np[0]) if ts_np is not None else None
     tol_rt = tol if tol is not None else 1e-9 * jnp.maximum(1.0, ts[-1] - ts[0])
-    if T is not None and (ts_np is None or concrete_value(T) is None):
+    if T is not None and (ts_np is None or static_value(T) is None):
         # A traced period must be covered by the bound (n_reset segments of length T reach t1), or the last
         # resets would silently be dropped: checked under jit.
         Tt = jnp.asarray(T, dtype=ts.dtype)
@@ -175,7 +175,7 @@ def _resets(ts, ts_np, T, n_reset, tol, tol_rt):
     t0, t1 = ts[0], ts[-1]
     k = np.arange(1, n_reset)
     r = t0 + jnp.asarray(k, ts.dtype) * jnp.asarray(T, dtype=ts.dtype)
-    Tv = concrete_value(T)
+    Tv = static_value(T)  # a T being differentiated (even eagerly) keeps its traced instants
     if ts_np is not None and Tv is not None:
         # concrete instants (NumPy, so also inside jit): drop those on or after t1
         rv = ts_np[0] + k * float(np.asarray(Tv).reshape(()))

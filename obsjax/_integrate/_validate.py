@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import concrete_value, real_array
+from .._checks import concrete_value, real_array, static_value
 from ..observers._base import AbstractObserver
 from ..systems._noise import BandLimitedNoise, WhiteNoise
 from ..systems._plants import AbstractSystem
@@ -51,8 +51,9 @@ def check_types(plant, observer, noise):
 
 
 def concrete_times(ts):
-    """The save times as a float64 NumPy array when known before tracing, else ``None``."""
-    v = concrete_value(ts)
+    """The save times as a float64 NumPy array when they are constants, else ``None`` (traced by jit, or by an
+    eager ``jax.grad``/``jvp`` in the save times: a NumPy grid would drop that derivative)."""
+    v = static_value(ts)
     if v is None or np.iscomplexobj(v):
         return None
     return np.asarray(v, dtype=np.float64)

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import expm
 
-from .._checks import as_float_array, concrete_value, vector
+from .._checks import as_float_array, concrete_value, static_value, vector
 from .._config import require_x64
 from ..analysis._lti import gram_relative_residuals, observability_staircase
 from ..systems._plants import LTI
@@ -353,8 +353,10 @@ class FiniteWindow(AbstractObserver):
     @property
     def reset_period(self):
         """h = T / n_chunks: at t0 + kh the buffer of window pieces shifts and x̂ is recomputed by (14)."""
-        Tc = concrete_value(self.T)
-        if Tc is not None:  # concrete even inside jit (a closed-over T), so simulate can count segments
+        Tc = static_value(self.T)
+        # a constant T (also a closed-over one inside jit) gives a float, so simulate can count segments;
+        # a T being differentiated, even by an eager jax.grad, stays traced so the reset instants move with it
+        if Tc is not None:
             return float(Tc) / self.n_chunks
         return self.T / self.n_chunks
 
