@@ -183,6 +183,29 @@ def test_rank_decisions_do_not_depend_on_units(c, d):
     assert ltv_observability_indices(lambda t: c * A, lambda t: d * C, 0.0) == ref.indices
 
 
+@pytest.mark.parametrize("S", [(1e-6, 1e6), (1e9, 1.0), (1e-12, 1.0)])
+def test_each_output_in_its_own_unit(S):
+    """C → diag(s)·C (one unit per output: volts and microvolts) changes no rank decision, LTI or LTV:
+    each output row is normalised before the staircase and the LTV search."""
+    rng = np.random.default_rng(11)
+    A, C = rng.standard_normal((6, 6)), rng.standard_normal((2, 6))
+    A[3:, :3] = 0.0
+    SC = np.diag(S) @ C
+    ref = observability_staircase(A, C)
+    st = observability_staircase(A, SC)
+    assert ref.observable and ref.indices == (3, 3)
+    assert (st.blocks, st.indices, st.observable) == (ref.blocks, ref.indices, ref.observable)
+    assert abs(st.margin - ref.margin) <= 1e-6 * ref.margin
+    assert observability_indices(A, SC) == observability_indices(A, C)
+    assert is_observable(A, SC)
+    assert ltv_observability_indices(lambda t: A, lambda t: SC, 0.0) == ref.indices
+    # the lexicographic (2, 1) pair with its outputs in units 1e8 apart
+    A3 = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    C3 = np.diag(S) @ np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    assert observability_indices(A3, C3) == (2, 1)
+    assert ltv_observability_indices(lambda t: A3, lambda t: C3, [0.0, 1.0]) == (2, 1)
+
+
 def test_state_units_do_not_change_decisions():
     """A diagonal change of state units (x → D x) is undone by the balancing."""
     rng = np.random.default_rng(12)

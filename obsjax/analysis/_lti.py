@@ -89,14 +89,16 @@ def _unit(M: np.ndarray) -> np.ndarray:
 def balance_pair(A, C) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The balanced pair (A_b, C_b) = (D⁻¹ Â D / ‖·‖, Ĉ D / ‖·‖) and the diagonal D (as a vector).
 
-    Â = A/‖A‖₂ and Ĉ = C/‖C‖₂; D (powers of two, exact) equalises the row norms of Â with the column
-    norms of [Â; Ĉ] (LAPACK's balancing of [[Â, 0], [Ĉ, 0]]); both results are scaled to unit 2-norm, so
-    the balanced pair of (cA, dC) is that of (A, C).
+    Â = A/‖A‖₂ and Ĉ = C with each row scaled to unit norm, then to unit 2-norm (the unit of each output
+    is arbitrary: a rank decision must not depend on it); D (powers of two, exact) equalises the row norms
+    of Â with the column norms of [Â; Ĉ] (LAPACK's balancing of [[Â, 0], [Ĉ, 0]]); both results are scaled
+    to unit 2-norm, so the balanced pair of (cA, S C), S diagonal and invertible, is that of (A, C).
     """
     A = np.asarray(A, dtype=float)
     C = np.atleast_2d(np.asarray(C, dtype=float))
     n, m = A.shape[0], C.shape[0]
-    An, Cn = _unit(A), _unit(C)
+    rows = np.linalg.norm(C, axis=1, keepdims=True) if C.size else np.ones((m, 1))
+    An, Cn = _unit(A), _unit(C / np.where(rows > 0, rows, 1.0))
     M = np.zeros((n + m, n + m))
     M[:n, :n], M[n:, :n] = An, Cn
     _, (scale, _) = scipy.linalg.matrix_balance(M, permute=False, separate=True)
@@ -231,11 +233,11 @@ def observability_staircase(A, C, *, tol: float | None = None) -> ObservabilityS
     orthonormal directions level by level in the order of thesis §3.2, steps (a)-(e): level 0 tests the
     rows c_1 … c_m of C_b, level k the rows w_j A_b where w_j is the new part that output j contributed at
     level k − 1.  A candidate is independent when its component outside the directions found so far
-    exceeds ``tol`` times its parent's norm times ‖A_b‖ (``tol``·‖C_b‖ at level 0).  In the new
-    coordinates C is [C_1, 0] and A is block Hessenberg: the staircase form.
+    exceeds ``tol`` times its parent's norm times ‖A_b‖ (``tol`` times the row's own norm at level 0).  In
+    the new coordinates C is [C_1, 0] and A is block Hessenberg: the staircase form.
 
     Every threshold is relative, on a pair scaled to unit norm: the decisions do not change under
-    A → cA, C → dC, nor under a diagonal change of state units.
+    A → cA, C → SC (S diagonal: the units of the outputs), nor under a diagonal change of state units.
 
     **Arguments:** `A` (n, n), `C` (m, n): concrete arrays; `tol`: relative tolerance (default 1e-9).
 
@@ -253,12 +255,14 @@ def observability_staircase(A, C, *, tol: float | None = None) -> ObservabilityS
         raise ValueError(f"`tol` must be > 0, got {tol}.")
     n, m = A.shape[0], C.shape[0]
     Ab, Cb, d = balance_pair(A, C)
-    nA, nC = np.linalg.norm(Ab, 2), np.linalg.norm(Cb, 2)
+    nA = np.linalg.norm(Ab, 2)
     basis: list = []
     alive = [True] * m
     nu = [0] * m
     blocks = []
-    res = lexicographic_step(basis, Cb, alive, [tol * nC] * m)
+    # level 0: an output is kept when it is independent of those before it, relative to its own norm (a
+    # zero row is dropped)
+    res = lexicographic_step(basis, Cb, alive, list(tol * np.linalg.norm(Cb, axis=1)))
     while True:
         kept = [j for j in range(m) if np.any(res[j])]
         if not kept:

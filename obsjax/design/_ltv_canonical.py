@@ -181,6 +181,19 @@ def ltv_observability_matrix(A: Callable, C: Callable, t) -> jax.Array:
     return _lie_stack(A, C, n - 1)(_as_time(t)).reshape(n * m, n)
 
 
+def output_scales(norms):
+    """One scale per output: ‖c_i(t)‖, or the largest ‖𝓛^k c_i‖ when c_i(t) = 0 (1 when all vanish).
+
+    ``norms`` (levels, m): the row norms of [C; 𝓛C; …] at one time (numpy or jax).  Dividing output i's
+    rows by it makes the rank decisions independent of the outputs' units (C → S C, S diagonal), which
+    the scales ρ_k of :func:`level_scales` alone are not: their max over outputs lets a large output hide
+    a small one."""
+    xp = jnp if isinstance(norms, jax.Array) else np
+    top = xp.max(norms, axis=0)
+    s = xp.where(norms[0] > 0, norms[0], top)
+    return xp.where(s > 0, s, 1.0)
+
+
 def level_scales(norms, a_norm):
     """The scales ρ_k of the levels of the lexicographic search: ρ_0 = max_i ‖c_i‖ and
     ρ_k = max(max_i ‖𝓛^k c_i‖, ‖A(t)‖ ρ_{k−1}) (``norms`` (levels, m): the row norms; numpy or jax)."""
@@ -197,11 +210,13 @@ def _search(Qs: np.ndarray, tol: float, a_norm: float) -> tuple[tuple[int, ...] 
     The rank decisions are those of the LTI staircase (:func:`obsjax.analysis._lti.lexicographic_step`):
     a row is independent when its component outside the rows kept so far exceeds ``tol`` times the
     scale ρ_k of its level (:func:`level_scales`).  Every threshold is relative to its own level, so the
-    decisions do not change when time is rescaled (A → cA, 𝓛 → c𝓛) or the outputs are (C → dC).
+    decisions do not change when time is rescaled (A → cA, 𝓛 → c𝓛) or the outputs are (C → SC, S
+    diagonal: each output's rows are first divided by :func:`output_scales`).
 
     Returns the indices (``None`` when fewer than n rows are independent) and the staircase margin: the
     smallest kept residual relative to its level's scale (0 when the rank is short)."""
     depth1, m, n = Qs.shape
+    Qs = Qs / output_scales(np.linalg.norm(Qs, axis=2))[None, :, None]
     rho = level_scales(np.linalg.norm(Qs, axis=2), a_norm)
     basis: list = []
     alive = [True] * m
@@ -231,7 +246,8 @@ def staircase_margin(levels: jax.Array, A0: jax.Array, indices) -> jax.Array:
     :func:`obsjax.analysis._lti.relative_residuals`, the traced twin of the search's decisions.  The
     minimum is 0 where the rows are dependent, and does not change when A → cA or C → dC."""
     pmax = max(indices)
-    levels = jax.lax.stop_gradient(levels[:pmax])
+    levels = jax.lax.stop_gradient(levels)
+    levels = (levels / output_scales(jnp.linalg.norm(levels, axis=2))[None, :, None])[:pmax]
     rho = level_scales(jnp.linalg.norm(levels, axis=2), jnp.linalg.norm(jax.lax.stop_gradient(A0), 2))
     order = [(j, i) for j in range(pmax) for i in range(len(indices)) if j < indices[i]]
     rows = jnp.stack([levels[j, i] for j, i in order])
