@@ -271,3 +271,83 @@ def test_canonical_placement_and_section_3_2_example():
 def test_canonical_method_keeps_pairs_in_one_subsystem():
     with pytest.raises(ValueError, match="conjugate pair cannot be split"):
         place(np.diag([1.0, 2.0]), np.eye(2), [-1 + 1j, -1 - 1j], method="canonical")
+
+
+def _true_error(A, C, L, poles, dps=60) -> float:
+    """Largest relative eigenvalue error of A − L·C evaluated exactly (mpmath, `dps` digits, on the float64
+    entries), relative to max(|λ|, 1e-3·max|λ_k|) as place's estimate is."""
+    import mpmath as mp
+
+    with mp.workdps(dps):
+        M = mp.matrix(A.tolist()) - mp.matrix(L.tolist()) * mp.matrix(C.tolist())
+        rest = [complex(e) for e in mp.eig(M, left=False, right=False)]
+    floor = 1e-3 * np.max(np.abs(poles))
+    worst = 0.0
+    for p in np.asarray(poles, complex):
+        d = [abs(p - q) for q in rest]
+        k = int(np.argmin(d))
+        worst = max(worst, d[k] / max(abs(p), floor))
+        rest.pop(k)
+    return worst
+
+
+def _canonical_estimate(A, C, poles, method="canonical") -> float:
+    """place's a-posteriori error for `method`, read from its refusal at rtol = 1e-300."""
+    with pytest.raises(ValueError, match="a-posteriori relative eigenvalue error") as info:
+        place(A, C, poles, method=method, rtol=1e-300)
+    return float(str(info.value).split("eigenvalue error ")[1].split(",")[0])
+
+
+@pytest.mark.parametrize(
+    "n, m, seed, pairs",
+    [(6, 1, 0, 0), (8, 1, 0, 0), (10, 1, 0, 0), (12, 1, 0, 0), (12, 2, 5, 0), (15, 3, 5, 0), (8, 2, 3, 2)],
+)
+def test_canonical_estimate_bounds_the_exact_error(n, m, seed, pairs):
+    """The canonical design's accuracy check against eigenvalues computed in 60-digit arithmetic: the
+    estimate is never below the exact error (it used to take only each companion block's backward error
+    and accepted n = 12, poles −1 … −12, whose exact error is 2.4e-5, at rtol = 1e-6), and within 1e4 of it.
+    Companion roots are sensitive: from n ≈ 10 single-output gains are refused at the default rtol."""
+    rng = np.random.default_rng(seed)
+    A, C = rng.standard_normal((n, n)), rng.standard_normal((m, n))
+    poles = -np.arange(1.0, n + 1.0).astype(complex)
+    for k in range(pairs):  # conjugate pairs −k ± k·j in place of real poles
+        poles[2 * k], poles[2 * k + 1] = -(k + 1) * (1 + 1j), -(k + 1) * (1 - 1j)
+    poles = poles if pairs else poles.real
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        L = np.asarray(place(A, C, poles, method="canonical", rtol=np.inf))
+        est = _canonical_estimate(A, C, poles)
+    true = _true_error(A, C, L, poles)
+    assert true <= est <= 1e4 * max(true, 1e-15)
+    if true > 1e-6:  # the default rtol
+        with pytest.raises(ValueError, match="does not place the poles"):
+            place(A, C, poles, method="canonical")
+
+
+def _robust_case(kind, n, m, seed):
+    if kind == "chain":  # integrator chain: poles −1 … −n ask for an ill-conditioned eigenvector matrix
+        A, C = np.diag(np.ones(n - 1), 1), np.eye(1, n)
+    else:
+        rng = np.random.default_rng(seed)
+        A, C = rng.standard_normal((n, n)), rng.standard_normal((m, n))
+    return A, C, -np.arange(1.0, n + 1.0)
+
+
+@pytest.mark.parametrize(
+    "kind, n, m, seed",
+    [("chain", 6, 1, 0), ("chain", 8, 1, 0), ("chain", 10, 1, 0), ("random", 10, 1, 0), ("random", 12, 1, 0),
+     ("random", 12, 2, 5), ("random", 20, 2, 5), ("random", 20, 4, 7)],
+)
+def test_robust_estimate_bounds_the_exact_error(kind, n, m, seed):
+    """The robust design's accuracy check against 60-digit eigenvalues of A − L·C: never below the exact
+    error, and within 1e3 of it.  It used to multiply ε·‖A − LC‖ by each eigenvalue's condition number,
+    which read 2e-4 for the 8-state chain whose gain is exact to 1.2e-10 (and refused it at rtol 1e-6)."""
+    A, C, poles = _robust_case(kind, n, m, seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        L = np.asarray(place(A, C, poles, method="robust", rtol=np.inf))
+        est = _canonical_estimate(A, C, poles, method="robust")
+    true = _true_error(A, C, L, poles)
+    assert true <= est <= 1e3 * max(true, 1e-15)
+    if est <= 1e-6:
+        place(A, C, poles, method="robust")  # accepted at the default rtol

@@ -204,33 +204,46 @@ def _robust_core(lay, pat, A, C, pr, pi, *, m, depth, maxiter):
 def _error_estimate(A, C, L, T, F, rc, defective, lam):
     """A-posteriori relative error of the placed eigenvalues.
 
-    A − LC = T⁻¹(F + Δ)T with Δ = T(A − LC)T⁻¹ − F.  For a cluster of rows R sharing a requested value
-    λ (F normal on it), the eigenvalues move by about ‖Δ_RR‖ (first order; Bauer-Fike on the block),
-    plus the rounding ε·s·‖A − LC‖_F with s the eigenvalue condition number ‖t_i‖‖(T⁻¹)_{:,i}‖; if ‖Δ‖
-    reaches a quarter of the gap between requested values, Bauer-Fike's ‖Δ‖ is used instead.  For a
-    defective (Jordan) cluster, ‖Δ_RR‖ is the backward error (the gain places the Jordan structure for
-    a matrix that close).  Each error is relative to max(|λ|, 10⁻³·max(‖A‖_F, max|λ|)).  Returns
-    (largest relative error, Frobenius condition number of T)."""
+    With X = T⁻¹ and M = T X (= I up to rounding), G = M⁻¹ T (A X − L (C X)) is similar to A − LC (by X)
+    and Δ = G − F.  The closed loop is never formed: rounding the product L·C would perturb ill-conditioned
+    eigenvalues by more than the gain does (the observer itself evaluates A x̂ + L(y − C x̂)).  For a
+    cluster of rows R sharing a requested value λ (F normal on it), the eigenvalues move by about ‖Δ_RR‖
+    (first order; Bauer-Fike on the block), plus the rounding of Δ_RR, bounded entrywise by
+    4ε·|T|(|A||X| + |L||CX| + |A X − L C X|), plus the second-order coupling Σ_{i∈R, j∉R} |Δ_ij||Δ_ji| /
+    |λ_i − λ_j| (with the rounding added to |Δ|); if ‖Δ‖ (with its rounding) reaches a quarter of the gap
+    between requested values, it is used instead.  For a defective (Jordan) cluster, ‖Δ_RR‖ is the
+    backward error (the gain places the Jordan structure for a matrix that close).  Each error is relative
+    to max(|λ|, 10⁻³·max(‖A‖_F, max|λ|)).  Returns (largest relative error, Frobenius condition number of
+    T)."""
     T, L = jax.lax.stop_gradient(T), jax.lax.stop_gradient(L)
     T = after(L, T)  # one batched factorisation at a time (see `_robust.after`)
     n = A.shape[0]
     ncl = n  # cluster ids < n; unused ids are ignored below
-    Acl = A - L @ C
     Ti = jnp.linalg.inv(T)
-    D = (T @ Acl) @ Ti - F
+    CX = C @ Ti
+    Z = A @ Ti - L @ CX
+    D = jnp.linalg.solve(T @ Ti, T @ Z) - F
+    eps = jnp.finfo(A.dtype).eps
+    rnd = 4.0 * eps * (jnp.abs(T) @ (jnp.abs(A) @ jnp.abs(Ti) + jnp.abs(L) @ jnp.abs(CX) + jnp.abs(Z)))
     same = rc[:, None] == rc[None, :]
-    dc = jnp.sqrt(jax.ops.segment_sum(jnp.sum(jnp.where(same, D**2, 0.0), axis=1), rc, num_segments=ncl))
-    s = jnp.linalg.norm(T, axis=1) * jnp.linalg.norm(Ti, axis=0)
-    sc = jax.ops.segment_max(s, rc, num_segments=ncl)
+
+    def per_cluster(E):
+        return jnp.sqrt(jax.ops.segment_sum(jnp.sum(jnp.where(same, E**2, 0.0), axis=1), rc, num_segments=ncl))
+
+    dc, rc_rnd = per_cluster(D), per_cluster(rnd)
     used = jax.ops.segment_sum(jnp.ones(n), rc, num_segments=ncl) > 0
     defective = jax.ops.segment_max(defective.astype(jnp.int32), rc, num_segments=ncl) > 0
-    eps = jnp.finfo(A.dtype).eps
-    est = dc + jnp.where(defective, 0.0, eps * sc * jnp.linalg.norm(Acl))
     lam = jax.lax.stop_gradient(lam)
+    # second order: the coupling of row i to the other clusters moves λ by Σ_j Δ_ij Δ_ji / (λ_i − λ_j)
+    E = jnp.abs(D) + rnd
+    lr = lam[rc]
+    grow = jnp.where(same, jnp.inf, jnp.abs(lr[:, None] - lr[None, :]))
+    second = jax.ops.segment_sum(jnp.sum(E * E.T / grow, axis=1), rc, num_segments=ncl)
+    est = dc + jnp.where(defective, 0.0, rc_rnd + second)
     big = jnp.maximum(jnp.linalg.norm(A), jnp.max(jnp.where(used, jnp.abs(lam), 0.0)))
     pairs = used[:, None] & used[None, :] & ~jnp.eye(ncl, dtype=bool)
     gap = jnp.where(pairs, jnp.abs(lam[:, None] - lam[None, :]), jnp.inf)
-    dn = jnp.linalg.norm(D)
+    dn = jnp.linalg.norm(D) + jnp.linalg.norm(rnd)
     est = jnp.where(dn >= 0.25 * jnp.min(gap), jnp.maximum(est, dn), est)
     rel = est / jnp.maximum(jnp.abs(lam), 1e-3 * jnp.where(big > 0, big, 1.0))
     kappa = jnp.linalg.norm(T) * jnp.linalg.norm(Ti)  # Frobenius condition number of T
