@@ -165,7 +165,11 @@ def simulate(
         t0c, t1c = _validate.concrete_span(ts_np)
         path = realise_band_limited(noise, key, t0c, t1c, plant.m)
     args = _Args(plant, observer, u, controller, path)
-    (xs, zs), code = _integrate.integrate(args, initial_state(args, ts[0], x0, xhat0), plan)
+    state0 = initial_state(args, ts[0], x0, xhat0)
+    (xs, zs), code = _integrate.integrate(args, state0, plan)
+    # a non-finite initial state is NONFINITE whatever the solver made of it (an implicit solver or a
+    # gain's own guard may stop it otherwise, and the code must not depend on jit: eager read 2, jit 1)
+    code = jnp.where(is_finite(state0), code, NONFINITE).astype(jnp.int32)
     traj = trajectory(args, ts, xs, zs, code)
     return _raise_if(traj, throw, "obsjax.simulate", traj.status)
 

@@ -13,6 +13,7 @@ from . import _integrate
 from ._config import require_x64
 from ._integrate import _validate
 from ._integrate._lockstep import lockstep_norm, per_member
+from ._integrate._status import NONFINITE, is_finite
 from ._integrate._system import initial_state
 from ._simulate import Trajectory, _Args, _raise_if, simulate, trajectory
 
@@ -90,6 +91,8 @@ def simulate_batch(
             f"{tuple(xhat0s.shape)}."
         )
     B = x0s.shape[0]
+    if B == 0:
+        raise ValueError(f"`x0s` must hold at least one member, got shape {tuple(x0s.shape)}.")
     if noise is not None:
         if keys is None:
             raise ValueError("`keys` (one PRNG key per member) is required when `noise` is given.")
@@ -121,5 +124,6 @@ def simulate_batch(
     args_b = _Args(plant, observer, u, controller, paths)
     state0 = per_member(args_b, lambda a, x, xh: initial_state(a, ts[0], x, xh))(x0s, xhat0s)
     (xs, zs), codes = _integrate.integrate_batch(args_b, state0, plan)
+    codes = jnp.where(jax.vmap(is_finite)(state0), codes, NONFINITE).astype(jnp.int32)  # as simulate
     traj = per_member(args_b, lambda a, x, z, c: trajectory(a, ts, x, z, c))(xs, zs, codes)
     return _raise_if(traj, throw, "obsjax.simulate_batch", traj.status)

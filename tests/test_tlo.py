@@ -607,3 +607,25 @@ def test_simulate_applies_the_solver_rule_by_default():
     a = obsjax.simulate(model, obs, jnp.array([2.0, 0.0]), jnp.zeros(2), ts)
     b = obsjax.simulate(model, obs, jnp.array([2.0, 0.0]), jnp.zeros(2), ts, solver=diffrax.Kvaerno5())
     np.testing.assert_array_equal(np.asarray(a.xhat), np.asarray(b.xhat))
+
+
+def test_nonfinite_initial_state_is_a_status_not_an_abort():
+    """A NaN initial state (plant or estimate) with throw=False is status 2 (NONFINITE) eagerly, under
+    jit and per member of a batch: the TLO's gain used to raise 'lost strong observability' from the NaN
+    staircase margin (so one bad member aborted a study), and under jit the code read 1 instead of 2."""
+    f = lambda t, x, u: jnp.array([x[1], (1 - x[0] ** 2) * x[1] - x[0]])
+    vdp = obsjax.Nonlinear(f, lambda t, x, u: x[:1], n=2, m=1)
+    tlo = obsjax.TrajectoryLinearization(vdp, rho_bar=[-1.0, -2.0], omega=2.0, eps=0.5)
+    ts = np.linspace(0.0, 2.0, 11)
+    nan0 = jnp.array([jnp.nan, 0.0])
+    assert int(obsjax.simulate(vdp, tlo, nan0, jnp.zeros(2), ts, throw=False).status) == 2
+    assert int(obsjax.simulate(vdp, tlo, jnp.ones(2), nan0, ts, throw=False).status) == 2
+    run = jax.jit(jax.vmap(lambda x0: obsjax.simulate(vdp, tlo, x0, jnp.zeros(2), ts, throw=False).status))
+    np.testing.assert_array_equal(run(jnp.stack([nan0, jnp.ones(2)])), [2, 0])
+    batch = obsjax.simulate_batch(vdp, tlo, jnp.stack([jnp.ones(2), nan0]), jnp.zeros((2, 2)), ts, throw=False)
+    np.testing.assert_array_equal(batch.status, [0, 2])
+    with pytest.raises(ValueError, match="not finite at t = 0"):
+        tlo.design(0.0, nan0)
+    # a finite margin at the threshold is still the loss of observability, not a status
+    with pytest.raises(ValueError, match="not observable at t = 0"):
+        obsjax.design.ltv_observer_canonical_form(lambda t: jnp.zeros((2, 2)), lambda t: jnp.array([[1.0, 0.0]]), 0.0)

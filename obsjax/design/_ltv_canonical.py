@@ -244,7 +244,8 @@ def staircase_margin(levels: jax.Array, A0: jax.Array, indices) -> jax.Array:
     (j < p_i) are taken in the lexicographic order of the search and each one's residual outside those
     before it is divided by its level's scale ρ_j (:func:`level_scales`) --
     :func:`obsjax.analysis._lti.relative_residuals`, the traced twin of the search's decisions.  The
-    minimum is 0 where the rows are dependent, and does not change when A → cA or C → dC."""
+    minimum is 0 where the rows are dependent, and does not change when A → cA or C → dC.  It is NaN
+    when A or the rows are not finite (a non-finite estimate, not a loss of observability)."""
     pmax = max(indices)
     levels = jax.lax.stop_gradient(levels)
     levels = (levels / output_scales(jnp.linalg.norm(levels, axis=2))[None, :, None])[:pmax]
@@ -252,7 +253,8 @@ def staircase_margin(levels: jax.Array, A0: jax.Array, indices) -> jax.Array:
     order = [(j, i) for j in range(pmax) for i in range(len(indices)) if j < indices[i]]
     rows = jnp.stack([levels[j, i] for j, i in order])
     scales = jnp.stack([rho[j] for j, _ in order])
-    return jnp.min(relative_residuals(rows, scales))
+    finite = jnp.all(jnp.isfinite(levels)) & jnp.all(jnp.isfinite(A0))
+    return jnp.where(finite, jnp.min(relative_residuals(rows, scales)), jnp.nan)  # NaN: not a rank question
 
 
 def ltv_observability_indices(
@@ -471,6 +473,11 @@ def ltv_observer_canonical_form(
         lie.append(_sderiv(prev) + _smul(prev[:-1], As[: prev.shape[0] - 1]))
     margin = staircase_margin(jnp.stack([lv[0] for lv in lie]), As[0], idx)
     mc = concrete_value(margin)
+    if tc is not None and mc is not None and not np.isfinite(float(mc)):
+        raise ValueError(
+            f"A(t) or C(t) (or their derivatives) is not finite at t = {float(tc):.6g}: the canonical "
+            "form is undefined there."
+        )
     if tc is not None and mc is not None and not float(mc) > threshold:
         raise ValueError(
             f"The pair (A, C) is not strongly observable at t = {float(tc):.6g}: the rows of Q_0 "

@@ -313,12 +313,17 @@ class TrajectoryLinearization(AbstractObserver):
     def gain(self, t, xhat=None, u=None) -> jax.Array:
         """K_o(t), shape (n, m) (multiplies ŷ − y)."""
         d = self.design(t, xhat, u)
-        ok = d.form.margin > self.threshold  # the staircase margin (no tangent: a decision)
+        margin = d.form.margin
+        ok = margin > self.threshold  # the staircase margin (no tangent: a decision)
         if self.on_unobservable == "nan":
             return jnp.where(ok, d.Ko, jnp.nan)
+        # A NaN margin comes from a non-finite estimate or input, not from the pair: the gain is NaN and
+        # the integration reports it as a status (so `throw=False` and one bad member of a batch do not
+        # abort the study); only a finite margin at or below `threshold` is the loss of observability.
+        lost = jnp.isfinite(margin) & ~ok
         return eqx.error_if(
-            d.Ko,
-            ~ok,
+            jnp.where(ok, d.Ko, jnp.nan),
+            lost,
             "TrajectoryLinearization: the linearised pair (A_o, C_o) lost strong observability "
             "(the staircase margin of Q_0 fell to `threshold`); the PD-eigenvalue gain is undefined "
             "there.",
