@@ -88,6 +88,22 @@ def test_experiments_of_different_lengths_batch_with_a_mask(truth):
     assert bb.ts.shape == (3, 21)
 
 
+def test_no_valid_sample_is_refused_or_nan(truth):
+    """A mask with no sample is refused at construction; an estimate with no valid row (the mask
+    traced, or padding only) scores NaN, not the zero loss it used to (which reads as a perfect fit)."""
+    ts, y, u, _ = truth
+    with pytest.raises(ValueError, match="`mask` marks every sample as padding"):
+        obsjax.Measurements(ts, y, u, mask=np.zeros(len(ts), bool))
+    est = obsjax.estimate(OBS, obsjax.Measurements(ts, y, u), XH0)
+    assert np.isfinite(float(obsjax.losses.output_error(est)))
+    none = eqx.tree_at(lambda e: e.valid, est, jnp.zeros_like(est.valid))
+    assert np.isnan(float(obsjax.losses.output_error(none)))
+    assert np.isnan(float(obsjax.losses.output_error(none, integral=True)))
+    # and an empty batch of simulations is a clear error, not an IndexError
+    with pytest.raises(ValueError, match="at least one member"):
+        obsjax.simulate_batch(PLANT, OBS, jnp.zeros((0, 2)), jnp.zeros((0, 2)), ts)
+
+
 def test_reset_observer_on_data_agrees_with_simulate():
     plant = obsjax.chen_yen_example()
     obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.9)

@@ -203,6 +203,12 @@ class Measurements(eqx.Module):
         self.x_ref = x_ref
         self.x_index = x_index
         self.mask = jnp.ones(self.ts.shape, bool) if mask is None else mask
+        mv = concrete_value(self.mask)
+        if mv is not None and not np.any(mv):
+            raise ValueError(
+                "`mask` marks every sample as padding: the experiment has no sample to fit or to score "
+                "(a loss over it would be 0/0)."
+            )
         self.names = None if names is None else tuple(tuple(n) if n is not None else None for n in names)
 
     @staticmethod

@@ -35,8 +35,10 @@ def peak(traj, sharpness: float = 50.0) -> jnp.ndarray:
 
 
 def _valid_mean(values, valid):
+    """Mean over the valid rows; NaN when there is none (a mean of nothing is not a zero loss)."""
     w = valid.astype(values.dtype)
-    return jnp.sum(w * values) / jnp.maximum(jnp.sum(w), 1.0)
+    count = jnp.sum(w)
+    return jnp.where(count > 0, jnp.sum(w * values) / jnp.maximum(count, 1.0), jnp.nan)
 
 
 def output_error(est, integral: bool = False, weight=None) -> jnp.ndarray:
@@ -48,7 +50,7 @@ def output_error(est, integral: bool = False, weight=None) -> jnp.ndarray:
     User*, 2nd ed., Prentice Hall, 1999, §7.2); padding (``est.valid`` False) is ignored, so experiments of
     different lengths batch.  ``integral=True``: ∫ ‖y − ŷ‖² dt by the trapezoid rule over the save grid
     (valid rows only).  `weight`: optional (m,) weights w_i of ‖e‖² = Σ w_i e_i² (e.g. 1/σ_i² to put outputs
-    in different units on one scale).
+    in different units on one scale).  An estimate without a valid sample gives NaN (never a zero loss).
     """
     if est.innovation is None:
         raise ValueError(
@@ -59,7 +61,8 @@ def output_error(est, integral: bool = False, weight=None) -> jnp.ndarray:
     sq = jnp.sum(w_out * est.innovation**2, axis=-1)
     if integral:
         w = (est.valid[1:] & est.valid[:-1]).astype(sq.dtype)
-        return jnp.sum(w * 0.5 * (sq[1:] + sq[:-1]) * jnp.diff(est.ts))
+        total = jnp.sum(w * 0.5 * (sq[1:] + sq[:-1]) * jnp.diff(est.ts))
+        return jnp.where(jnp.any(est.valid), total, jnp.nan)
     return _valid_mean(sq, est.valid)
 
 
