@@ -296,6 +296,16 @@ def test_place_C_wrong_columns():
 def test_place_redundant_outputs():
     with pytest.raises(ValueError, match="rows of `C` are linearly dependent"):
         place(CHAIN6, np.vstack([E1, 2 * E1]), -np.arange(1.0, 7.0))
+    # Luenberger.from_poles refuses them at construction (it used to fail only when .gain was read)
+    plant = obsjax.LTI(CHAIN6, np.eye(6)[:, -1:], np.vstack([E1, 2 * E1]))
+    with pytest.raises(ValueError, match="Luenberger: the rows of `C` are linearly dependent"):
+        obsjax.Luenberger.from_poles(plant, -np.arange(1.0, 7.0))
+    # a reduced-order observer with more outputs than unmeasured states is not affected: A12 (3 × 1)
+    # necessarily has dependent rows; its own pair (A22, A12) is observable
+    A = np.diag(np.ones(3), 1) - np.eye(4)
+    ro = obsjax.ReducedOrder.from_poles(obsjax.LTI(A, np.eye(4)[:, -1:], np.eye(4)[:3]), [-5.0])
+    F = A[3:, 3:] - np.asarray(ro.gain) @ A[:3, 3:]
+    np.testing.assert_allclose(np.linalg.eigvals(F), [-5.0], atol=1e-12)
 
 
 def test_place_bad_method():
@@ -337,3 +347,31 @@ def test_given_gain_must_be_finite():
     assert np.all(np.isfinite(run(jnp.ones((2, 1)))))
     with pytest.raises(Exception, match="non-finite values"):
         run(jnp.array([[jnp.nan], [1.0]])).block_until_ready()
+
+
+def test_reduced_order_with_more_outputs_than_unmeasured_states():
+    """m = 3 outputs of a 4-state plant: the pair (A22, A12) has a 3 × 1 A12 (it used to be refused as
+    'at most n independent outputs').  The pole is placed on (A22, R), A12 = Q R, G = G_r Qᵀ; checked by
+    eig(A22 − G A12), by the error decaying as exp(−4t) in simulation, and by the gradient of the ISE in
+    the pole against central differences."""
+    import equinox as eqx
+
+    rng = np.random.default_rng(3)
+    A, B, C = rng.standard_normal((4, 4)), rng.standard_normal((4, 1)), rng.standard_normal((3, 4))
+    plant = obsjax.LTI(A, B, C)
+    ro = obsjax.ReducedOrder.from_poles(plant, [-4.0])
+    M = np.vstack([C, np.asarray(ro.Dc)])
+    Ab = M @ A @ np.linalg.inv(M)
+    np.testing.assert_allclose(np.linalg.eigvals(Ab[3:, 3:] - np.asarray(ro.gain) @ Ab[:3, 3:]), [-4.0], atol=1e-12)
+    ts = jnp.linspace(0.0, 2.0, 21)
+    tr = obsjax.simulate(plant, ro, jnp.ones(4), jnp.zeros(4), ts, rtol=1e-10, atol=1e-12)
+    en = np.asarray(tr.error_norm)
+    assert int(tr.status) == 0
+    np.testing.assert_allclose(en[5:] / en[:-5], np.exp(-4.0 * 0.5), rtol=1e-6)
+
+    def J(p):
+        o = eqx.tree_at(lambda o: o.poles, ro, p)
+        return obsjax.losses.ise(obsjax.simulate(plant, o, jnp.ones(4), jnp.zeros(4), ts, rtol=1e-10, atol=1e-12))
+
+    p0, h = ro.poles, 1e-5
+    np.testing.assert_allclose(jax.grad(J)(p0), (J(p0 + h) - J(p0 - h)) / (2 * h), rtol=1e-5)

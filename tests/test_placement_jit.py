@@ -351,3 +351,31 @@ def test_robust_estimate_bounds_the_exact_error(kind, n, m, seed):
     assert true <= est <= 1e3 * max(true, 1e-15)
     if est <= 1e-6:
         place(A, C, poles, method="robust")  # accepted at the default rtol
+
+
+@pytest.mark.parametrize("method", ["robust", "canonical"])
+def test_nan_pole_in_a_batch_is_that_members_status(method):
+    """vmap over the poles of an observer with one member's pole NaN: that member's status is 2
+    (NONFINITE) and the others are unaffected -- the design's run-time check used to abort the whole
+    batch.  `place` itself still raises on a NaN pole under jit (tested above), and simulate(throw=True)
+    raises on the NaN gain."""
+    import equinox as eqx
+
+    plant = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+    ts = jnp.linspace(0.0, 2.0, 11)
+    obs = obsjax.Luenberger.from_poles(plant, [-3.0, -4.0], method=method)
+
+    def run(p, throw=False):
+        o = eqx.tree_at(lambda o: o.poles, obs, p)
+        return obsjax.simulate(plant, o, jnp.ones(2), jnp.zeros(2), ts, throw=throw)
+
+    ps = jnp.array([[-3.0, -4.0], [jnp.nan, -4.0], [-5.0, -6.0]])
+    tr = jax.jit(jax.vmap(run))(ps)
+    np.testing.assert_array_equal(tr.status, [0, 2, 0])
+    ref = run(ps[2])
+    np.testing.assert_allclose(tr.xhat[2], ref.xhat, rtol=1e-12, atol=1e-12)
+    with pytest.raises(Exception, match="non-finite values"):
+        jax.jit(lambda p: run(p, throw=True).xhat)(ps[1]).block_until_ready()
+    ro = obsjax.ReducedOrder.from_poles(plant, [-3.0])
+    run_ro = lambda p: obsjax.simulate(plant, eqx.tree_at(lambda o: o.poles, ro, p), jnp.ones(2), jnp.zeros(2), ts, throw=False).status
+    np.testing.assert_array_equal(jax.vmap(run_ro)(jnp.array([[-3.0], [jnp.nan]])), [0, 2])

@@ -309,9 +309,19 @@ def is_observable(A, C, tol: float | None = None) -> bool:
     return observability_staircase(A, C, tol=tol).observable
 
 
-def require_observable(A, C, tol: float | None, who: str) -> ObservabilityStaircase:
-    """The staircase of (A, C), or ``ValueError`` naming ``who``, the rank and the PBH margin."""
+def require_observable(
+    A, C, tol: float | None, who: str, *, independent_outputs: bool = False
+) -> ObservabilityStaircase:
+    """The staircase of (A, C), or ``ValueError`` naming ``who``, the rank and the PBH margin; with
+    ``independent_outputs`` also a ``ValueError`` when the rows of C are linearly dependent (the
+    staircase's first block is smaller than m)."""
     st = observability_staircase(A, C, tol=tol)
+    m = np.shape(C)[0]
+    if independent_outputs and st.blocks and st.blocks[0] < m:
+        raise ValueError(
+            f"{who}: the rows of `C` are linearly dependent (rank {st.blocks[0]} < m = {m} at tol "
+            f"{st.tol:.1e}); remove the redundant outputs."
+        )
     if not st.observable:
         n = st.T.shape[0]
         why = (

@@ -173,7 +173,7 @@ def assign_subsystems(structure: PoleStructure, indices) -> list[list[int]]:
     return out
 
 
-def canonical_gain(A, C, pr, pi, structure: PoleStructure, *, tol, rtol, who, indices=None):
+def canonical_gain(A, C, pr, pi, structure: PoleStructure, *, tol, rtol, who, indices=None, finite=None):
     """Gain of the canonical design (Fig. 3.4): in z = P x each subsystem k gets the observer-companion
     error dynamics S_k − g_k e_{ν_k}ᵀ with the characteristic polynomial of its poles, i.e.
     L_z = Γ + G_b R⁻¹ and L = P⁻¹ L_z."""
@@ -201,7 +201,7 @@ def canonical_gain(A, C, pr, pi, structure: PoleStructure, *, tol, rtol, who, in
     Lz = cf.Gamma + Gb @ jnp.linalg.inv(cf.R)
     L = jnp.linalg.solve(cf.P, Lz)
     err, kappa = _companion_error_estimate(A, C, L, cf.P, Fc, indices, groups, structure, pr, pi)
-    return _finish(L, err, kappa, rtol, who)
+    return _finish(L, err, kappa, rtol, who, finite)
 
 
 def _value_ids(structure: PoleStructure) -> np.ndarray:

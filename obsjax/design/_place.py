@@ -250,10 +250,33 @@ def _error_estimate(A, C, L, T, F, rc, defective, lam):
     return jnp.max(jnp.where(used, rel, 0.0)), kappa
 
 
-def _finish(L, err, kappa, rtol: float, who: str):
+def _sanitize_poles(pr, pi, structure: PoleStructure):
+    """Traced poles that are not all finite are replaced, for the computation only, by a finite vector of
+    the same structure (cluster k at −(k + 1), pairs ± i); returns (pr, pi, finite) with `finite` the
+    traced flag (``None`` for concrete poles, which are checked by the caller)."""
+    if concrete_value(pr) is not None and concrete_value(pi) is not None:
+        return pr, pi, None
+    fr, fi = np.zeros(structure.n), np.zeros(structure.n)
+    for k, (kind, up, dn) in enumerate(structure.clusters):
+        fr[list(up) + list(dn)] = -(k + 1.0)
+        if kind == 2:
+            fi[list(up)], fi[list(dn)] = 1.0, -1.0
+    finite = jnp.all(jnp.isfinite(pr)) & jnp.all(jnp.isfinite(pi))
+    return jnp.where(finite, pr, fr), jnp.where(finite, pi, fi), finite
+
+
+def _finish(L, err, kappa, rtol: float, who: str, finite=None):
     """Raise (concrete) or stop at run time (eqx.error_if) when the gain is not finite or the
-    a-posteriori eigenvalue error exceeds rtol."""
+    a-posteriori eigenvalue error exceeds rtol.  Traced poles that are not finite (`finite` False, see
+    :func:`_sanitize_poles`) give a NaN gain instead of the run-time error: the simulation's status
+    says NONFINITE for that member of a batch (a NaN pole is a bad input of one trajectory, not a
+    design on which the whole batch must stop), and ``simulate(throw=True)`` raises on it."""
+    if finite is not None:
+        L = jnp.where(finite, L, jnp.nan)
+        err = jnp.where(finite, err, 0.0)
     ok = jnp.all(jnp.isfinite(L)) & (err <= rtol)
+    if finite is not None:
+        ok = ok | ~finite
     e, k, okv = concrete_value(err), concrete_value(kappa), concrete_value(ok)
     if okv is not None:
         if not bool(okv):
@@ -288,28 +311,33 @@ def place_real(
     indices=None,
     warn: bool = True,
     who: str = "place",
+    nan_for_nonfinite_poles: bool = False,
 ):
     """:func:`place` on validated float64 (A, C) and the real and imaginary parts of the poles
-    (``blocks``: the Jordan chains decided earlier on the concrete model, see :func:`blocks_of`)."""
+    (``blocks``: the Jordan chains decided earlier on the concrete model, see :func:`blocks_of`).
+
+    ``nan_for_nonfinite_poles`` (the observers' gains): traced poles that are not finite give a NaN gain
+    (the trajectory's status NONFINITE, per member under vmap) instead of the run-time error that
+    :func:`place` raises."""
     n, m = A.shape[0], C.shape[0]
     Av, Cv = concrete_value(A), concrete_value(C)
     kron = None
     if Av is not None and Cv is not None and blocks is None and indices is None:
-        st = require_observable(Av, Cv, tol, who)
-        if st.blocks[0] < m:
-            raise ValueError(
-                f"{who}: the rows of `C` are linearly dependent (rank {st.blocks[0]} < m = {m} at tol "
-                f"{st.tol:.1e}); remove the redundant outputs."
-            )
+        st = require_observable(Av, Cv, tol, who, independent_outputs=True)
         kron = st.kronecker
     else:
         A = eqx.error_if(A, ~jnp.all(jnp.isfinite(A)), f"{who}: `A` must be finite.")
         C = eqx.error_if(C, ~jnp.all(jnp.isfinite(C)), f"{who}: `C` must be finite.")
+    finite = None
+    if nan_for_nonfinite_poles:
+        pr, pi, finite = _sanitize_poles(pr, pi, structure)
     if method == "canonical":
         from ._canonical import canonical_gain
 
         pr, pi = _check_pattern(pr, pi, make_pattern(structure, ()), who)
-        return canonical_gain(A, C, pr, pi, structure, tol=tol, rtol=rtol, who=who, indices=indices)
+        return canonical_gain(
+            A, C, pr, pi, structure, tol=tol, rtol=rtol, who=who, indices=indices, finite=finite
+        )
     if method != "robust":
         raise ValueError(f"`method` must be 'robust' or 'canonical', got {method!r}.")
     blocks = blocks_of(structure, m, kron) if blocks is None else blocks
@@ -319,7 +347,7 @@ def place_real(
     L, err, kappa = _robust_core(
         lay, make_pattern(structure, blocks), A, C, pr, pi, m=m, depth=depth, maxiter=maxiter
     )
-    return _finish(L, err, kappa, rtol, who)
+    return _finish(L, err, kappa, rtol, who, finite)
 
 
 def place(

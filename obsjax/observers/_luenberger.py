@@ -61,13 +61,13 @@ def _poles_leaf(poles, n: int, structure, who: str):
     return p, structure
 
 
-def _chains(A, C, structure, poles, tol, who):
+def _chains(A, C, structure, poles, tol, who, independent_outputs=False):
     """(Jordan chains, observability indices) of the assignment, decided at construction on the
     concrete model ((None, None) when it is traced)."""
     Av, Cv = concrete_value(A), concrete_value(C)
     if Av is None or Cv is None:
         return None, None
-    st = require_observable(Av, Cv, tol, who)
+    st = require_observable(Av, Cv, tol, who, independent_outputs=independent_outputs)
     blocks = blocks_of(structure, Cv.shape[0], st.kronecker)
     pr, pi = decode(poles, structure)
     warn_jordan(structure, blocks, pr, pi, Cv.shape[0], st.kronecker, who, stacklevel=5)
@@ -122,7 +122,7 @@ class Luenberger(AbstractObserver):
         self.L = None
         self.poles, self.structure = _poles_leaf(poles, model.n, structure, "Luenberger")
         self.chains, self.indices = _chains(
-            model.A, model.C, self.structure, self.poles, tol, "Luenberger"
+            model.A, model.C, self.structure, self.poles, tol, "Luenberger", independent_outputs=True
         )
 
     @classmethod
@@ -161,6 +161,7 @@ class Luenberger(AbstractObserver):
             indices=self.indices,
             warn=False,
             who="Luenberger",
+            nan_for_nonfinite_poles=True,
         )
 
     def prepare(self):
@@ -201,6 +202,18 @@ def _complement(C, tol=None):
     return vt[r:]
 
 
+def _compress_rows(A12):
+    """(R, Q) with A12 = Q R (reduced QR, Q orthonormal m × (n − m)) when A12 has more rows than
+    columns (m > n − m: more outputs than unmeasured states), else (A12, None).  Then
+    A22 − G A12 = A22 − G_r R for G = G_r Qᵀ, and (A22, R) is observable exactly when (A22, A12) is
+    (A12 v = 0 ⟺ R v = 0): the poles are placed on the square pair."""
+    m, k = A12.shape
+    if m <= k:
+        return A12, None
+    Q, R = jnp.linalg.qr(A12, mode="reduced")
+    return R, Q
+
+
 class ReducedOrder(AbstractObserver):
     """Reduced-order observer of order n − m, thesis (2.13)-(2.16).
 
@@ -213,7 +226,8 @@ class ReducedOrder(AbstractObserver):
     so that ŵ − w obeys d/dt(ŵ − w) = (A22 − G A12)(ŵ − w) without differentiating y.
 
     **Arguments:** `model` (LTI with D = 0), `G` ((n−m), m) gain (finite) or `poles` (n − m of them,
-    placed on the pair (A22, A12) by :func:`obsjax.design.place`, stored as real numbers like
+    placed on the pair (A22, A12) by :func:`obsjax.design.place` -- on (A22, R) with A12 = Q R and
+    G = G_r Qᵀ when there are more outputs than unmeasured states --, stored as real numbers like
     :class:`Luenberger`'s), `Dc` ((n−m), n) rows completing C (an orthonormal null-space basis of C when
     ``None``).
 
@@ -260,7 +274,7 @@ class ReducedOrder(AbstractObserver):
         self.poles, self.structure = _poles_leaf(poles, n - m, structure, "ReducedOrder")
         _, _, _, A12, _, A22, _, _ = self._blocks()
         self.chains, _ = _chains(
-            A22, A12, self.structure, self.poles, tol, "ReducedOrder (pair (A22, A12))"
+            A22, _compress_rows(A12)[0], self.structure, self.poles, tol, "ReducedOrder (pair (A22, A12))"
         )
 
     @classmethod
@@ -289,11 +303,14 @@ class ReducedOrder(AbstractObserver):
         if self.G is not None:
             return self.G
         _, _, _, A12, _, A22, _, _ = self._blocks()
-        A22, A12 = design_pair(A22, A12, "ReducedOrder")
+        A12r, Q = _compress_rows(A12)
+        A22, A12r = design_pair(A22, A12r, "ReducedOrder")
         re, im = decode(self.poles, self.structure)
-        return place_real(
-            A22, A12, re, im, self.structure, blocks=self.chains, warn=False, who="ReducedOrder"
+        Gr = place_real(
+            A22, A12r, re, im, self.structure, blocks=self.chains, warn=False, who="ReducedOrder",
+            nan_for_nonfinite_poles=True,
         )
+        return Gr if Q is None else Gr @ Q.T
 
     def prepare(self):
         if self.G is not None:
