@@ -379,3 +379,21 @@ def test_nan_pole_in_a_batch_is_that_members_status(method):
     ro = obsjax.ReducedOrder.from_poles(plant, [-3.0])
     run_ro = lambda p: obsjax.simulate(plant, eqx.tree_at(lambda o: o.poles, ro, p), jnp.ones(2), jnp.zeros(2), ts, throw=False).status
     np.testing.assert_array_equal(jax.vmap(run_ro)(jnp.array([[-3.0], [jnp.nan]])), [0, 2])
+
+
+@pytest.mark.parametrize("s", [1e4, 1e7, 1e10])
+def test_estimate_under_a_change_of_state_units(s):
+    """x → D x with D spanning s² in scale: the robust estimate is never below the exact error.  Its
+    floor was 10⁻³·‖A‖_F, which a change of units inflates (‖A‖_F ≈ 1e20 at s = 1e10), so that any
+    error read as small; it is now 10⁻³·max|λ_k| as in analysis.placement_error."""
+    rng = np.random.default_rng(11)
+    A0, C0 = rng.standard_normal((5, 5)), rng.standard_normal((2, 5))
+    D = np.diag(s ** np.linspace(-1.0, 1.0, 5))
+    A, C = D @ A0 @ np.linalg.inv(D), C0 @ np.linalg.inv(D)
+    poles = [-1.0, -2.0, -3.0, -4.0, -5.0]
+    for method in ("robust", "canonical"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            L = np.asarray(place(A, C, poles, method=method, rtol=np.inf))
+            est = _canonical_estimate(A, C, poles, method=method)
+        assert _true_error(A, C, L, poles) <= est

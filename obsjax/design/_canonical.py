@@ -19,6 +19,7 @@ coupled to each other only through their outputs", and y = R ȳ.
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -173,6 +174,39 @@ def assign_subsystems(structure: PoleStructure, indices) -> list[list[int]]:
     return out
 
 
+def _warn_repeated_in_block(structure: PoleStructure, groups, pr, pi, who):
+    """A companion block is non-derogatory: a root repeated s times within one subsystem is a Jordan
+    block of size s, whose eigenvalues move by about ε^(1/s) under a perturbation ε.  Warn (at trace
+    time), as the robust method does for its Jordan chains."""
+    cid = {}
+    for c, (kind, up, dn) in enumerate(structure.clusters):
+        for i in up:
+            cid[i] = c
+    worst = []
+    for k, pos in enumerate(groups):
+        counts: dict[int, int] = {}
+        for i in pos:
+            if i in cid:  # a real pole, or the Im > 0 member of a pair
+                counts[cid[i]] = counts.get(cid[i], 0) + 1
+        worst += [(k, c, s) for c, s in counts.items() if s > 1]
+    if not worst:
+        return
+    vr, vi = concrete_value(pr), concrete_value(pi)
+
+    def name(c):
+        i = structure.clusters[c][1][0]
+        return f"{complex(vr[i], vi[i]):.4g}" if vr is not None and vi is not None else f"cluster {c}"
+
+    what = ", ".join(f"{name(c)} ×{s} in subsystem {k + 1}" for k, c, s in worst)
+    warnings.warn(
+        f"{who}: method='canonical' gives repeated poles ({what}) to one companion block, i.e. a Jordan "
+        "block: such a gain is sensitive (an eigenvalue of a Jordan block of size s moves by about ε^(1/s) "
+        "under a perturbation ε of A, C or L), and the accuracy check then bounds only the backward error. "
+        "method='robust' assigns up to m copies of a pole with independent eigenvectors.",
+        stacklevel=4,
+    )
+
+
 def canonical_gain(A, C, pr, pi, structure: PoleStructure, *, tol, rtol, who, indices=None, finite=None):
     """Gain of the canonical design (Fig. 3.4): in z = P x each subsystem k gets the observer-companion
     error dynamics S_k − g_k e_{ν_k}ᵀ with the characteristic polynomial of its poles, i.e.
@@ -184,6 +218,7 @@ def canonical_gain(A, C, pr, pi, structure: PoleStructure, *, tol, rtol, who, in
     cf = _form(A, C, tuple(indices), scale)
     n, m = A.shape[0], C.shape[0]
     groups = assign_subsystems(structure, indices)
+    _warn_repeated_in_block(structure, groups, pr, pi, who)
     Gb = jnp.zeros((n, m), A.dtype)
     Fc = jnp.zeros((n, n), A.dtype)
     start = 0
@@ -234,7 +269,7 @@ def _companion_error_estimate(A, C, L, P, F, indices, groups, structure, pr, pi)
     tests, never below it); the backward error of a block alone does not.  A root repeated within p_k is a
     Jordan chain: its error is the backward error ‖Δ_k‖ of the block, Δ = P(A − LC)P⁻¹ − F (row and column
     block k), as for the robust method's defective clusters.  Each error is relative to
-    max(|λ|, 10⁻³·max(‖A‖_F, max|λ|)).  Returns (largest relative error, Frobenius condition number of P)."""
+    max(|λ|, 10⁻³·max_k|λ_k|) (‖A‖_F if every pole is 0).  Returns (largest relative error, Frobenius condition number of P)."""
     P, L = jax.lax.stop_gradient(P), jax.lax.stop_gradient(L)
     pr, pi = jax.lax.stop_gradient(pr), jax.lax.stop_gradient(pi)
     Pi = jnp.linalg.inv(P)
@@ -242,7 +277,8 @@ def _companion_error_estimate(A, C, L, P, F, indices, groups, structure, pr, pi)
     eps = jnp.finfo(A.dtype).eps
     tiny = jnp.finfo(A.dtype).tiny
     lam_all = pr + 1j * pi
-    big = jnp.maximum(jnp.linalg.norm(A), jnp.max(jnp.abs(lam_all)))
+    lmax = jnp.max(jnp.abs(lam_all))  # the floor as in _place._error_estimate (not ‖A‖_F: units)
+    big = jnp.where(lmax > 0, lmax, jnp.linalg.norm(A))
     floor = 1e-3 * jnp.where(big > 0, big, 1.0)
     ids = _value_ids(structure)
     worst = jnp.zeros((), A.dtype)
