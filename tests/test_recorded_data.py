@@ -99,6 +99,10 @@ def test_no_valid_sample_is_refused_or_nan(truth):
     none = eqx.tree_at(lambda e: e.valid, est, jnp.zeros_like(est.valid))
     assert np.isnan(float(obsjax.losses.output_error(none)))
     assert np.isnan(float(obsjax.losses.output_error(none, integral=True)))
+    # valid samples, but no interval with both ends valid: the integral is undefined, not 0
+    alternate = eqx.tree_at(lambda e: e.valid, est, jnp.arange(est.valid.shape[0]) % 2 == 0)
+    assert np.isnan(float(obsjax.losses.output_error(alternate, integral=True)))
+    assert float(obsjax.losses.output_error(alternate)) > 0.0
     # and an empty batch of simulations is a clear error, not an IndexError
     with pytest.raises(ValueError, match="at least one member"):
         obsjax.simulate_batch(PLANT, OBS, jnp.zeros((0, 2)), jnp.zeros((0, 2)), ts)

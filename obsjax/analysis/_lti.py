@@ -16,6 +16,7 @@ under ``jit`` use its traced twin :func:`relative_residuals`.
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -226,6 +227,9 @@ def pbh_margin(A, C) -> float:
     return _margin(Ab, Cb)
 
 
+OUTPUT_SCALE_WARN = 1e-10  # a row of C this small relative to the largest one is named in a warning
+
+
 def observability_staircase(A, C, *, tol: float | None = None) -> ObservabilityStaircase:
     """Orthogonal staircase (observability Hessenberg) form of the balanced pair, and its rank decisions.
 
@@ -238,6 +242,8 @@ def observability_staircase(A, C, *, tol: float | None = None) -> ObservabilityS
 
     Every threshold is relative, on a pair scaled to unit norm: the decisions do not change under
     A → cA, C → SC (S diagonal: the units of the outputs), nor under a diagonal change of state units.
+    A row of C below 1e-10 of the largest therefore counts as a sensor like any other: a warning says so
+    (round-off in a row cannot be told from a sensor in small units; zero it if it is round-off).
 
     **Arguments:** `A` (n, n), `C` (m, n): concrete arrays; `tol`: relative tolerance (default 1e-9).
 
@@ -254,6 +260,15 @@ def observability_staircase(A, C, *, tol: float | None = None) -> ObservabilityS
     if not tol > 0:
         raise ValueError(f"`tol` must be > 0, got {tol}.")
     n, m = A.shape[0], C.shape[0]
+    rows = np.linalg.norm(C, axis=1)
+    if np.any((rows > 0) & (rows < OUTPUT_SCALE_WARN * rows.max())):
+        i = int(np.argmin(np.where(rows > 0, rows, np.inf)))
+        warnings.warn(
+            f"observability_staircase: row {i} of C is {rows[i] / rows.max():.1e} of the largest row.  Each "
+            "output is taken in its own unit (the decisions do not change under C → diag(s)·C), so this row "
+            "counts as a sensor as much as any other; if it is round-off, set it to zero or remove it.",
+            stacklevel=2,
+        )
     Ab, Cb, d = balance_pair(A, C)
     nA = np.linalg.norm(Ab, 2)
     basis: list = []

@@ -91,6 +91,10 @@ class Luenberger(AbstractObserver):
     :func:`obsjax.design.place`; the observability of the model and the Jordan structure of repeated
     poles are decided at construction on the concrete model (a warning names poles that need Jordan
     chains); `structure` (:func:`obsjax.design.pole_structure`) declares the pattern of traced poles.
+    Poles are placed as given, in the right half-plane too (an unstable observer is a legitimate object
+    of study; its error grows, which the trajectory shows).  Traced poles that are not finite (one
+    member of a vmapped batch) give a NaN gain: that member's status is NONFINITE and the others run
+    on; ``simulate(throw=True)`` raises on it.
 
     **Example:** thesis example (2.8)::
 
@@ -206,10 +210,18 @@ def _compress_rows(A12):
     """(R, Q) with A12 = Q R (reduced QR, Q orthonormal m × (n − m)) when A12 has more rows than
     columns (m > n − m: more outputs than unmeasured states), else (A12, None).  Then
     A22 − G A12 = A22 − G_r R for G = G_r Qᵀ, and (A22, R) is observable exactly when (A22, A12) is
-    (A12 v = 0 ⟺ R v = 0): the poles are placed on the square pair."""
+    (A12 v = 0 ⟺ R v = 0): the poles are placed on the square pair (on r rows, R = Qᵀ A12 with Q the
+    leading left singular vectors, when a concrete A12 has rank r < n − m)."""
     m, k = A12.shape
     if m <= k:
         return A12, None
+    v = concrete_value(A12)
+    if v is not None:  # a concrete A12 of rank r < k: keep r rows (an orthonormal basis of its range)
+        U, sv, _ = np.linalg.svd(np.asarray(v, float), full_matrices=False)
+        r = int(np.sum(sv > 1e-12 * sv[0])) if sv[0] > 0 else 0
+        if 0 < r < k:
+            Q = jnp.asarray(U[:, :r])
+            return Q.T @ A12, Q
     Q, R = jnp.linalg.qr(A12, mode="reduced")
     return R, Q
 

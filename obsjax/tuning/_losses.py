@@ -49,8 +49,9 @@ def output_error(est, integral: bool = False, weight=None) -> jnp.ndarray:
     is the prediction-error method of system identification, Ljung, *System Identification: Theory for the
     User*, 2nd ed., Prentice Hall, 1999, §7.2); padding (``est.valid`` False) is ignored, so experiments of
     different lengths batch.  ``integral=True``: ∫ ‖y − ŷ‖² dt by the trapezoid rule over the save grid
-    (valid rows only).  `weight`: optional (m,) weights w_i of ‖e‖² = Σ w_i e_i² (e.g. 1/σ_i² to put outputs
-    in different units on one scale).  An estimate without a valid sample gives NaN (never a zero loss).
+    (intervals with both ends valid only).  `weight`: optional (m,) weights w_i of ‖e‖² = Σ w_i e_i² (e.g. 1/σ_i² to put outputs
+    in different units on one scale).  An estimate without a valid sample (for the integral: without an interval whose two ends are
+    valid) gives NaN, never a zero loss.
     """
     if est.innovation is None:
         raise ValueError(
@@ -62,7 +63,7 @@ def output_error(est, integral: bool = False, weight=None) -> jnp.ndarray:
     if integral:
         w = (est.valid[1:] & est.valid[:-1]).astype(sq.dtype)
         total = jnp.sum(w * 0.5 * (sq[1:] + sq[:-1]) * jnp.diff(est.ts))
-        return jnp.where(jnp.any(est.valid), total, jnp.nan)
+        return jnp.where(jnp.any(w > 0), total, jnp.nan)  # no interval with both ends valid: NaN
     return _valid_mean(sq, est.valid)
 
 
