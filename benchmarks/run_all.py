@@ -20,6 +20,7 @@ BENCHMARKS = {
     "d": "d_sharding.py",
     "e": "e_lti_python_control.py",
     "f": "f_placement.py",
+    "f2": "f_placement_estimate.py",
     "m": "multihost_local.py",
     "g": "g_numba_dopri5.py",
     "h": "h_first_call.py",

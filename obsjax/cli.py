@@ -431,6 +431,8 @@ BENCHMARKS = {
     "e": "LTI Luenberger observer: obsjax against python-control (place + input_output_response)",
     "f": "robust MIMO pole placement (n = 4, 10, 20, m = 2, 1000 pole sets, jit(vmap(place))) against a "
     "SciPy place_poles loop: eigenvalue-error distribution, gain ratio, time",
+    "f2": "place's a-posteriori accuracy check on (f)'s pole sets: its estimate against the gain's exact "
+    "(refined) error; refusals at rtol 1e-6; accepted gains that miss it",
     "g": "Chen & Yen batch (4096 trajectories, 40 resets, rtol 1e-6): the adaptive back-ends against a "
     "hand-written numba Dormand-Prince 5(4); throughput, accuracy, step counts (needs the `bench` extra)",
     "h": "time to first result in fresh processes: obsjax demo, the first tune step, the first Monte-Carlo "
