@@ -52,6 +52,20 @@ def _pole_sets(rng, n, sets):
     return out
 
 
+def pair_and_sets(n, sets, m=2, seed=0):
+    """The benchmark's observable random pair (A, C) for n and its pole sets (fixed seeds)."""
+    import numpy as np
+
+    import obsjax
+
+    rng = np.random.default_rng(seed + n)
+    while True:
+        A, Cm = rng.standard_normal((n, n)), rng.standard_normal((m, n))
+        if obsjax.analysis.is_observable(A, Cm):
+            break
+    return A, Cm, _pole_sets(rng, n, sets)
+
+
 def _finite_max(x):
     import numpy as np
 
@@ -77,12 +91,7 @@ def run(n, sets, m=2, seed=0):
     from obsjax.design._poles import blocks_of
     from obsjax.design._robust import make_layout
 
-    rng = np.random.default_rng(seed + n)
-    while True:
-        A, Cm = rng.standard_normal((n, n)), rng.standard_normal((m, n))
-        if obsjax.analysis.is_observable(A, Cm):
-            break
-    P = _pole_sets(rng, n, sets)
+    A, Cm, P = pair_and_sets(n, sets, m, seed)
     st = obsjax.design.pole_structure(P[0])
     f = jax.jit(jax.vmap(lambda p: obsjax.design.place(A, Cm, p, structure=st, rtol=np.inf)))
     first, best, med = C.timeit(f, jnp.asarray(P), repeat=3, min_time=0.5)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import argparse
 
 import _common as C
-from f_placement import _pole_sets
+from f_placement import pair_and_sets
 
 
 def run(n, sets, m=2, seed=0):
@@ -34,12 +34,7 @@ def run(n, sets, m=2, seed=0):
     from obsjax.design._poles import blocks_of
     from obsjax.design._robust import make_layout
 
-    rng = np.random.default_rng(seed + n)  # as f_placement.run: the same pair and the same sets
-    while True:
-        A, Cm = rng.standard_normal((n, n)), rng.standard_normal((m, n))
-        if obsjax.analysis.is_observable(A, Cm):
-            break
-    P = _pole_sets(rng, n, sets)
+    A, Cm, P = pair_and_sets(n, sets, m, seed)  # as f_placement.run: the same pair and the same sets
     st = obsjax.design.pole_structure(P[0])
     kron = obsjax.analysis.observability_staircase(A, Cm).kronecker
     blocks = blocks_of(st, m, kron)

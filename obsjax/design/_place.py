@@ -311,12 +311,9 @@ def _finish(L, err, kappa, rtol: float, who: str, finite=None):
     :func:`_sanitize_poles`) give a NaN gain instead of the run-time error: the simulation's status
     says NONFINITE for that member of a batch (a NaN pole is a bad input of one trajectory, not a
     design on which the whole batch must stop), and ``simulate(throw=True)`` raises on it."""
-    if finite is not None:
-        L = jnp.where(finite, L, jnp.nan)
-        err = jnp.where(finite, err, 0.0)
     ok = jnp.all(jnp.isfinite(L)) & (err <= rtol)
     if finite is not None:
-        ok = ok | ~finite
+        L, ok = jnp.where(finite, L, jnp.nan), ok | ~finite
     e, k, okv = concrete_value(err), concrete_value(kappa), concrete_value(ok)
     if okv is not None:
         if not bool(okv):
