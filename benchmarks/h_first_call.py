@@ -15,6 +15,9 @@ process's wall time and CPU time (user + system, all threads) are recorded; the 
 section is timed inside the process (after imports).  The cache directory is a fresh temporary one
 (``OBSJAX_COMPILATION_CACHE_DIR``).
 
+With the trace cache (``obsjax.enable_trace_cache()``, on in the command) the library workloads run
+twice more, cold and warm, and the demo once more with it turned off on the warm cache.
+
 Usage: ``python benchmarks/h_first_call.py [--only demo,tune,mc] [--demo-n 10000]``.
 """
 
@@ -36,7 +39,9 @@ _TUNE = r"""
 import json, os, time
 t_start = time.perf_counter()
 import jax, jax.numpy as jnp, optax, obsjax
-if os.environ.get("OBSJAX_NO_COMPILATION_CACHE") != "1":
+if os.environ.get("OBSJAX_H_TRACES") == "1":
+    obsjax.enable_trace_cache()  # the compilation cache and the saved traces
+elif os.environ.get("OBSJAX_NO_COMPILATION_CACHE") != "1":
     obsjax.enable_compilation_cache()
 plant = obsjax.chen_yen_example()
 obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.25)
@@ -54,7 +59,9 @@ _MC = r"""
 import json, os, time
 t_start = time.perf_counter()
 import jax, jax.numpy as jnp, obsjax
-if os.environ.get("OBSJAX_NO_COMPILATION_CACHE") != "1":
+if os.environ.get("OBSJAX_H_TRACES") == "1":
+    obsjax.enable_trace_cache()  # the compilation cache and the saved traces
+elif os.environ.get("OBSJAX_NO_COMPILATION_CACHE") != "1":
     obsjax.enable_compilation_cache()
 plant = obsjax.chen_yen_example()
 obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.25)
@@ -126,14 +133,19 @@ def main(only=("demo", "tune", "mc"), demo_n=10_000):
     try:
         for name in only:
             cache = os.path.join(work, f"cache-{name}")
-            for mode in ("off", "cold", "warm"):
+            for mode in _MODES[name]:
                 env = dict(base)
-                env.pop("OBSJAX_NO_COMPILATION_CACHE", None)
+                for k in ("OBSJAX_NO_COMPILATION_CACHE", "OBSJAX_NO_TRACE_CACHE", "OBSJAX_H_TRACES"):
+                    env.pop(k, None)
                 env["OBSJAX_COMPILATION_CACHE_DIR"] = cache
                 if mode == "off":
                     env["OBSJAX_NO_COMPILATION_CACHE"] = "1"
-                elif mode == "cold":
+                elif mode.startswith("cold"):
                     shutil.rmtree(cache, ignore_errors=True)
+                if mode.endswith("traces off"):
+                    env["OBSJAX_NO_TRACE_CACHE"] = "1"
+                elif mode.endswith("+ traces"):
+                    env["OBSJAX_H_TRACES"] = "1"
                 wall, cpu, info = _run(workloads[name], env, work)
                 n, mib = _cache_size(cache)
                 rows.append((name, mode, wall, cpu, info, n, mib))
@@ -153,6 +165,14 @@ def main(only=("demo", "tune", "mc"), demo_n=10_000):
     )
 
 
+# The command turns the trace cache on itself ("traces off": OBSJAX_NO_TRACE_CACHE=1 on the filled
+# cache); the library workloads run as a user's script that turns on the compilation cache only, and
+# again with obsjax.enable_trace_cache() ("+ traces").
+_MODES = {
+    "demo": ("off", "cold", "warm", "warm, traces off"),
+    "tune": ("off", "cold", "warm", "cold + traces", "warm + traces"),
+    "mc": ("off", "cold", "warm", "cold + traces", "warm + traces"),
+}
 _TARGETS = {
     ("demo", "cold"): 30.0,
     ("demo", "warm"): 12.0,
@@ -172,7 +192,11 @@ no host callback. `eqx.error_if` (the `throw=True` checks of `simulate`, and the
 diffrax) is a host callback, so jitted `simulate` calls are compiled in every process; `tune`'s
 kernel and the Monte-Carlo kernels are traced with the checks as NaN (no callbacks: a check that
 fires rejects the tuning step, or fails the trajectory) and are cached. Tracing and lowering are
-never cached: they are most of what a warm run still spends.
+not saved by the compilation cache; with `obsjax.enable_trace_cache()` (which the `obsjax` command
+turns on) the traced programs of `tune`'s and `monte_carlo`'s kernels are saved too (`jax.export`),
+and a warm process reads them instead of tracing (rows "+ traces"; the demo's "warm, traces off" row
+is the same warm cache with `OBSJAX_NO_TRACE_CACHE=1`). The demo also shards its Monte-Carlo studies
+over one XLA CPU device per core (`OBSJAX_DEMO_DEVICES`), in every row.
 
 On a shared machine the process CPU time (all threads, compilation included) is the steadier
 figure; the wall times above include waiting for the cores. Whether the machine was quiet: see
@@ -188,7 +212,9 @@ def _report(rows, demo_n):
     intro = (
         "Each row is a fresh process. *off*: `OBSJAX_NO_COMPILATION_CACHE=1`; *cold*: cache on, "
         "directory just emptied (first run after installation); *warm*: cache on, filled by the "
-        f"cold run (second run). The demo runs with `-n {demo_n}`."
+        "cold run (second run); *+ traces*: the script calls `obsjax.enable_trace_cache()` instead "
+        "of `obsjax.enable_compilation_cache()`; *traces off*: `OBSJAX_NO_TRACE_CACHE=1`. "
+        f"The demo runs with `-n {demo_n}`."
     )
     header = (
         "| workload | cache | process wall | process CPU | section wall | cache entries | target |"

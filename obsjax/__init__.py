@@ -22,6 +22,7 @@ from . import losses as losses
 from . import noise as noise
 from . import signals as signals
 from ._cache import enable_compilation_cache as enable_compilation_cache
+from ._trace_cache import enable_trace_cache as enable_trace_cache
 from ._simulate import Trajectory as Trajectory
 from ._simulate import simulate as simulate
 from ._simulate_batch import simulate_batch as simulate_batch

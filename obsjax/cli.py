@@ -225,6 +225,20 @@ def monte_carlo_figure(results: dict, path: str) -> str:
     return path
 
 
+def _paper_error_norm(plant, obs, ts):
+    """‖x̃(t)‖ of the demo's paper run (x(0) = 0, x̂(0) = [5, −5]) and its status, `ts` a tuple."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    import obsjax
+
+    traj = obsjax.simulate(
+        plant, obs, jnp.zeros(2), jnp.array([5.0, -5.0]), np.asarray(ts), max_segments=40,
+        throw=False,
+    )  # fmt: skip
+    return traj.error_norm, traj.status
+
+
 def demo(
     outdir: str = "obsjax-demo", n: int = 10_000, steps: int = 40, batch: int = 8, seed: int = 0
 ) -> dict:
@@ -263,15 +277,17 @@ def demo(
     print(
         "Chen & Yen example, γ = 20, p0 = 0.1, x̂(0) = [5, -5]  (‖x̃(t)‖; SciPy reference in brackets)"
     )
-    import equinox as eqx
+    from ._checks import runtime_checks_as_nan
+    from ._trace_cache import filter_jit
 
-    @eqx.filter_jit
-    def paper_run(
-        obs,
-    ):  # one compilation for both periods (T is a traced leaf; 40 segments cover T ≥ 0.25)
-        return obsjax.simulate(
-            plant, obs, jnp.zeros(2), jnp.array([5.0, -5.0]), ts, max_segments=40
-        ).error_norm
+    paper_kernel = filter_jit(_paper_error_norm)  # traced program saved across processes
+
+    def paper_run(obs):  # one compilation for both periods (T is a traced leaf; 40 segments cover T ≥ 0.25)
+        with runtime_checks_as_nan():  # no host callback: the program is cached (status checked below)
+            en, status = paper_kernel(plant, obs, tuple(float(t) for t in ts))
+        if int(status) != 0:
+            raise RuntimeError(f"the paper's simulation failed (status {int(status)})")
+        return en
 
     for i, (T, r) in enumerate(ref.items()):
         en = np.asarray(paper_run(obsjax.LeastSquaresReset(plant, 20.0, 0.1, T)))
@@ -393,7 +409,8 @@ def demo(
     t_mc = time.perf_counter() - t0
     print(
         f"\nMonte-Carlo study: {n} trajectories each, x(0) ~ N(0, {DEMO_X0_SCALE:g}² I), x̂(0) = 0, "
-        f"band-limited noise σ = {DEMO_NOISE_SIGMA} ({t_mc:.1f} s, common random numbers)"
+        f"band-limited noise σ = {DEMO_NOISE_SIGMA} ({t_mc:.1f} s on {len(jax.devices())} "
+        f"{jax.default_backend().upper()} device(s), common random numbers)"
     )
     print(comparison_table(results))
     figures.append(os.path.join(outdir, "monte_carlo.png"))
@@ -542,19 +559,57 @@ def main(argv=None) -> int:
     )
     p_bench.add_argument("--dir", default=None, help="the benchmarks directory")
     args = parser.parse_args(argv)
-    # JAX's persistent compilation cache, on unless OBSJAX_NO_COMPILATION_CACHE=1 (see obsjax/_cache.py);
-    # jaxlib's harmless complaint at every executable read back on some CPUs is dropped from stderr
+    # JAX's persistent compilation cache, on unless OBSJAX_NO_COMPILATION_CACHE=1 (see obsjax/_cache.py),
+    # and the traced kernels of tune and monte_carlo saved beside it, on unless OBSJAX_NO_TRACE_CACHE=1
+    # (obsjax/_trace_cache.py); jaxlib's harmless complaint at every executable read back on some CPUs
+    # is dropped from stderr
     import contextlib
 
     from ._cache import enable_compilation_cache, quiet_benign_cache_log
+    from ._trace_cache import enable_trace_cache
 
     on = enable_compilation_cache() is not None
+    if on:
+        enable_trace_cache()
     with quiet_benign_cache_log() if on else contextlib.nullcontext():
         return _run(parser, args)
 
 
+#: environment variable: the number of XLA host devices the demo's process uses (default: one per core)
+DEMO_DEVICES_ENV = "OBSJAX_DEMO_DEVICES"
+
+
+def host_devices_for_demo() -> int | None:
+    """Give the demo's process one XLA CPU device per core, so that its Monte-Carlo studies are sharded
+    across the cores (``monte_carlo`` splits each chunk over ``jax.devices()``; the result does not
+    depend on the number of devices).  Only where JAX's CPU backend has not started yet and
+    ``XLA_FLAGS`` does not set the device count already; ``OBSJAX_DEMO_DEVICES=1`` keeps one device.
+    Returns the count set, or ``None`` when nothing was changed."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" in flags:
+        return None
+    try:
+        from jax._src import xla_bridge
+
+        if xla_bridge._backends:  # JAX has started: too late to change its devices
+            return None
+    except (ImportError, AttributeError):
+        return None
+    given = os.environ.get(DEMO_DEVICES_ENV, "").strip()
+    if given:
+        n = int(given)
+    else:
+        n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    n = max(1, int(n or 1))
+    if n == 1:
+        return None
+    os.environ["XLA_FLAGS"] = (flags + f" --xla_force_host_platform_device_count={n}").strip()
+    return n
+
+
 def _run(parser, args) -> int:
     if args.command == "demo":
+        host_devices_for_demo()
         demo(args.out, n=args.n, steps=args.steps, batch=args.batch, seed=args.seed)
         return 0
     if args.command == "reproduce":

@@ -81,7 +81,8 @@ def header() -> str:
 class _Hasher:
     """Feeds a canonical, length-prefixed encoding of an object graph into SHA-256."""
 
-    def __init__(self):
+    def __init__(self, strict_modules: bool = False):
+        self.strict_modules = strict_modules
         self.h = hashlib.sha256()
         self.memo: dict[int, int] = {}
         self.keep: list = []  # keeps visited objects alive, so that their ids are not reused
@@ -129,6 +130,9 @@ class _Hasher:
         if isinstance(obj, jax.tree_util.PyTreeDef):
             self._treedef(obj, path)
             return
+        if isinstance(obj, jax.sharding.Mesh):
+            self._mesh(obj, path)
+            return
         if type(obj) is object:  # a sentinel
             self.put("object")
             return
@@ -136,6 +140,8 @@ class _Hasher:
             self._set(obj, path)
             return
         if isinstance(obj, types.ModuleType):
+            if self.strict_modules and not _is_library(obj.__name__):
+                self.opaque.append(f"{path} (module {obj.__name__}, not hashed by content)")
             self.put("module", obj.__name__)
             return
         if isinstance(obj, type):
@@ -218,10 +224,17 @@ class _Hasher:
         for i, child in enumerate(td.children()):
             self.visit(child, f"{path}.<child {i}>")
 
+    def _mesh(self, mesh, path: str) -> None:
+        """A device mesh by its axes and its devices (platform, kind, id, process), in mesh order."""
+        self.put("mesh", repr(tuple(mesh.axis_names)) + repr(tuple(mesh.devices.shape)))
+        for d in mesh.devices.flat:
+            self.put("device", f"{d.platform}|{d.device_kind}|{d.id}|{d.process_index}")
+        self.visit(getattr(mesh, "axis_types", None) and repr(mesh.axis_types), f"{path}.axis_types")
+
     def _set(self, s, path: str) -> None:
         digests = []
         for v in s:
-            sub = _Hasher()
+            sub = _Hasher(self.strict_modules)
             sub.visit(v, path)
             self.opaque.extend(sub.opaque)
             digests.append(sub.h.hexdigest())
@@ -309,10 +322,14 @@ def _global_names(co: types.CodeType) -> set[str]:
     return names
 
 
-def fingerprint(parts: dict) -> tuple[str, list[str]]:
+def fingerprint(parts: dict, *, strict_modules: bool = False) -> tuple[str, list[str]]:
     """SHA-256 hex digest of the version header and the named parts, and the list of paths that
-    could not be hashed by content (empty when the fingerprint covers everything)."""
-    h = _Hasher()
+    could not be hashed by content (empty when the fingerprint covers everything).
+
+    `strict_modules`: also report a module outside the numerical libraries (one a user function
+    reads as a global, e.g. ``mymodule.helper``) as not hashed by content, since only its name is
+    hashed; the trace cache sets it."""
+    h = _Hasher(strict_modules)
     h.put("header", header())
     for name in sorted(parts):
         h.put("part", name)

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
+from .. import _trace_cache
 from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
 from .._integrate import _validate
@@ -641,6 +642,11 @@ def _chunk_kernel(dyn, key_data, idx, cfg: _Config):
     return sharded(dyn, key_data, idx)
 
 
+# The same kernel, its traced program saved across processes when the trace cache is on (the ``obsjax``
+# command; see obsjax/_trace_cache.py; a mesh enters the key by its axes and devices).
+_chunk_kernel_saved = _trace_cache.filter_jit(_chunk_kernel.__wrapped__)
+
+
 def _hashable_kwargs(kw: dict) -> tuple:
     items = []
     for k, v in sorted(kw.items()):
@@ -1041,6 +1047,11 @@ def monte_carlo(
     sharding_in = None
     if mesh is not None:
         sharding_in = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+        if jax.process_count() == 1:
+            # the study's arrays replicated on the mesh beside the sharded indices: one set of devices
+            # for every argument (what a saved program, read back by the trace cache, requires)
+            replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+            dyn, key_data = jax.device_put((dyn, key_data), replicated)
     # The outputs live on every process's devices only when the mesh spans several processes.
     gather = mesh is not None and len({d.process_index for d in devices}) > 1
 
@@ -1063,7 +1074,7 @@ def monte_carlo(
         else:
             idx_dev = jnp.asarray(idx)
         with runtime_checks_as_nan():
-            en, st = _chunk_kernel(dyn, key_data, idx_dev, cfg)
+            en, st = _chunk_kernel_saved(dyn, key_data, idx_dev, cfg)
         if gather:
             from jax.experimental import multihost_utils
 

@@ -14,6 +14,7 @@ import jax.random as jr
 import numpy as np
 import optax
 
+from .. import _trace_cache
 from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
 from .._integrate import _validate
@@ -109,7 +110,7 @@ def _sorted_weighted(losses, weights):
     return jnp.where(jnp.all(jnp.isfinite(losses)), jnp.sum(weights * s), jnp.nan)
 
 
-@eqx.filter_jit
+@_trace_cache.filter_jit  # eqx.filter_jit; the traced program saved when the trace cache is on
 def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec):
     """J(θ) and ∇J for :func:`tune`.  Module-level, with every array an argument: calls that differ
     only in array values (initial gains, scenarios, risk weights, keys) reuse one compilation.

@@ -1,0 +1,270 @@
+"""Traced kernels saved across processes (obsjax/_trace_cache.py): a second process reads the program
+the first exported and computes the same numbers as a process without the cache; anything that changes
+the program changes the key; what cannot be hashed, a call inside a transformation and the opt-out all
+fall back to the ordinary trace."""
+
+import json
+import os
+import subprocess
+import sys
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from obsjax import _cache, _trace_cache
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# A small Monte-Carlo study and two tune steps, with the trace cache in the directory argv[1] (or off
+# when argv[1] is "off").
+_RUN = r"""
+import json, sys
+import jax, jax.numpy as jnp, numpy as np, optax
+import obsjax
+from obsjax import _trace_cache
+
+if sys.argv[1] != "off":
+    _trace_cache.enable_trace_cache(sys.argv[1])
+SCALE = float(sys.argv[2])
+plant = obsjax.LTI([[-2., 1.], [0., -1.]], [[0.], [1.]], [[1., 0.]])
+obs = obsjax.Luenberger.from_poles(plant, [-3., -4.])
+ts = np.linspace(0., 1., 6)
+mc = obsjax.monte_carlo(plant, obs, jax.random.PRNGKey(0), 8,
+                        x0_sampler=lambda k: SCALE * jax.random.normal(k, (2,)),
+                        xhat0_sampler=lambda k: jnp.zeros(2), ts=ts, chunk_size=8, progress=False,
+                        simulate_kwargs={"adaptive": False, "dt0": 0.05})
+x0s = jnp.array([[1., -1.], [0.5, 2.]])
+res = obsjax.tune(obs, plant, where=lambda o: o.poles, loss=obsjax.losses.ise, x0s=SCALE * x0s,
+                  xhat0s=jnp.zeros((2, 2)), ts=ts, optimizer=optax.adam(0.05), steps=2,
+                  simulate_kwargs={"adaptive": False, "dt0": 0.05}, progress=False)
+print(json.dumps({"events": _trace_cache.events,
+                  "error_norm": np.asarray(mc.error_norm).ravel().tolist(),
+                  "loss": [float(v) for v in res.history["loss"]],
+                  "poles": np.asarray(res.observer.poles).real.tolist()}))
+"""
+
+
+def _run(arg, scale=1.0, **env_extra):
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in (_cache.OPT_OUT, _trace_cache.OPT_OUT, _cache.DIR_ENV)
+    }
+    env["PYTHONPATH"] = ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.update(env_extra)
+    out = subprocess.run(
+        [sys.executable, "-c", _RUN, arg, repr(scale)],
+        check=False,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_a_second_process_reads_the_programs_and_computes_the_same_numbers(tmp_path):
+    d = str(tmp_path / "cache")
+    first = _run(d)
+    kinds = {e[1] for e in first["events"]}
+    assert kinds == {"exported"}, first["events"]
+    names = {e[0] for e in first["events"]}
+    assert any("_chunk_kernel" in n for n in names) and any("_value_and_grad" in n for n in names)
+    saved = os.listdir(os.path.join(d, _trace_cache.SUBDIR))
+    assert len(saved) == len(first["events"]) and all(f.endswith(".bin") for f in saved)
+    second = _run(d)
+    assert {e[1] for e in second["events"]} == {"read"}, second["events"]
+    plain = _run("off")
+    assert plain["events"] == []
+    for k in ("error_norm", "loss", "poles"):
+        assert first[k] == plain[k] and second[k] == plain[k], k  # bit for bit
+    # a closure constant of the sampler (and the scaled data) is another program: exported anew
+    other = _run(d, scale=2.0)
+    assert any(e[1] == "exported" and "_chunk_kernel" in e[0] for e in other["events"]), other[
+        "events"
+    ]
+    assert other["error_norm"] != first["error_norm"]
+    # the opt-out: nothing read or written
+    off = _run(d, **{_trace_cache.OPT_OUT: "1"})
+    assert off["events"] == [] and off["error_norm"] == plain["error_norm"]
+
+
+def _kernel(a, b, cfg):
+    return (a * cfg[0] + b,)
+
+
+def test_the_key_changes_with_everything_that_changes_the_program():
+    dtree = jax.tree_util.tree_structure((1, 2))
+    avals = (((2,), "float64", False),)
+    env = _trace_cache._environment()
+    k = _trace_cache._key("f", dtree, (None, (3.0,)), avals, env)
+    assert k is not None and k == _trace_cache._key("f", dtree, (None, (3.0,)), avals, env)
+    assert k != _trace_cache._key("g", dtree, (None, (3.0,)), avals, env)  # another kernel
+    assert k != _trace_cache._key("f", dtree, (None, (3.5,)), avals, env)  # a static value
+    assert k != _trace_cache._key("f", dtree, (None, (3.0,)), (((3,), "float64", False),), env)
+    assert k != _trace_cache._key("f", dtree, (None, (3.0,)), (((2,), "float32", False),), env)
+    assert k != _trace_cache._key("f", dtree, (None, (3.0,)), (((2,), "float64", True),), env)
+    assert k != _trace_cache._key("f", dtree, (None, (3.0,)), avals, env[:1] + ("nan",) + env[2:])
+
+    def g(x, c=1.0):
+        return x + c
+
+    def h(x, c=2.0):
+        return x + c
+
+    assert _trace_cache._key("f", dtree, g, avals, env) != _trace_cache._key(
+        "f", dtree, h, avals, env
+    )
+
+
+def test_the_key_covers_obsjax_source(monkeypatch):
+    dtree = jax.tree_util.tree_structure((1,))
+    avals = (((2,), "float64", False),)
+    env = _trace_cache._environment()
+    assert len(_trace_cache.source_digest()) == 64
+    k = _trace_cache._key("f", dtree, None, avals, env)
+    monkeypatch.setattr(_trace_cache, "source_digest", lambda: "an edited checkout")
+    assert _trace_cache._key("f", dtree, None, avals, env) != k
+
+
+def test_a_user_module_read_by_a_function_is_not_hashed_by_content():
+    import types
+
+    mod = types.ModuleType("someones_helpers")
+
+    def f(x):
+        return mod.scale * x
+
+    globals()["mod"] = mod
+    try:
+        dtree = jax.tree_util.tree_structure((1,))
+        key = _trace_cache._key(
+            "f", dtree, f, (((2,), "float64", False),), _trace_cache._environment()
+        )
+        assert key is None  # cannot be saved: the call is traced as usual
+    finally:
+        del globals()["mod"]
+
+
+def test_fallbacks_in_process(tmp_path, monkeypatch):
+    monkeypatch.delenv(_trace_cache.OPT_OUT, raising=False)
+    monkeypatch.delenv(_cache.OPT_OUT, raising=False)
+    before = jax.config.jax_compilation_cache_dir
+    kernel = _trace_cache.filter_jit(_kernel)
+    try:
+        _trace_cache._state["dir"] = str(tmp_path)
+        n0 = len(_trace_cache.events)
+        a, b = jnp.arange(3.0), jnp.ones(3)
+        (out,) = kernel(a, b, (2.0,))
+        np.testing.assert_array_equal(out, 2.0 * a + b)
+        assert _trace_cache.events[n0:] == [(f"{__name__}._kernel", "exported")]
+        _trace_cache._memo.clear()
+        (out,) = kernel(a, b, (2.0,))
+        assert _trace_cache.events[-1] == (f"{__name__}._kernel", "read")
+        np.testing.assert_array_equal(out, 2.0 * a + b)
+        # inside a transformation: the ordinary trace (jax.grad through it works)
+        g = jax.grad(lambda x: kernel(x, b, (2.0,))[0].sum())(a)
+        np.testing.assert_array_equal(g, 2.0 * np.ones(3))
+        v = jax.vmap(lambda x: kernel(x, b, (3.0,))[0])(jnp.ones((4, 3)))
+        np.testing.assert_array_equal(v, 4.0 * np.ones((4, 3)))
+        # an unreadable saved program is exported again
+        for f in os.listdir(tmp_path):
+            (tmp_path / f).write_bytes(b"not a program")
+        _trace_cache._memo.clear()
+        (out,) = kernel(a, b, (2.0,))
+        assert _trace_cache.events[-1][1] == "exported"
+        np.testing.assert_array_equal(out, 2.0 * a + b)
+        # off: exactly eqx.filter_jit
+        _trace_cache.disable_trace_cache()
+        n1 = len(_trace_cache.events)
+        (out,) = kernel(a, b, (5.0,))
+        assert len(_trace_cache.events) == n1
+        np.testing.assert_array_equal(out, 5.0 * a + b)
+    finally:
+        _trace_cache.disable_trace_cache()
+        assert jax.config.jax_compilation_cache_dir == before
+
+
+def test_a_program_that_cannot_be_exported_is_traced():
+    def with_callback(a, cfg):
+        return (eqx.error_if(a, a < 0, "negative"),)
+
+    kernel = _trace_cache.filter_jit(with_callback)
+    try:
+        import tempfile
+
+        _trace_cache._state["dir"] = tempfile.mkdtemp()
+        (out,) = kernel(jnp.ones(2), None)
+        np.testing.assert_array_equal(out, np.ones(2))
+        assert _trace_cache.events[-1][1].startswith("not exported")
+        with pytest.raises(Exception, match="negative"):
+            kernel(-jnp.ones(2), None)
+    finally:
+        _trace_cache.disable_trace_cache()
+
+
+def test_the_command_line_turns_it_on_and_import_does_not():
+    assert _trace_cache._state["dir"] is None or os.environ.get("OBSJAX_TEST_TRACE_CACHE")
+    env = {k: v for k, v in os.environ.items() if k not in (_cache.OPT_OUT, _trace_cache.OPT_OUT)}
+    env["PYTHONPATH"] = ROOT
+    code = (
+        "import obsjax; from obsjax import _trace_cache as t; a = t.trace_cache_dir(); "
+        "from obsjax import cli; cli.main(['reproduce', '--list']); print(a, t.trace_cache_dir())"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        check=False,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    before, after = out.stdout.strip().splitlines()[-1].split()
+    assert before == "None" and after.endswith(_trace_cache.SUBDIR)
+
+
+def test_a_sharded_study_is_saved_and_read_back(tmp_path):
+    """Two host devices: the study's kernel (shard_map over a mesh) is exported, read back by the
+    next process and computes what one device computes."""
+    d = str(tmp_path / "cache")
+    two = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    first = _run(d, **two)
+    kernel = ["obsjax.montecarlo._montecarlo._chunk_kernel"]
+    assert kernel + ["exported"] in first["events"], first["events"]
+    second = _run(d, **two)
+    assert kernel + ["read"] in second["events"], second["events"]
+    one = _run("off")
+    np.testing.assert_allclose(second["error_norm"], one["error_norm"], rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(first["error_norm"], second["error_norm"])
+
+
+def _devices_after(env_extra):
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "OBSJAX_DEMO_DEVICES")}
+    env["PYTHONPATH"] = ROOT
+    env.update(env_extra)
+    code = (
+        "from obsjax import cli; r = cli.host_devices_for_demo(); import jax; "
+        "print(r, len(jax.devices()))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        check=False,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    return out.stdout.strip().splitlines()[-1]
+
+
+def test_the_demo_uses_one_host_device_per_core_unless_told_otherwise():
+    assert _devices_after({"OBSJAX_DEMO_DEVICES": "3"}) == "3 3"
+    assert _devices_after({"OBSJAX_DEMO_DEVICES": "1"}) == "None 1"
+    # a device count the user set is kept
+    assert _devices_after({"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}) == "None 2"
