@@ -189,6 +189,28 @@ def filter_jit(fn):
     return call
 
 
+def _one_device(exp):
+    """The call of a one-device program: every argument committed to one device first (jit compiles
+    anew when committed and uncommitted arguments alternate, as they do between tune's steps, on a
+    process with several devices)."""
+    run = jax.jit(exp.call)
+
+    def call(*leaves):
+        dev = None
+        for x in leaves:
+            if isinstance(x, jax.Array) and getattr(x, "committed", False):
+                dev = next(iter(x.sharding.device_set))
+                break
+        if dev is None:
+            dev = jax.config.jax_default_device
+            if not isinstance(dev, jax.Device):  # unset, or a platform name
+                dev = jax.devices()[0]
+        return run(*jax.device_put(list(leaves), dev))
+
+    call._cache_size = run._cache_size
+    return call
+
+
 def _key(name, dtree, static, avals, env) -> str | None:
     from .montecarlo._fingerprint import fingerprint
 
@@ -248,4 +270,4 @@ def _load_or_export(name, fn, jitted, dtree, static, leaves, avals, env, d):
         except Exception as e:  # noqa: BLE001 - cannot export (a host callback, an extended dtype)
             events.append((name, f"not exported ({type(e).__name__}): traced"))
             return jitted
-    return jax.jit(exp.call)
+    return _one_device(exp) if exp.nr_devices == 1 else jax.jit(exp.call)
