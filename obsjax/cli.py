@@ -282,8 +282,12 @@ def demo(
 
     paper_kernel = filter_jit(_paper_error_norm)  # traced program saved across processes
 
-    def paper_run(obs):  # one compilation for both periods (T is a traced leaf; 40 segments cover T ≥ 0.25)
-        with runtime_checks_as_nan():  # no host callback: the program is cached (status checked below)
+    def paper_run(
+        obs,
+    ):  # one compilation for both periods (T is a traced leaf; 40 segments cover T ≥ 0.25)
+        with (
+            runtime_checks_as_nan()
+        ):  # no host callback: the program is cached (status checked below)
             en, status = paper_kernel(plant, obs, tuple(float(t) for t in ts))
         if int(status) != 0:
             raise RuntimeError(f"the paper's simulation failed (status {int(status)})")
@@ -516,7 +520,10 @@ def main(argv=None) -> int:
     )
     p_demo.add_argument("-n", type=int, default=10_000, help="Monte-Carlo trajectories per study")
     p_demo.add_argument(
-        "--steps", type=int, default=40, help="most evaluations of the tuning (it stops once converged)"
+        "--steps",
+        type=int,
+        default=40,
+        help="most evaluations of the tuning (it stops once converged)",
     )
     p_demo.add_argument(
         "--batch", type=int, default=8, help="initial conditions in the tuning batch"
@@ -524,7 +531,9 @@ def main(argv=None) -> int:
     p_demo.add_argument("--seed", type=int, default=0)
     p_rep = sub.add_parser("reproduce", help="write a document's examples and figures")
     p_rep.add_argument(
-        "documents", nargs="*", help="chen-yen, hassan, lovass-nagy, huang-zhu, byrski-fuksa, data, ..."
+        "documents",
+        nargs="*",
+        help="chen-yen, hassan, lovass-nagy, huang-zhu, byrski-fuksa, data, ...",
     )
     p_rep.add_argument("--all", action="store_true", help="every document")
     p_rep.add_argument("--out", default="obsjax-reproduce", help="output directory")
@@ -565,14 +574,19 @@ def main(argv=None) -> int:
     # is dropped from stderr
     import contextlib
 
+    from . import _trace_cache
     from ._cache import enable_compilation_cache, quiet_benign_cache_log
-    from ._trace_cache import enable_trace_cache
 
     on = enable_compilation_cache() is not None
+    before = _trace_cache._state["dir"]
     if on:
-        enable_trace_cache()
-    with quiet_benign_cache_log() if on else contextlib.nullcontext():
-        return _run(parser, args)
+        _trace_cache.enable_trace_cache()
+    try:
+        with quiet_benign_cache_log() if on else contextlib.nullcontext():
+            return _run(parser, args)
+    finally:
+        if before is None:  # main() called from a process that had it off (a test, a notebook)
+            _trace_cache.disable_trace_cache()
 
 
 #: environment variable: the number of XLA host devices the demo's process uses (default: one per core)

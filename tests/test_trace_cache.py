@@ -207,25 +207,25 @@ def test_a_program_that_cannot_be_exported_is_traced():
         _trace_cache.disable_trace_cache()
 
 
-def test_the_command_line_turns_it_on_and_import_does_not():
-    assert _trace_cache._state["dir"] is None or os.environ.get("OBSJAX_TEST_TRACE_CACHE")
+def test_the_command_line_turns_it_on_for_its_run_only_and_import_does_not():
+    """On while the command runs; a process that called ``cli.main`` (a test, a notebook) has it off
+    again afterwards."""
+    assert _trace_cache._state["dir"] is None
     env = {k: v for k, v in os.environ.items() if k not in (_cache.OPT_OUT, _trace_cache.OPT_OUT)}
     env["PYTHONPATH"] = ROOT
     code = (
-        "import obsjax; from obsjax import _trace_cache as t; a = t.trace_cache_dir(); "
-        "from obsjax import cli; cli.main(['reproduce', '--list']); print(a, t.trace_cache_dir())"
+        "import obsjax; from obsjax import _trace_cache as t, cli; before = t.trace_cache_dir(); "
+        "seen = []; run = cli._run; "
+        "cli._run = lambda p, a: (seen.append(t.trace_cache_dir()), run(p, a))[1]; "
+        "cli.main(['reproduce', '--list']); print(before, seen[0], t.trace_cache_dir())"
     )
     out = subprocess.run(
-        [sys.executable, "-c", code],
-        check=False,
-        capture_output=True,
-        text=True,
-        env=env,
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, env=env,
         timeout=300,
-    )
+    )  # fmt: skip
     assert out.returncode == 0, out.stderr[-2000:]
-    before, after = out.stdout.strip().splitlines()[-1].split()
-    assert before == "None" and after.endswith(_trace_cache.SUBDIR)
+    before, during, after = out.stdout.strip().splitlines()[-1].split()
+    assert before == "None" and during.endswith(_trace_cache.SUBDIR) and after == "None"
 
 
 def test_a_sharded_study_is_saved_and_read_back(tmp_path):
