@@ -15,14 +15,17 @@ every static value (observer and plant classes with their static fields, loss an
 by bytecode, closures and the globals they read), the versions of Python, jax, jaxlib, NumPy, SciPy,
 diffrax, equinox, lineax, optax and obsjax, a digest of obsjax's own source files (an edited
 checkout is another program), the JAX settings that change a trace (float64, default precision,
-dtype and rank promotion, the PRNG implementation and partitioning, NaN/Inf debugging), equinox's error
-mode, the backend and its number of devices (a mesh by its axes and devices), and the kind of CPU (the
+dtype and rank promotion, the PRNG implementation and its options, NaN/Inf debugging: every setting
+but those about caches, logging, dumps, transfers and profiling), equinox's error mode, the backend and its number of devices (a mesh by its axes and devices), and the kind of CPU (the
 directory is the compilation cache's, one per kind).  Anything the fingerprint cannot hash by content (an object of a compiled
 extension, a module outside the numerical libraries that a user function reads) makes the call fall
 back to the ordinary ``eqx.filter_jit`` path, as does any failure to export, save or read a program.
 
 **What it cannot see**: a change made at run time to a library function (a monkeypatch of obsjax,
-diffrax or jax internals) is not in the fingerprint.  That is why the cache is off by default for
+diffrax or jax internals) is not in the fingerprint; nor is an edit of an editable install of a library
+other than obsjax that keeps its version string (diffrax, equinox, ...: hashed by name and version),
+a file a user function reads while it is traced (``np.loadtxt`` inside a sampler), a lookup through
+``globals()[...]``, or flatten/unflatten functions registered for a user's pytree node.  That is why the cache is off by default for
 library users and in the test suite; the ``obsjax`` command turns it on (its processes change
 nothing at run time), and :func:`enable_trace_cache` turns it on for a user's process.
 ``OBSJAX_NO_TRACE_CACHE=1`` (or ``OBSJAX_NO_COMPILATION_CACHE=1``) turns it off everywhere.
@@ -54,19 +57,34 @@ _memo: dict = {}  # in-process: signature -> callable on (dynamic leaves)
 #: what happened to each kernel signature first seen in this process (for tests and benchmarks)
 events: list[tuple[str, str]] = []
 
-_CONFIG_KEYS = (
-    "jax_enable_x64",
-    "jax_default_matmul_precision",
-    "jax_numpy_dtype_promotion",
-    "jax_numpy_rank_promotion",
-    "jax_default_prng_impl",
-    "jax_debug_nans",
-    "jax_debug_infs",
-    "jax_disable_jit",
-    "jax_threefry_partitionable",
-    "jax_use_shardy_partitioner",
-    "jax_dynamic_shapes",
-)
+# JAX settings that cannot change a traced program (caches, logging, dumps, transfer guards, profiling,
+# distributed set-up): every other setting enters the key, so that one added by a later JAX is covered.
+_CONFIG_SKIP = (
+    "cache", "log", "dump", "transfer_guard", "profil", "pgle", "traceback", "explain", "pprint",
+    "cross_host", "distributed", "timeout", "visible_devices", "source_url", "verbose",
+    "preemption", "recoverability", "thread_guard", "mock_", "debug_key_reuse",
+)  # fmt: skip
+
+
+def _config_items() -> tuple:
+    try:
+        names = sorted(jax.config.values)
+    except AttributeError:  # pragma: no cover - an older JAX: the settings known to change a trace
+        names = [
+            "jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
+            "jax_numpy_rank_promotion", "jax_default_prng_impl", "jax_debug_nans", "jax_debug_infs",
+            "jax_threefry_partitionable", "jax_random_seed_offset", "jax_high_dynamic_range_gumbel",
+            "jax_softmax_custom_jvp", "jax_enable_custom_prng", "jax_legacy_prng_key",
+        ]  # fmt: skip
+    out = []
+    for k in names:
+        if any(p in k for p in _CONFIG_SKIP):
+            continue
+        try:
+            out.append((k, repr(getattr(jax.config, k))))  # getattr: context-manager overrides too
+        except Exception:  # noqa: BLE001
+            out.append((k, "?"))
+    return tuple(out)
 
 
 def _opted_out() -> bool:
@@ -137,13 +155,7 @@ def _environment() -> tuple:
         eqx_mode = str(E.EQX_ON_ERROR)
     except (ImportError, AttributeError):
         eqx_mode = os.environ.get("EQX_ON_ERROR", "?")
-    cfg = []
-    for k in _CONFIG_KEYS:
-        try:
-            cfg.append((k, str(getattr(jax.config, k))))
-        except AttributeError:
-            cfg.append((k, "?"))
-    return (tuple(cfg), eqx_mode, jax.default_backend(), len(jax.devices()))
+    return (_config_items(), eqx_mode, jax.default_backend(), len(jax.devices()))
 
 
 def _aval(x):
@@ -168,6 +180,12 @@ def filter_jit(fn):
         dyn, static = eqx.partition(args, eqx.is_array)
         leaves, dtree = jax.tree_util.tree_flatten(dyn)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):  # inside a transformation
+            return jitted(*args)
+        backend = jax.default_backend()
+        if any(
+            isinstance(x, jax.Array) and any(dv.platform != backend for dv in x.sharding.device_set)
+            for x in leaves
+        ):  # arguments on another platform than the default one (a program is exported for that)
             return jitted(*args)
         sleaves, stree = jax.tree_util.tree_flatten(static)
         avals = tuple(_aval(x) for x in leaves)

@@ -268,3 +268,108 @@ def test_the_demo_uses_one_host_device_per_core_unless_told_otherwise():
     assert _devices_after({"OBSJAX_DEMO_DEVICES": "1"}) == "None 1"
     # a device count the user set is kept
     assert _devices_after({"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}) == "None 2"
+
+
+# What an independent review of the first version found unhashed (each case made a second process
+# read back a stale program): every one now changes the key, or makes the call fall back to tracing.
+_DT = jax.tree_util.tree_structure((1,))
+_AV = (((2,), "float64", False),)
+
+
+def _k(static):
+    return _trace_cache._key("f", _DT, static, _AV, _trace_cache._environment())
+
+
+def _custom_jvp(scale):
+    @jax.custom_jvp
+    def sq(x):
+        return x**2
+
+    @sq.defjvp
+    def sq_jvp(p, t):
+        (x,), (dx,) = p, t
+        return sq(x), scale * 2 * x * dx
+
+    return sq
+
+
+def _custom_vjp(scale):
+    @jax.custom_vjp
+    def f(x):
+        return x
+
+    f.defvjp(lambda x: (x, None), lambda _, g: (scale * g,))
+    return f
+
+
+def test_the_rules_of_custom_derivatives_are_in_the_key():
+    assert _k(_custom_jvp(1.0)) != _k(_custom_jvp(-1.0))
+    assert _k(_custom_vjp(1.0)) != _k(_custom_vjp(-1.0))
+
+
+def test_attributes_outside_dataclass_fields_and_on_functions_are_in_the_key():
+    import dataclasses
+
+    @dataclasses.dataclass(eq=False)
+    class Sampler:
+        n: int = 2
+
+        def __call__(self, k):
+            return self.scale * jax.random.normal(k, (self.n,))
+
+    a, b = Sampler(), Sampler()
+    a.scale, b.scale = 1.0, 5.0
+    assert _k(a) != _k(b)
+
+    def f(k):
+        return f.scale * k
+
+    f.scale = 1.0
+    k1 = _k(f)
+    f.scale = 5.0
+    assert _k(f) != k1
+
+
+def test_a_module_imported_inside_a_function_is_not_hashed_by_content():
+    def a_of_t(t):
+        import someones_helpers  # noqa: F401  (never run: only its bytecode is read)
+
+        return t
+
+    def a_of_t_lib(t):
+        import math
+
+        return math.sin(t)
+
+    assert _k(a_of_t) is None  # traced as usual
+    assert _k(a_of_t_lib) is not None  # a numerical library is hashed by name and version
+
+
+def test_the_weak_type_of_a_captured_array_is_in_the_key():
+    weak, strong = jnp.asarray(1.1), jnp.asarray(1.1, dtype=jnp.float64)
+    assert jax.typeof(weak).weak_type and not jax.typeof(strong).weak_type
+    assert _k(lambda k, c=weak: c * k) != _k(lambda k, c=strong: c * k)
+
+
+def test_every_jax_setting_that_can_change_a_trace_is_in_the_key():
+    names = {k for k, _ in _trace_cache._environment()[0]}
+    for k in ("jax_high_dynamic_range_gumbel", "jax_random_seed_offset", "jax_softmax_custom_jvp",
+              "jax_enable_x64", "jax_threefry_partitionable", "jax_default_matmul_precision"):  # fmt: skip
+        assert k in names, k
+    before = _k(None)
+    old = jax.config.jax_high_dynamic_range_gumbel
+    try:
+        jax.config.update("jax_high_dynamic_range_gumbel", not old)
+        assert _k(None) != before
+    finally:
+        jax.config.update("jax_high_dynamic_range_gumbel", old)
+    assert _k(None) == before
+
+
+def test_the_versions_of_every_numerical_library_are_in_the_key():
+    from obsjax.montecarlo import _fingerprint
+
+    head = _fingerprint.header()
+    for pkg in ("jax=", "jaxlib=", "diffrax=", "equinox=", "lineax=", "optax=", "optimistix=",
+                "jaxtyping=", "obsjax="):  # fmt: skip
+        assert pkg in head, pkg

@@ -46,7 +46,19 @@ _LIBRARIES = frozenset(
         "inspect",
     }
 )  # fmt: skip
-_VERSIONED = ("jax", "jaxlib", "numpy", "scipy", "diffrax", "equinox", "lineax", "optax", "obsjax")
+_VERSIONED = (
+    "jax",
+    "jaxlib",
+    "numpy",
+    "scipy",
+    "diffrax",
+    "equinox",
+    "lineax",
+    "optax",
+    "optimistix",
+    "jaxtyping",
+    "obsjax",
+)  # fmt: skip  (every third-party package in _LIBRARIES: hashed by name, so versioned)
 # Class attributes that are machinery, not behaviour (the instance's fields carry the state).
 _CLASS_SKIP = frozenset(
     {
@@ -57,6 +69,13 @@ _CLASS_SKIP = frozenset(
         "__check_init__", "__repr__", "__eq__", "__hash__", "__init_subclass__", "__new__",
         "__setattr__", "__delattr__", "__getstate__", "__setstate__", "__reduce__", "__annotate__",
     }
+)  # fmt: skip
+
+
+# Attributes of a wrapper (functools.update_wrapper's) that are not behaviour.
+_WRAPPER_SKIP = frozenset(
+    {"__wrapped__", "__doc__", "__name__", "__qualname__", "__module__", "__annotations__",
+     "__type_params__", "__dict__", "__signature__"}
 )  # fmt: skip
 
 
@@ -172,13 +191,34 @@ class _Hasher:
             return
         if dataclasses.is_dataclass(obj):
             self._class(type(obj), f"{path}.<class>")
+            names = set()
             for f in dataclasses.fields(obj):
+                names.add(f.name)
                 self.put("field", f.name)
                 self.visit(getattr(obj, f.name, None), f"{path}.{f.name}")
+            # attributes outside the fields (set after construction, or by __post_init__)
+            extra = {k: v for k, v in getattr(obj, "__dict__", {}).items() if k not in names}
+            for c in type(obj).__mro__:
+                for sl in getattr(c, "__slots__", ()):
+                    if (
+                        sl not in names
+                        and sl not in ("__dict__", "__weakref__")
+                        and hasattr(obj, sl)
+                    ):
+                        extra[sl] = getattr(obj, sl)
+            if extra:
+                self.put("extra")
+                self._dict(extra, f"{path}.<attributes>")
             return
-        if callable(obj) and hasattr(obj, "__wrapped__"):  # jax.jit, functools.wraps
+        if callable(obj) and hasattr(obj, "__wrapped__"):  # jax.jit, functools.wraps, custom_jvp
             self.put("wrapper", type(obj).__qualname__)
             self.visit(obj.__wrapped__, f"{path}.__wrapped__")
+            # the wrapper's own state too: a custom_jvp's jvp rule, a custom_vjp's fwd and bwd
+            extra = {
+                k: v for k, v in getattr(obj, "__dict__", {}).items() if k not in _WRAPPER_SKIP
+            }
+            if extra:
+                self._dict(extra, f"{path}.<wrapper state>")
             return
         self._instance(obj, path)
 
@@ -194,6 +234,8 @@ class _Hasher:
         if isinstance(a, jax.core.Tracer):
             self.opaque.append(f"{path} (a traced array: call monte_carlo outside jit)")
             return
+        if getattr(a, "weak_type", False):  # promotes like a Python scalar: another computation
+            self.put("weak_type")
         if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
             self.put("prng_key", str(jr.key_impl(a)))
             a = jr.key_data(a)
@@ -229,7 +271,9 @@ class _Hasher:
         self.put("mesh", repr(tuple(mesh.axis_names)) + repr(tuple(mesh.devices.shape)))
         for d in mesh.devices.flat:
             self.put("device", f"{d.platform}|{d.device_kind}|{d.id}|{d.process_index}")
-        self.visit(getattr(mesh, "axis_types", None) and repr(mesh.axis_types), f"{path}.axis_types")
+        self.visit(
+            getattr(mesh, "axis_types", None) and repr(mesh.axis_types), f"{path}.axis_types"
+        )
 
     def _set(self, s, path: str) -> None:
         digests = []
@@ -241,6 +285,15 @@ class _Hasher:
         self.put(type(s).__name__, ",".join(sorted(digests)))
 
     def _code(self, co: types.CodeType, path: str) -> None:
+        if self.strict_modules:
+            # a module imported inside the function is read by name only, like a global module
+            import dis
+
+            for ins in dis.get_instructions(co):
+                if ins.opname == "IMPORT_NAME" and not _is_library(str(ins.argval)):
+                    self.opaque.append(
+                        f"{path} (imports module {ins.argval}, not hashed by content)"
+                    )
         self.put("code", co.co_code)
         self.put(
             "code-meta",
@@ -254,6 +307,8 @@ class _Hasher:
         self.put("function", f"{fn.__module__}.{fn.__qualname__}")
         if not _is_library(fn.__module__):
             self._code(fn.__code__, path)
+            if fn.__dict__:  # attributes set on the function (f.scale = ...)
+                self._dict(dict(fn.__dict__), f"{path}.__dict__")
             glb = fn.__globals__
             for name in sorted(_global_names(fn.__code__)):
                 if name in glb:
