@@ -225,7 +225,6 @@ def _one_device(exp):
                 dev = jax.devices()[0]
         return run(*jax.device_put(list(leaves), dev))
 
-    call._cache_size = run._cache_size
     return call
 
 
@@ -273,8 +272,7 @@ def _load_or_export(name, fn, jitted, dtree, static, leaves, avals, env, d):
     if exp is None:
 
         def flat(*xs):
-            out = fn(*eqx.combine(jax.tree_util.tree_unflatten(dtree, xs), static))
-            return out
+            return fn(*eqx.combine(jax.tree_util.tree_unflatten(dtree, xs), static))
 
         try:
             specs = [jax.ShapeDtypeStruct(s, np.dtype(t), weak_type=w) for (s, t, w) in avals]

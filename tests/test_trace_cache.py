@@ -47,24 +47,22 @@ print(json.dumps({"events": _trace_cache.events,
 """
 
 
-def _run(arg, scale=1.0, **env_extra):
-    env = {
-        k: v
-        for k, v in os.environ.items()
-        if k not in (_cache.OPT_OUT, _trace_cache.OPT_OUT, _cache.DIR_ENV)
-    }
+def _python(argv, env_extra, drop=()):
+    """Run ``python -c`` with `argv` in a fresh process (obsjax from this checkout); its last line."""
+    env = {k: v for k, v in os.environ.items() if k not in drop}
     env["PYTHONPATH"] = ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     env.update(env_extra)
     out = subprocess.run(
-        [sys.executable, "-c", _RUN, arg, repr(scale)],
-        check=False,
-        capture_output=True,
-        text=True,
-        env=env,
+        [sys.executable, "-c", *argv], check=False, capture_output=True, text=True, env=env,
         timeout=600,
-    )
+    )  # fmt: skip
     assert out.returncode == 0, out.stderr[-3000:]
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return out.stdout.strip().splitlines()[-1]
+
+
+def _run(arg, scale=1.0, **env_extra):
+    drop = (_cache.OPT_OUT, _trace_cache.OPT_OUT, _cache.DIR_ENV)
+    return json.loads(_python([_RUN, arg, repr(scale)], env_extra, drop))
 
 
 def test_a_second_process_reads_the_programs_and_computes_the_same_numbers(tmp_path):
@@ -211,20 +209,14 @@ def test_the_command_line_turns_it_on_for_its_run_only_and_import_does_not():
     """On while the command runs; a process that called ``cli.main`` (a test, a notebook) has it off
     again afterwards."""
     assert _trace_cache._state["dir"] is None
-    env = {k: v for k, v in os.environ.items() if k not in (_cache.OPT_OUT, _trace_cache.OPT_OUT)}
-    env["PYTHONPATH"] = ROOT
     code = (
         "import obsjax; from obsjax import _trace_cache as t, cli; before = t.trace_cache_dir(); "
         "seen = []; run = cli._run; "
         "cli._run = lambda p, a: (seen.append(t.trace_cache_dir()), run(p, a))[1]; "
         "cli.main(['reproduce', '--list']); print(before, seen[0], t.trace_cache_dir())"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", code], check=False, capture_output=True, text=True, env=env,
-        timeout=300,
-    )  # fmt: skip
-    assert out.returncode == 0, out.stderr[-2000:]
-    before, during, after = out.stdout.strip().splitlines()[-1].split()
+    line = _python([code], {}, (_cache.OPT_OUT, _trace_cache.OPT_OUT))
+    before, during, after = line.split()
     assert before == "None" and during.endswith(_trace_cache.SUBDIR) and after == "None"
 
 
@@ -244,23 +236,11 @@ def test_a_sharded_study_is_saved_and_read_back(tmp_path):
 
 
 def _devices_after(env_extra):
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "OBSJAX_DEMO_DEVICES")}
-    env["PYTHONPATH"] = ROOT
-    env.update(env_extra)
     code = (
         "from obsjax import cli; r = cli.host_devices_for_demo(); import jax; "
         "print(r, len(jax.devices()))"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", code],
-        check=False,
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
-    assert out.returncode == 0, out.stderr[-2000:]
-    return out.stdout.strip().splitlines()[-1]
+    return _python([code], env_extra, ("XLA_FLAGS", "OBSJAX_DEMO_DEVICES"))
 
 
 def test_the_demo_uses_one_host_device_per_core_unless_told_otherwise():

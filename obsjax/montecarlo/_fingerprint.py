@@ -271,9 +271,7 @@ class _Hasher:
         self.put("mesh", repr(tuple(mesh.axis_names)) + repr(tuple(mesh.devices.shape)))
         for d in mesh.devices.flat:
             self.put("device", f"{d.platform}|{d.device_kind}|{d.id}|{d.process_index}")
-        self.visit(
-            getattr(mesh, "axis_types", None) and repr(mesh.axis_types), f"{path}.axis_types"
-        )
+        self.put("axis_types", repr(getattr(mesh, "axis_types", None)))
 
     def _set(self, s, path: str) -> None:
         digests = []
