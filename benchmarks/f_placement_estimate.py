@@ -8,7 +8,7 @@ for the robust method:
 
 - the estimate, from the same ``_robust_core`` that ``place`` runs (jit, vmap over the sets);
 - the gain's exact error, by ``obsjax.analysis.placement_error`` (float64 eigenpairs refined by Newton's
-  method with long-double residuals; its own accuracy is reported with it);
+  method with double-double residuals; its own accuracy is reported with it);
 - estimate / exact: quantiles; sets where the estimate is below the exact error by more than the
   refinement's accuracy (target 0); sets refused at 1e-6, and of those how many really miss 1e-6; sets
   accepted at 1e-6 that miss it (target 0: silently wrong).

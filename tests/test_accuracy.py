@@ -102,3 +102,67 @@ def test_a_pole_at_the_origin_is_measured_against_the_size_of_the_problem():
     off = np.asarray(obsjax.design.place(A, C, [-1e-5, -1.0]))
     err = obsjax.analysis.placement_error(A, C, off, [0.0, -1.0])
     assert err == pytest.approx(1e-2, rel=1e-6)
+
+
+def _mp_eigvals(A, C, L, dps=40):
+    """Eigenvalues of the exact A − LC (float64 entries taken as exact) in `dps`-digit arithmetic
+    (mpmath: code independent of obsjax's refinement)."""
+    import mpmath
+
+    with mpmath.workdps(dps):
+        M = mpmath.matrix(A.tolist()) - mpmath.matrix(L.tolist()) * mpmath.matrix(C.tolist())
+        return np.array([complex(e) for e in mpmath.eig(M, left=False, right=False)])
+
+
+def _nearest(ref, lam):
+    return np.array([lam[np.argmin(np.abs(lam - r))] for r in ref])
+
+
+@pytest.mark.parametrize("which", ["obsjax", "scipy"])
+def test_large_single_output_gain_against_40_digit_eigenvalues(which):
+    """A single-output placement with ‖L‖ ~ 1e4 (n = 10, κ_k up to ~1e7): the long-double residuals
+    used before settled at 1.5e-8 relative here and read a gain placing its poles to 2.4e-9 as 1.1e-8.
+    The double-double refinement agrees with 40-digit eigenvalues to ~1e-15 (the float64 rounding of
+    the result), and the accuracy it states is below the distance to them only where both are noise."""
+    import scipy.signal
+
+    rng = np.random.default_rng(2024)  # the first structured case of tests/test_placement.py
+    n = 10
+    A, C = rng.standard_normal((n, n)), rng.standard_normal((1, n))
+    poles = []
+    while len(poles) < n:
+        if n - len(poles) >= 2 and rng.random() < 0.4:
+            re, im = -rng.uniform(0.5, 4.0), rng.uniform(0.2, 3.0)
+            poles += [re + 1j * im, re - 1j * im]
+        else:
+            poles.append(-rng.uniform(0.5, 4.0))
+    poles = np.array(poles)
+    if which == "obsjax":
+        L = np.asarray(obsjax.design.place(A, C, poles))
+    else:
+        L = scipy.signal.place_poles(A.T, C.T, poles).gain_matrix.T
+    assert np.linalg.norm(L) > 1e3
+    ref = _mp_eigvals(A, C, L)
+    lam, acc = closed_loop_eigvals(A, C, L, return_accuracy=True)
+    f64 = np.linalg.eigvals(A - L @ C)
+    rel = np.abs(_nearest(ref, lam) - ref) / np.abs(ref)
+    rel64 = np.abs(_nearest(ref, f64) - ref) / np.abs(ref)
+    assert np.max(rel64) > 1e-10  # float64 is measurably off here
+    assert np.max(rel) < 1e-14, np.max(rel)
+    assert np.max(acc / np.abs(lam)) < 1e-14
+    err, err_acc = placement_error(A, C, L, poles, return_accuracy=True)
+    mp_err = max(np.min(np.abs(ref - p)) / abs(p) for p in poles)
+    assert err == pytest.approx(mp_err, rel=1e-6), (err, mp_err)
+    assert err_acc < 1e-14
+
+
+def test_agrees_with_40_digit_eigenvalues_on_random_gains():
+    """Random (A, C, L) with n = 6 … 14 and m = 1 … 3, some scaled by 1e3: the refined eigenvalues
+    equal mpmath's to 1e-14 relative (the float64 rounding of the returned value)."""
+    rng = np.random.default_rng(5)
+    for n, m, s in [(6, 1, 1.0), (8, 2, 1e3), (11, 3, 1.0), (14, 2, 1e-3)]:
+        A = s * rng.standard_normal((n, n))
+        C, L = rng.standard_normal((m, n)), s * 30.0 * rng.standard_normal((n, m))
+        ref = _mp_eigvals(A, C, L)
+        lam = closed_loop_eigvals(A, C, L)
+        assert np.max(np.abs(_nearest(ref, lam) - ref) / np.abs(ref)) < 1e-14

@@ -20,12 +20,12 @@ def eig_error(A, C, L, poles) -> float:
     float64 eigvals adds a rounding of ε·κ_k·‖A − LC‖ that reaches 1e-8 for n ≥ 10).  Repeated poles
     cannot be refined one by one: placement_error then uses the float64 eigenvalues.
 
-    The long-double refinement is itself only accurate to ε_ld·κ_k·‖A − LC‖, which for the large gains
-    of some single-output placements (‖L‖ ~ 1e4) reaches 1e-8 too: it then read a gain placing its
-    poles to 2.4e-9 as 1.1e-8, and SciPy's 2.6e-8 as 5.4e-9 (a test failure that depended on the
-    machine's BLAS).  Where its stated accuracy is not two orders below the 1e-8 line, the eigenvalues
-    of the exact A − LC are computed in 40-digit arithmetic instead (mpmath, code independent of
-    obsjax's)."""
+    The refinement states its own accuracy; where that is not two orders below the 1e-8 line, the
+    eigenvalues of the exact A − LC are computed in 40-digit arithmetic instead (mpmath, code
+    independent of obsjax's).  (With the long-double residuals that placement_error used before, its
+    accuracy reached 1.5e-8 for the large gains of some single-output placements, ‖L‖ ~ 1e4: it read a
+    gain placing its poles to 2.4e-9 as 1.1e-8, and SciPy's 2.6e-8 as 5.4e-9, a test failure that
+    depended on the machine's BLAS.)"""
     err, acc = obsjax.analysis.placement_error(A, C, np.asarray(L), poles, return_accuracy=True)
     if not np.isfinite(acc) or acc <= 1e-10:
         return err
