@@ -213,8 +213,7 @@ def closed_loop_eigvals(A, C, L, *, iters: int = 6, return_accuracy: bool = Fals
             f"(corrections {steps[0, k]:.1e} then up to {acc[k]:.1e}); it is too close to another "
             "eigenvalue to be refined."
         )
-    out = _cdd_value(lam)
-    refined = out
+    refined = _cdd_value(lam)
     gaps = np.where(np.eye(n, dtype=bool), np.inf, np.abs(refined[:, None] - refined[None, :]))
     moved = np.abs(refined - w)
     if n > 1 and np.any(gaps.min(axis=1) <= 2.0 * moved):
