@@ -11,6 +11,7 @@ inside cache writes; the causes were the memory mappings that compiled programs 
 
 import gc
 import os
+import re
 
 import jax
 import pytest
@@ -35,6 +36,41 @@ def _release_compiled_programs():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+# Each worker process peaks at about 3.7 GB of resident memory on the full suite (XLA's compiled programs
+# of one test module at a time, see _release_compiled_programs); four GiB a worker keeps a small machine
+# out of swap.
+_WORKER_BYTES = 4 * 2**30
+
+
+def _available_memory():
+    try:
+        with open("/proc/meminfo") as f:
+            m = re.search(r"^MemAvailable:\s+(\d+) kB", f.read(), re.M)
+        return int(m.group(1)) * 1024 if m else None
+    except OSError:
+        return None
+
+
+def pytest_xdist_auto_num_workers(config):
+    """How many worker processes ``-n auto`` (the default, see pyproject.toml) starts.
+
+    One per usable CPU core and at most one per 4 GiB of available memory, at least one.  The test run is
+    mostly XLA compilation, one program at a time per process, so a second process on a second core about
+    halves its wall time.  ``PYTEST_XDIST_AUTO_NUM_WORKERS=k`` sets the number; ``-n 0`` runs in this
+    process alone (no workers), e.g. under a debugger.
+    """
+    env = os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS")
+    if env:
+        return int(env)
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        cores = os.cpu_count() or 1
+    mem = _available_memory()
+    by_memory = cores if mem is None else mem // _WORKER_BYTES
+    return max(1, min(cores, by_memory))
 
 
 try:  # property tests draw the same examples on every run: a CI result can be reproduced
