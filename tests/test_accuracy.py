@@ -2,6 +2,8 @@
 checked on integer matrices whose spectrum is known exactly (an integer similarity of a triangular
 matrix), where float64 eigvals is measurably off."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -89,6 +91,22 @@ def test_placement_error_falls_back_to_float64_with_infinite_accuracy():
     A = np.array([[-1.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -3.0]])
     err, acc = placement_error(A, np.zeros((1, 3)), np.zeros((3, 1)), [-1.0, -1.0, -3.0], return_accuracy=True)
     assert err < 1e-7 and acc == np.inf
+
+
+def test_placement_error_alone_warns_when_its_figure_is_not_refined():
+    """Returned without its accuracy, a figure measured in float64 (no refinement possible) warns; a
+    refined one does not."""
+    A = np.array([[-1.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -3.0]])
+    with pytest.warns(RuntimeWarning, match="float64 eigenvalues were used"):
+        err = placement_error(A, np.zeros((1, 3)), np.zeros((3, 1)), [-1.0, -1.0, -3.0])
+    assert err < 1e-7
+    A2 = np.array([[-2.0, 1.0], [0.0, -1.0]])
+    C2 = np.array([[1.0, 0.0]])
+    L2 = np.asarray(obsjax.design.place(A2, C2, [-3.0, -4.0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert placement_error(A2, C2, L2, [-3.0, -4.0]) < 1e-14
+        placement_error(A, np.zeros((1, 3)), np.zeros((3, 1)), [-1.0, -1.0, -3.0], return_accuracy=True)
 
 
 def test_a_pole_at_the_origin_is_measured_against_the_size_of_the_problem():

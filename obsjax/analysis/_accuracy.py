@@ -18,6 +18,8 @@ iterative refinement, which converges to the eigenvalues of the exact A − LC t
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 # ------------------------------------------------------------------ double-double arithmetic (numpy)
@@ -239,6 +241,11 @@ def placement_error(A, C, L, poles, *, return_accuracy: bool = False):
     (a gain so far off that eigenvalues run together, a Jordan block) the float64 eigenvalues are used
     and the accuracy is ``inf``.
 
+    **Warns** ``RuntimeWarning`` when the figure is returned alone (``return_accuracy=False``) and its
+    accuracy is not well below it (larger than a tenth of the error and than 10⁻¹⁴): the float64
+    fallback above, or a refinement that settled coarsely.  The figure is then no better than that
+    accuracy; ``return_accuracy=True`` returns both and does not warn.
+
     **Example:** ``placement_error(A, C, obsjax.design.place(A, C, poles), poles)`` ≈ 1e-15 for a
     well-conditioned placement.
     """
@@ -265,4 +272,17 @@ def placement_error(A, C, L, poles, *, return_accuracy: bool = False):
         unsure = max(unsure, float(acc[k] / size))
         eig.pop(k)
         acc.pop(k)
+    if not return_accuracy and not unsure <= max(0.1 * worst, 1e-14):
+        how = (
+            "the eigenvalues of A − LC could not be refined (they run together: a cluster or a Jordan "
+            "block), so float64 eigenvalues were used"
+            if unsure == np.inf
+            else "the refined eigenvalues settled only to this accuracy"
+        )
+        warnings.warn(
+            f"placement_error: the error {worst:.2e} is known only to within {unsure:.1e} relative ({how}); "
+            "return_accuracy=True returns the figure with its accuracy.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     return (worst, unsure) if return_accuracy else worst
