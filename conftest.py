@@ -36,6 +36,21 @@ def _release_compiled_programs():
     yield
     jax.clear_caches()
     gc.collect()
+    _return_freed_memory()
+
+
+def _return_freed_memory():
+    """Hand the heap that the dropped programs and arrays freed back to the kernel (glibc's
+    ``malloc_trim``).  Freed memory otherwise stays in the allocator's arenas and counts as resident:
+    after a module such as tests/test_pd_spectrum.py a worker held 675 MB, 342 MB after the trim.  A
+    no-op where the C library has no ``malloc_trim``.
+    """
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # pragma: no cover - not glibc
+        pass
 
 
 # Each worker process peaks at about 3.7 GB of resident memory on the full suite (XLA's compiled programs
