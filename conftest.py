@@ -53,9 +53,9 @@ def _return_freed_memory():
         pass
 
 
-# Each worker process peaks at about 3.7 GB of resident memory on the full suite (XLA's compiled programs
-# of one test module at a time, see _release_compiled_programs); four GiB a worker keeps a small machine
-# out of swap.
+# The largest worker process peaks at about 3.1-3.4 GB of resident memory on the full suite (XLA's
+# compiled programs of one test module at a time, see _release_compiled_programs); four GiB a worker
+# keeps a small machine out of swap.
 _WORKER_BYTES = 4 * 2**30
 
 
