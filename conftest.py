@@ -68,24 +68,21 @@ def _available_memory():
         return None
 
 
+@pytest.hookimpl(wrapper=True)
 def pytest_xdist_auto_num_workers(config):
-    """How many worker processes ``-n auto`` (the default, see pyproject.toml) starts.
+    """How many worker processes ``-n auto`` (the default, see pyproject.toml) starts: pytest-xdist's own
+    count (one per CPU core, or ``PYTEST_XDIST_AUTO_NUM_WORKERS=k``), capped at one per 4 GiB of
+    available memory, at least one.
 
-    One per usable CPU core and at most one per 4 GiB of available memory, at least one.  The test run is
-    mostly XLA compilation, one program at a time per process, so a second process on a second core about
-    halves its wall time.  ``PYTEST_XDIST_AUTO_NUM_WORKERS=k`` sets the number; ``-n 0`` runs in this
-    process alone (no workers), e.g. under a debugger.
+    The test run is mostly XLA tracing and compilation, one program at a time per process, so a second
+    process on a second core shortens its wall time.  ``-n 0`` runs in this process alone (no workers),
+    e.g. under a debugger.
     """
-    env = os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS")
-    if env:
-        return int(env)
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        cores = os.cpu_count() or 1
+    count = yield
     mem = _available_memory()
-    by_memory = cores if mem is None else mem // _WORKER_BYTES
-    return max(1, min(cores, by_memory))
+    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS") or mem is None:
+        return count
+    return max(1, min(count, mem // _WORKER_BYTES))
 
 
 try:  # property tests draw the same examples on every run: a CI result can be reproduced

@@ -23,25 +23,28 @@ if ROOT not in sys.path:
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 
 
-def timeit(fn, *args, repeat=5, min_time=0.1):
+def timeit(fn, *args, repeat=5, min_time=0.1, max_time=None, return_output=False):
     """(first-call seconds, best steady-state seconds, median) of ``fn(*args)`` with block_until_ready.
 
-    The steady-state call is repeated until it has run ``repeat`` times and at least ``min_time`` in total.
+    The steady-state call is repeated until it has run ``repeat`` times and at least ``min_time`` in total,
+    or, with ``max_time``, until the calls have taken ``max_time`` in total (at least one call).  With
+    ``return_output=True`` the first call's output and the number of steady-state calls are appended.
     """
     import jax
 
     t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
+    out = jax.block_until_ready(fn(*args))
     first = time.perf_counter() - t0
     times = []
     while len(times) < repeat or sum(times) < min_time:
         t0 = time.perf_counter()
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
-        if len(times) > 200:
+        if len(times) > 200 or (max_time is not None and sum(times) >= max_time):
             break
     times.sort()
-    return first, times[0], times[len(times) // 2]
+    result = (first, times[0], times[len(times) // 2])
+    return (*result, out, len(times)) if return_output else result
 
 
 def machine() -> dict:

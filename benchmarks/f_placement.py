@@ -14,7 +14,7 @@ the exact A − LC refined in double-double arithmetic by ``obsjax.analysis.plac
 comparison, by float64 ``numpy.linalg.eigvals``; matched greedily), how often each method reaches 1e-8, how often
 obsjax misses 1e-8 where SciPy reaches it (target: never), the ratio ‖L_obsjax‖ / ‖L_SciPy‖ (target ≤ 2),
 how many sets obsjax's a-posteriori check would refuse at its default rtol 1e-6, and the time for the
-1000 sets (first call with compilation, then best and median of up to 3 further calls).
+1000 sets (first call with compilation, then best and median of 3 further calls, fewer once 5 minutes are spent).
 
 Usage: ``python benchmarks/f_placement.py [--sets 1000] [--ns 4 10 20]``.
 """
@@ -95,17 +95,12 @@ def run(n, sets, m=2, seed=0):
     A, Cm, P = pair_and_sets(n, sets, m, seed)
     st = obsjax.design.pole_structure(P[0])
     f = jax.jit(jax.vmap(lambda p: obsjax.design.place(A, Cm, p, structure=st, rtol=np.inf)))
-    # the first call's gains are the ones measured; then up to 3 steady-state calls, fewer once
-    # 5 minutes are spent (one call takes ~5 min at n = 20 on a 2-core machine)
-    t0 = time.perf_counter()
-    L = np.asarray(f(jnp.asarray(P)))
-    first = time.perf_counter() - t0
-    times = []
-    while len(times) < 3 and (not times or sum(times) < 300.0):
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(jnp.asarray(P)))
-        times.append(time.perf_counter() - t0)
-    best, med, calls = min(times), float(np.median(times)), len(times)
+    # the first call's gains are the ones measured; then 3 steady-state calls (more below 0.5 s in
+    # all), fewer once 5 minutes are spent (one call takes ~5 min at n = 20 on a 2-core machine)
+    first, best, med, L, calls = C.timeit(
+        f, jnp.asarray(P), repeat=3, min_time=0.5, max_time=300.0, return_output=True
+    )
+    L = np.asarray(L)
     # the a-posteriori estimate that place checks against rtol (1e-6 by default)
     kron = obsjax.analysis.observability_staircase(A, Cm).kronecker
     blocks = blocks_of(st, m, kron)
@@ -229,7 +224,7 @@ def main(sets=1000, ns=(4, 10, 20)):
         )
     lines += [
         "",
-        f"Time for the {sets} sets (steady state: up to 3 calls after the first, fewer once 5 minutes are spent):",
+        f"Time for the {sets} sets (steady state: 3 calls after the first, more while they take under 0.5 s in all, fewer once 5 minutes are spent):",
         "",
         "| n | obsjax `jit(vmap(place))` first call (compile) | obsjax best / median (calls) | SciPy loop | speed-up |",
         "|---|---|---|---|---|",
