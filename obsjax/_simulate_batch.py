@@ -11,7 +11,7 @@ import jax.numpy as jnp
 
 from . import _integrate
 from ._config import require_x64
-from ._integrate import _validate
+from ._integrate import _masked, _validate
 from ._integrate._lockstep import lockstep_norm, per_member
 from ._integrate._status import NONFINITE, is_finite
 from ._integrate._system import initial_state
@@ -60,8 +60,18 @@ def simulate_batch(
     member, if the shared solve itself fails) is then integrated again alone, exactly as
     :func:`obsjax.simulate` would, and gets that result and status; the others keep their lock-step result.
 
-    With ``lockstep=False``, with fixed steps (``adaptive=False``, already lock step) or with white noise
-    (a fixed-step SDE), this is ``jax.vmap`` of :func:`obsjax.simulate` over the members.
+    With ``lockstep=False`` every member takes its own steps, as under ``jax.vmap`` of
+    :func:`obsjax.simulate`.  When the solver is an explicit Runge–Kutta pair with an error estimate (Tsit5,
+    Dopri5, Bosh3, Dopri8, …), the observer has no event times, ``max_steps`` is set and the adjoint is
+    diffrax's default, ``ForwardMode`` or ``DirectAdjoint``, the batch runs on a masked adaptive
+    Runge–Kutta loop instead: one loop in which each member steps with its own step size and PID history
+    (diffrax's tableau and controller), crosses its own resets and jumps, and is masked once finished, so
+    the loop's bookkeeping is paid once per iteration for the whole batch (several times faster than
+    ``jax.vmap(simulate)`` on the CPU: benchmarks/results/g_numba_dopri5.md).  Member by member it is the
+    solve of :func:`obsjax.simulate` (first step 0.01 when `dt0` is not given, ``max_steps`` per segment,
+    the same status codes), up to rounding and the step choices near save times.  Other problems are
+    ``jax.vmap(simulate)``.  With fixed steps (``adaptive=False``, already lock step) or with white noise (a
+    fixed-step SDE), this is ``jax.vmap`` of :func:`obsjax.simulate` over the members.
 
     **Arguments:** as :func:`obsjax.simulate`, except
 
@@ -103,7 +113,7 @@ def simulate_batch(
         u=u, controller=controller, noise=noise, solver=solver, rtol=rtol, atol=atol, dt0=dt0,
         adaptive=adaptive, max_steps=max_steps, max_segments=max_segments, adjoint=adjoint, throw=throw,
     )
-    if not lockstep or not adaptive or isinstance(noise, WhiteNoise):
+    if not adaptive or isinstance(noise, WhiteNoise):
         if noise is None:
             return jax.vmap(lambda a, b: simulate(plant, observer, a, b, ts, **common))(x0s, xhat0s)
         return jax.vmap(lambda a, b, k: simulate(plant, observer, a, b, ts, key=k, **common))(x0s, xhat0s, keys)
@@ -123,7 +133,18 @@ def simulate_batch(
         paths = eqx.filter_vmap(lambda k: realise_band_limited(noise, k, t0c, t1c, plant.m))(keys)
     args_b = _Args(plant, observer, u, controller, paths)
     state0 = per_member(args_b, lambda a, x, xh: initial_state(a, ts[0], x, xh))(x0s, xhat0s)
-    (xs, zs), codes = _integrate.integrate_batch(args_b, state0, plan)
+    if lockstep:
+        (xs, zs), codes = _integrate.integrate_batch(args_b, state0, plan)
+    elif _masked.eligible(plan):
+        (xs, zs), codes = _masked.integrate(args_b, state0, plan)
+    else:
+        return jax.vmap(lambda a, b, *k: simulate(plant, observer, a, b, ts, **common, **_key(k)))(
+            x0s, xhat0s, *([] if noise is None else [keys])
+        )
     codes = jnp.where(jax.vmap(is_finite)(state0), codes, NONFINITE).astype(jnp.int32)  # as simulate
     traj = per_member(args_b, lambda a, x, z, c: trajectory(a, ts, x, z, c))(xs, zs, codes)
     return _raise_if(traj, throw, "obsjax.simulate_batch", traj.status)
+
+
+def _key(k):
+    return {"key": k[0]} if k else {}

@@ -447,7 +447,7 @@ BENCHMARKS = {
     "hand-written lax.scan; accuracy",
     "b": "value_and_grad of the ISE with respect to (γ, p0, T) against the forward pass (cost ratio)",
     "c": "first-call compile time of a jitted simulate per observer family; no retrace when gains change",
-    "d": "monte_carlo sharded over 2 host devices against 1 (vmapped and lock-step kernels); with "
+    "d": "monte_carlo sharded over 2 host devices against 1 (independent-step and lock-step kernels); with "
     "--large N an N-trajectory study and its peak memory",
     "e": "LTI Luenberger observer: obsjax against python-control (place + input_output_response)",
     "f": "robust MIMO pole placement (n = 4, 10, 20, m = 2, 1000 pole sets, jit(vmap(place))) against a "

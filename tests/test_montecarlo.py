@@ -448,7 +448,9 @@ def test_sharded_equals_unsharded():
     line = [ln for ln in out.stdout.splitlines() if ln.startswith("MAXDIFF")][0]
     d1, d2, f1, f4, d3 = line.split()[1:]
     assert float(d1) <= 1e-12 and float(d2) <= 1e-12
-    assert float(d3) <= 1e-7  # lock-step shards: the same study to the solver tolerance
+    # lock-step shards: the same study to the accuracy of either solve (the noise path's kinks every 0.05 s
+    # are stepped over, not declared: at rtol 1e-10 each solve is within ~2.5e-7 of a rtol 1e-13 one)
+    assert float(d3) <= 1e-6
     assert int(f1) == 0 and int(f4) == 0
     print(line)
 

@@ -7,7 +7,9 @@
   constant steps, white noise as an SDE, any adjoint), with the early-stop guards of ``_status.py``;
 - ``_fixed_step.py``: fixed steps of an explicit Runge–Kutta method on a grid known before tracing, a direct
   ``lax.scan`` over the Butcher tableau;
-- ``_lockstep.py``: a batch as one adaptive ODE (``simulate_batch``), with failure isolation.
+- ``_lockstep.py``: a batch as one adaptive ODE (``simulate_batch``), with failure isolation;
+- ``_masked.py``: a batch whose members each take their own adaptive steps (``simulate_batch(lockstep=False)``
+  and ``monte_carlo``'s default kernel) on the masked explicit Runge–Kutta loop of ``_adaptive_rk.py``.
 
 ``_segments.py`` is the segmented scan the diffrax and lock-step back-ends share; ``_system.py`` the joint
 plant–observer vector field and the jumps at breakpoints.  A new back-end is one file with one entry point
@@ -36,8 +38,8 @@ def integrate(args: Args, state0, plan: Plan):
             g = _fixed_step.grid(plan.ts_np, opt.dt0, sched.concrete, tol)
             if g is not None:
                 return _fixed_step.integrate(args, state0, sched, g, tab)
-    # Adaptive explicit Runge–Kutta solves are where a masked adaptive back-end (``_adaptive_rk.py``) would
-    # be chosen, for the solvers it supports; everything else goes to diffrax.
+    # One trajectory: diffrax.  (Batches with independent adaptive steps go to ``_masked.py`` from
+    # ``simulate_batch``, where the batch is visible.)
     return _diffrax.integrate(args, state0, plan.ts, sched, opt)
 
 

@@ -50,7 +50,8 @@ counts as on it); save times at t1 record the final state.  Steps are
 never shortened for saving.
 
 **Status** per member: 0 success; 1 not finished (``max_steps`` attempts, or the step size
-underflowed); 2 non-finite state or vector field.  Values a failed member did not reach are NaN.
+underflowed on finite candidates); 2 non-finite state or vector field (including a step size that
+underflowed on a non-finite candidate: the solution left the domain of the vector field).  Values a failed member did not reach are NaN.
 
 **Differentiation** (``adjoint``): ``diffrax.RecursiveCheckpointAdjoint`` (default; reverse mode
 through equinox's checkpointed while loop with ``checkpoints`` checkpoints, as diffrax),
@@ -571,7 +572,8 @@ def _make_body(F, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, ki
         one = jnp.ones((B,), tprev.dtype)
         restart = init | arrive
         status = _new_status(
-            cr, init, stepping, acc, arrive, is_final, y_new, g0, f0_new, nt0, nt1, max_steps, fsal
+            cr, init, stepping, acc, arrive, is_final, y_new, g0, f0_new, nt0, nt1, max_steps, fsal,
+            _all_finite(y1, B),
         )
         ok = status != NONFINITE
         return _Carry(
@@ -673,7 +675,7 @@ def _clip_to_end(tprev, tnext, end, floor, keep):
 
 
 def _new_status(
-    cr, init, stepping, acc, arrive, is_final, y_new, g0, f0_new, nt0, nt1, max_steps, fsal
+    cr, init, stepping, acc, arrive, is_final, y_new, g0, f0_new, nt0, nt1, max_steps, fsal, y1_finite
 ):
     B = cr.status.shape[0]
     status = cr.status
@@ -683,6 +685,9 @@ def _new_status(
         bad = bad | (acc & ~arrive & ~_all_finite(f0_new, B))
     status = jnp.where(bad, NONFINITE, status)
     underflow = stepping & ~arrive & (nt1 <= nt0)
+    # the step size underflowed on a candidate that is not finite: the solution left the domain of
+    # the vector field (it diverged), not a tolerance too tight to meet
+    status = jnp.where(underflow & ~y1_finite & (status == _RUNNING), NONFINITE, status)
     out_of_steps = stepping & (cr.num_steps + 1 >= max_steps)
     failed = (underflow | out_of_steps) & (status == _RUNNING)
     return jnp.where(failed, SOLVER_FAILED, status).astype(jnp.int32)

@@ -19,7 +19,7 @@ import numpy as np
 from .. import _trace_cache
 from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
-from .._integrate import _validate
+from .._integrate import _masked, _validate
 from .._simulate import NONFINITE, SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch
 from ._checkpoint import _read_chunk
@@ -561,6 +561,7 @@ class _Config(eqx.Module):
     key_impl: str | None
     mesh: object
     lockstep: bool
+    masked: bool  # independent steps on the masked adaptive Runge–Kutta loop (simulate_batch(lockstep=False))
 
 
 def _draw(dyn, cfg: _Config, key, i):
@@ -593,8 +594,9 @@ def _one(dyn, cfg: _Config, key, i):
     return traj.error_norm, traj.status
 
 
-def _lockstep(dyn, cfg: _Config, key, idx):
-    """One shard's members integrated as one lock-step batch (``simulate_batch``)."""
+def _batch(dyn, cfg: _Config, key, idx, lockstep: bool):
+    """One shard's members as one ``simulate_batch``: in lock step, or each with its own steps (the masked
+    adaptive Runge–Kutta loop where the problem allows it, else ``jax.vmap(simulate)``)."""
     plant, observer, noise = eqx.combine(dyn, cfg.static)
     x0s, xhat0s, kns = jax.vmap(lambda i: _draw(dyn, cfg, key, i)[1:])(idx)
     traj = simulate_batch(
@@ -607,7 +609,7 @@ def _lockstep(dyn, cfg: _Config, key, idx):
         keys=kns if noise is not None else None,
         throw=False,
         max_segments=cfg.max_segments,
-        lockstep=True,
+        lockstep=lockstep,
         **dict(cfg.sim_kwargs),
     )
     return traj.error_norm, traj.status
@@ -621,8 +623,8 @@ def _wrap_key(key_data, impl):
 def _chunk_kernel(dyn, key_data, idx, cfg: _Config):
     def local(d, kd, ii):
         key = _wrap_key(kd, cfg.key_impl)
-        if cfg.lockstep:
-            return _lockstep(d, cfg, key, ii)
+        if cfg.lockstep or cfg.masked:
+            return _batch(d, cfg, key, ii, cfg.lockstep)
         return jax.vmap(lambda i: _one(d, cfg, key, i))(ii)
 
     if cfg.mesh is None:
@@ -818,8 +820,12 @@ def monte_carlo(
     - `progress`: show a tqdm progress bar over chunks.
     - `max_chunks`: compute at most this many new chunks in this call.
     - `lockstep`: integrate each device's share of a chunk as one lock-step batch
-      (:func:`obsjax.simulate_batch`: one adaptive solve whose step every member accepts) instead of a
-      ``jax.vmap`` of independent solves.  Several times faster on the CPU for adaptive solves of alike
+      (:func:`obsjax.simulate_batch`: one adaptive solve whose step every member accepts) instead of
+      independent solves.  By default (``lockstep=False``) each trajectory takes its own steps: with
+      ``param_sampler=None`` the share is ``simulate_batch(..., lockstep=False)`` (the masked adaptive
+      Runge–Kutta loop for explicit Runge–Kutta pairs, member by member the solve of
+      :func:`obsjax.simulate`), otherwise ``jax.vmap`` of :func:`obsjax.simulate`.  Lock step is several
+      times faster on the CPU for adaptive solves of alike
       trajectories; but the steps then depend on which trajectories share a batch, so results agree with
       the default only to the solver tolerance (not bitwise across chunk sizes or device counts).  A member
       that fails (or alone drags the shared step down) is integrated again alone, so only the members that
@@ -943,6 +949,8 @@ def monte_carlo(
         key_impl=key_impl,
         mesh=mesh,
         lockstep=bool(lockstep),
+        masked=param_sampler is None
+        and _masked.eligible_options(observer, ts_arr, noise=noise, **sim_kwargs),
     )
     try:
         hash(cfg)
