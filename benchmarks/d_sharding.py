@@ -5,7 +5,7 @@ XLA devices).  Chen & Yen example, adaptive Tsit5 (rtol 1e-6), x(0) ~ N(0, I), x
 11 points on [0, 10] (coarse: the host keeps N × 11 floats).
 
 1. 4096 trajectories in one chunk, devices = 1 and devices = 2 (after a warm-up study that compiles the same
-   kernel), with the default vmapped kernel and with ``lockstep=True``: throughput ratio (target ≥ 1.4×).
+   kernel), with the default kernel (independent steps) and with ``lockstep=True``: throughput ratio (target ≥ 1.4×).
 2. With ``--n N`` (e.g. 1000000): N trajectories in chunks of 4096 on 2 devices (lock step): throughput
    against the 4096-batch rate (target within 20 %), and the peak resident memory of the process; written to
    ``results/d_sharding_large.md`` (part 1 alone, the default ``--n 0``, writes ``results/d_sharding.md``).
@@ -115,15 +115,17 @@ Chen & Yen example (adaptive Tsit5, rtol 1e-6, 40 reset segments), x(0) ~ N(0, I
 points on [0, 10].  `obsjax.monte_carlo` with `jax.shard_map` over a 1-D mesh of host devices
 (`--xla_force_host_platform_device_count=2` on this {os.cpu_count()}-CPU machine); each device integrates its
 own slice of the chunk, so no collective runs inside the adaptive while loops.  Two kernels: independent
-vmapped solves (the default) and `lockstep=True` (each device's slice one `simulate_batch`).  Throughput =
+solves (the default: each device's slice one `simulate_batch(lockstep=False)`, the masked adaptive
+Runge–Kutta loop, each trajectory its own steps) and `lockstep=True` (each device's slice one lock-step
+`simulate_batch`).  Throughput =
 trajectories ÷ wall time of the study after a warm-up study of the same shape (best of 3); cores = process
 CPU time ÷ wall time of that study (2 means both cores busy).
 
 | study | trajectories/s | cores used |
 |---|---|---|
-| {chunk} trajectories, vmap, 1 device | {r["tput_vmap_1"]:.0f} | {r["cores_vmap_1"]:.2f} |
-| {chunk} trajectories, vmap, 2 devices (shard_map) | {r["tput_vmap_2"]:.0f} | {r["cores_vmap_2"]:.2f} |
-| speed-up (vmap) | **{sv:.2f}×** — target ≥ 1.4×: {C.verdict(sv, 1.4, "higher")} | |
+| {chunk} trajectories, independent, 1 device | {r["tput_vmap_1"]:.0f} | {r["cores_vmap_1"]:.2f} |
+| {chunk} trajectories, independent, 2 devices (shard_map) | {r["tput_vmap_2"]:.0f} | {r["cores_vmap_2"]:.2f} |
+| speed-up (independent) | **{sv:.2f}×** — target ≥ 1.4×: {C.verdict(sv, 1.4, "higher")} | |
 | {chunk} trajectories, lock step, 1 device | {r["tput_lock_1"]:.0f} | {r["cores_lock_1"]:.2f} |
 | {chunk} trajectories, lock step, 2 devices (shard_map) | {r["tput_lock_2"]:.0f} | {r["cores_lock_2"]:.2f} |
 | speed-up (lock step) | **{sl:.2f}×** — target ≥ 1.4×: {C.verdict(sl, 1.4, "higher")} | |
@@ -142,7 +144,7 @@ Failures in the large study: {r["big_failed"]} (counted from the per-trajectory 
 """
         )
     body += f"""
-Compile (first study, trace + compile + run of one chunk): vmap {r["compile_vmap_1"]:.1f} s on 1 device,
+Compile (first study, trace + compile + run of one chunk): independent {r["compile_vmap_1"]:.1f} s on 1 device,
 {r["compile_vmap_2"]:.1f} s on 2; lock step {r["compile_lock_1"]:.1f} s and {r["compile_lock_2"]:.1f} s.
 """
     if r.get("big_n"):

@@ -10,11 +10,14 @@ Problem: Chen & Yen's example (γ = 20, p0 = 0.1, T = 0.25, 40 reset segments on
 - the adaptive RK back-end (``obsjax/_integrate/_adaptive_rk.py``) with ``Dopri5`` (the numba
   method) and ``Tsit5``, driven directly: one call over the whole horizon, the resets inside its
   loop;
-- ``jax.vmap(obsjax.simulate)`` and ``obsjax.simulate_batch`` (diffrax's ``diffeqsolve``, lock step
-  for the latter), with ``Dopri5``.
+- ``obsjax.simulate_batch(..., lockstep=False)``: the same back-end as users reach it (also
+  ``monte_carlo``'s default kernel), with ``simulate``'s first step (0.01) and step floor;
+- ``jax.vmap(obsjax.simulate)`` and ``obsjax.simulate_batch`` in lock step (diffrax's
+  ``diffeqsolve``), with ``Dopri5``.
 
-JAX runs with one CPU thread (``--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``,
-set before JAX starts) unless ``--threads default``: one thread per JAX device, as numba gets one.
+JAX runs on one CPU core (``--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``,
+set before JAX starts, and the process pinned to one core) unless ``--threads default``: one core per
+JAX device, as numba gets one.
 Accuracy: max over members and save times of |‖x̃‖ − ‖x̃‖_ref| / ‖x̃(0)‖ against the numba solver at
 rtol 1e-12 (itself checked against SciPy's RK45 at rtol 1e-12 on a few members).  Step counts:
 accepted + rejected attempts per member, against numba's member by member.
@@ -34,6 +37,11 @@ def _set_threads(mode):
     if mode == "one":
         flags = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flags).strip()
+        # XLA's CPU runtime still runs parts of a program on a second thread with these flags (the
+        # process CPU time came out at 1.8× the wall time): pin the process to one core, so that JAX,
+        # like numba, computes on one
+        if hasattr(os, "sched_setaffinity"):
+            os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
 
 def _best(fn, repeat):
@@ -124,7 +132,14 @@ def main(batch=4096, repeat=5, threads="one"):
         )(a, b)
     )
     f_lock = jax.jit(lambda a, b: obsjax.simulate_batch(plant, obs, a, b, ts, **kw).error_norm)
-    for name, f in (("jax.vmap(simulate) Dopri5", f_vmap), ("simulate_batch Dopri5", f_lock)):
+    f_masked = jax.jit(
+        lambda a, b: obsjax.simulate_batch(plant, obs, a, b, ts, lockstep=False, **kw).error_norm
+    )
+    for name, f in (
+        ("simulate_batch(lockstep=False) Dopri5 (the masked loop)", f_masked),
+        ("jax.vmap(simulate) Dopri5", f_vmap),
+        ("simulate_batch Dopri5 (lock step)", f_lock),
+    ):
         t0 = time.perf_counter()
         en = np.asarray(jax.block_until_ready(f(x0s, xh0s)))
         first[name] = time.perf_counter() - t0
@@ -149,15 +164,17 @@ _NOTES = """
 Target (issue: adaptive batches at the compiled limit): throughput ≥ 1.0× numba at equal tolerance
 and accuracy, step counts within 10 % of numba's.
 
-**Preliminary**: the machine is shared with other work (see the load below), so the absolute times,
-and the ratios to a lesser degree, are not final; they are to be re-measured on a quiet machine.
+Whether the machine was quiet: see "What else was running" below; on a shared machine the CPU-time
+ratio is the figure to read.
 """
 
 
 def _report(rows, times, first, ref, ref_gap, batch, repeat, threads, jax, np):
     nb_wall, nb_cpu = times["numba"]
     nb_steps = rows["numba"][1]
-    threads_txt = "one thread" if threads == "one" else "its default threads"
+    threads_txt = (
+        "the process pinned to one core" if threads == "one" else "its default threads"
+    )
     intro = (
         "Chen & Yen's example (γ = 20, p0 = 0.1, T = 0.25, 40 reset segments on [0, 10]), "
         f"{batch} initial conditions x(0) ~ N(0, I), x̂(0) = [5, -5], rtol 1e-6, atol 1e-8, "
