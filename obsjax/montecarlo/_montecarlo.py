@@ -824,9 +824,9 @@ def monte_carlo(
       independent solves.  By default (``lockstep=False``) each trajectory takes its own steps: with
       ``param_sampler=None`` the share is ``simulate_batch(..., lockstep=False)`` (the masked adaptive
       Runge–Kutta loop for explicit Runge–Kutta pairs, member by member the solve of
-      :func:`obsjax.simulate`), otherwise ``jax.vmap`` of :func:`obsjax.simulate`.  Lock step is several
-      times faster on the CPU for adaptive solves of alike
-      trajectories; but the steps then depend on which trajectories share a batch, so results agree with
+      :func:`obsjax.simulate`, to rounding), otherwise ``jax.vmap`` of :func:`obsjax.simulate`.  Lock step
+      can be faster still on the CPU for adaptive solves of alike trajectories (1.0–1.7× the default on
+      the Chen & Yen study: benchmarks/results/d_sharding.md, g_numba_dopri5.md); but the steps then depend on which trajectories share a batch, so results agree with
       the default only to the solver tolerance (not bitwise across chunk sizes or device counts).  A member
       that fails (or alone drags the shared step down) is integrated again alone, so only the members that
       fail on their own are counted failed.  Needs ``param_sampler=None``.
@@ -936,6 +936,7 @@ def monte_carlo(
     if D > 1:
         mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
 
+    masked = param_sampler is None and _masked.eligible_options(observer, ts_arr, noise=noise, **sim_kwargs)
     dyn, static = eqx.partition((plant, observer, noise), eqx.is_array)
     cfg = _Config(
         static=static,
@@ -949,8 +950,7 @@ def monte_carlo(
         key_impl=key_impl,
         mesh=mesh,
         lockstep=bool(lockstep),
-        masked=param_sampler is None
-        and _masked.eligible_options(observer, ts_arr, noise=noise, **sim_kwargs),
+        masked=masked,
     )
     try:
         hash(cfg)
@@ -1003,8 +1003,13 @@ def monte_carlo(
             key_impl=key_impl,
             n=n,
             chunk=chunk,
-            # lock-step results depend on which trajectories share a batch
-            lockstep=f"lockstep, {D} devices" if lockstep else "independent",
+            # lock-step results depend on which trajectories share a batch; the masked loop's agree with
+            # independent diffrax solves to rounding, not bit for bit
+            lockstep=(
+                f"lockstep, {D} devices"
+                if lockstep
+                else ("independent, masked loop" if masked else "independent")
+            ),
         )
         mismatch, failure = False, None
         # a streaming study with several processes folds the loaded chunks once they are broadcast
