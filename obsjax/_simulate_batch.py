@@ -115,9 +115,7 @@ def simulate_batch(
         adaptive=adaptive, max_steps=max_steps, max_segments=max_segments, adjoint=adjoint, throw=throw,
     )
     if not adaptive or isinstance(noise, WhiteNoise):
-        if noise is None:
-            return jax.vmap(lambda a, b: simulate(plant, observer, a, b, ts, **common))(x0s, xhat0s)
-        return jax.vmap(lambda a, b, k: simulate(plant, observer, a, b, ts, key=k, **common))(x0s, xhat0s, keys)
+        return _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common)
 
     ts_np = _validate.concrete_times(ts)
     ts = _validate.check_ts(ts)
@@ -139,13 +137,14 @@ def simulate_batch(
     elif _masked.eligible(plan):
         (xs, zs), codes = _masked.integrate(args_b, state0, plan)
     else:
-        return jax.vmap(lambda a, b, *k: simulate(plant, observer, a, b, ts, **common, **_key(k)))(
-            x0s, xhat0s, *([] if noise is None else [keys])
-        )
+        return _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common)
     codes = jnp.where(jax.vmap(is_finite)(state0), codes, NONFINITE).astype(jnp.int32)  # as simulate
     traj = per_member(args_b, lambda a, x, z, c: trajectory(a, ts, x, z, c))(xs, zs, codes)
     return _raise_if(traj, throw, "obsjax.simulate_batch", traj.status)
 
 
-def _key(k):
-    return {"key": k[0]} if k else {}
+def _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common):
+    """``jax.vmap`` of :func:`obsjax.simulate` over the members (and their noise keys, with noise)."""
+    if common["noise"] is None:
+        return jax.vmap(lambda a, b: simulate(plant, observer, a, b, ts, **common))(x0s, xhat0s)
+    return jax.vmap(lambda a, b, k: simulate(plant, observer, a, b, ts, key=k, **common))(x0s, xhat0s, keys)

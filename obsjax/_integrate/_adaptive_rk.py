@@ -51,7 +51,8 @@ never shortened for saving.
 
 **Status** per member: 0 success; 1 not finished (``max_steps`` attempts, or the step size
 underflowed on finite candidates); 2 non-finite state or vector field (including a step size that
-underflowed on a non-finite candidate: the solution left the domain of the vector field).  Values a failed member did not reach are NaN.
+underflowed on a non-finite candidate: the solution left the domain of the vector field).  Values a
+failed member did not reach are NaN.
 
 **Differentiation** (``adjoint``): ``diffrax.RecursiveCheckpointAdjoint`` (default; reverse mode
 through equinox's checkpointed while loop with ``checkpoints`` checkpoints, as diffrax),
@@ -131,14 +132,29 @@ class _Method(NamedTuple):
     interpolation: Callable
 
 
+def supports_solver(solver) -> bool:
+    """Whether `solver` is an explicit Runge–Kutta pair of diffrax with an embedded error estimate."""
+    tab = getattr(solver, "tableau", None)
+    return (
+        isinstance(solver, diffrax.AbstractERK)
+        and isinstance(tab, diffrax.ButcherTableau)
+        and tab.b_error is not None
+        and not tab.implicit
+    )
+
+
+def supports_adjoint(adjoint) -> bool:
+    """Whether the loop implements `adjoint` (``None`` is diffrax's default): see ``_loop_kind``."""
+    try:
+        _loop_kind(adjoint)
+    except ValueError:
+        return False
+    return True
+
+
 def _method_of(solver, controller) -> _Method:
     tab = getattr(solver, "tableau", None)
-    if (
-        not isinstance(solver, diffrax.AbstractERK)
-        or not isinstance(tab, diffrax.ButcherTableau)
-        or tab.b_error is None
-        or tab.implicit
-    ):
+    if not supports_solver(solver):
         raise ValueError(
             "`solver` must be an explicit Runge–Kutta pair of diffrax with an embedded error "
             f"estimate (Tsit5, Dopri5, Bosh3, Dopri8, ...), got {type(solver).__name__}."

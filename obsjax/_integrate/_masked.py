@@ -35,11 +35,9 @@ import jax
 import jax.numpy as jnp
 
 from . import _system
-from ._adaptive_rk import adaptive_rk_solve
+from ._adaptive_rk import adaptive_rk_solve, supports_adjoint, supports_solver
 from ._status import COLLAPSE_ULPS
 from ._validate import Plan
-
-tmap = jax.tree_util.tree_map
 
 # The back-end's first step when simulate's would be diffeqsolve's default (see the module docstring).
 DIFFRAX_FIRST_STEP = 0.01
@@ -47,21 +45,23 @@ DIFFRAX_FIRST_STEP = 0.01
 MAX_LOOP_STEPS = 2**30
 
 
-def _supports_solver(solver) -> bool:
-    tab = getattr(solver, "tableau", None)
-    return (
-        isinstance(solver, diffrax.AbstractERK)
-        and isinstance(tab, diffrax.ButcherTableau)
-        and tab.b_error is not None
-        and not tab.implicit
+def _eligible(adaptive, white_noise, has_event, max_steps, solver, adjoint) -> bool:
+    return bool(
+        adaptive
+        and not white_noise
+        and not has_event
+        and max_steps is not None
+        and supports_solver(solver)
+        and supports_adjoint(adjoint)
     )
 
 
-def _supports_adjoint(adjoint) -> bool:
-    return (
-        adjoint is None
-        or type(adjoint) in (diffrax.RecursiveCheckpointAdjoint, diffrax.DirectAdjoint)
-        or isinstance(adjoint, diffrax.ForwardMode)
+def eligible(plan: Plan) -> bool:
+    """Whether the masked back-end integrates this batch as ``jax.vmap(simulate)`` would (to rounding)."""
+    opt = plan.opt
+    return _eligible(
+        opt.adaptive, opt.white_noise is not None, plan.sched.has_event, opt.max_steps, opt.solver,
+        opt.adjoint,
     )
 
 
@@ -71,28 +71,10 @@ def eligible_options(observer, ts_np, *, solver=None, adaptive=True, noise=None,
     picks its kernel with it; `ts_np` the concrete save times)."""
     from ..systems._noise import WhiteNoise
 
-    solver = diffrax.Tsit5() if solver is None else solver
     events = observer.event_times(float(ts_np[0]), float(ts_np[-1]))
-    return bool(
-        adaptive
-        and not isinstance(noise, WhiteNoise)
-        and events is None
-        and max_steps is not None
-        and _supports_solver(solver)
-        and _supports_adjoint(adjoint)
-    )
-
-
-def eligible(plan: Plan) -> bool:
-    """Whether the masked back-end integrates this batch exactly as ``jax.vmap(simulate)`` would."""
-    opt, sched = plan.opt, plan.sched
-    return bool(
-        opt.adaptive
-        and opt.white_noise is None
-        and not sched.has_event
-        and opt.max_steps is not None
-        and _supports_solver(opt.solver)
-        and _supports_adjoint(opt.adjoint)
+    return _eligible(
+        adaptive, isinstance(noise, WhiteNoise), events is not None, max_steps,
+        diffrax.Tsit5() if solver is None else solver, adjoint,
     )
 
 
