@@ -1,6 +1,8 @@
 """tune's forward-mode gradients (``mode="forward"``, chosen by ``"auto"`` for a few scalars): equal to
 reverse mode and to central differences of a plain simulation; the same tuning run."""
 
+import functools
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -26,12 +28,18 @@ X0S = jr.normal(jr.PRNGKey(0), (4, 2)) * 2.0
 XH0S = jnp.zeros((4, 2))
 
 
-def _tune_gradient(mode, p=(20.0, 0.1, 0.3)):
-    """(J, ∇J) at (γ, p0, T) = p as tune computes them (its compiled kernel), in the given mode."""
+@functools.cache  # the kernel-agreement test reuses the gradient tests' evaluations
+def _tune_gradient_cached(mode, p, kernel):
+    return _tune_gradient(mode, p, kernel)
+
+
+def _tune_gradient(mode, p=(20.0, 0.1, 0.3), kernel="vmap"):
+    """(J, ∇J) at (γ, p0, T) = p as tune computes them (its compiled kernel), in the given mode and
+    batch kernel (``"vmap"``: jax.vmap(simulate); ``"masked"``: the masked adaptive Runge–Kutta loop)."""
     leaves0, single = _tune._selected_leaves(LSR, WHERE_CY)
     theta = tuple(jnp.asarray(v, dtype=leaf.dtype) for v, leaf in zip(p, leaves0))
     spec = (WHERE_CY, obsjax.losses.ise, single, False, None, None, 16, (), tuple(float(t) for t in TS_CY),
-            mode)  # fmt: skip
+            mode, kernel)  # fmt: skip
     val, grads = _tune._value_and_grad(
         theta, None, LSR, CY, jnp.asarray(X0_CY), jnp.asarray(XH_CY), jr.split(jr.PRNGKey(0), 2),
         jnp.asarray(_tune.risk_weights("mean", 2)), spec,
@@ -39,10 +47,11 @@ def _tune_gradient(mode, p=(20.0, 0.1, 0.3)):
     return float(val), np.array([float(g) for g in grads])
 
 
-def test_forward_gradient_of_gamma_p0_T_equals_reverse_mode_and_central_differences():
+@pytest.mark.parametrize("kernel", ["vmap", "masked"])
+def test_forward_gradient_of_gamma_p0_T_equals_reverse_mode_and_central_differences(kernel):
     p0 = np.array([20.0, 0.1, 0.3])
-    v_fwd, g_fwd = _tune_gradient("forward")
-    v_rev, g_rev = _tune_gradient("reverse")
+    v_fwd, g_fwd = _tune_gradient_cached("forward", tuple(p0), kernel)
+    v_rev, g_rev = _tune_gradient_cached("reverse", tuple(p0), kernel)
     assert v_fwd == pytest.approx(v_rev, rel=1e-13)
     # both modes differentiate the same discrete solution: equal to round-off
     np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-8)
@@ -52,9 +61,34 @@ def test_forward_gradient_of_gamma_p0_T_equals_reverse_mode_and_central_differen
         h = 1e-5 * p0[i]
         e = np.zeros(3)
         e[i] = h
-        fd.append((_tune_gradient("forward", p0 + e)[0] - _tune_gradient("forward", p0 - e)[0]) / (2 * h))
+        fd.append(
+            (_tune_gradient("forward", p0 + e, kernel)[0] - _tune_gradient("forward", p0 - e, kernel)[0]) / (2 * h)
+        )
     np.testing.assert_allclose(g_fwd, fd, rtol=2e-4)
     assert np.all(np.abs(g_fwd) > 1e-3)  # every component is a real check
+
+
+@pytest.mark.parametrize("mode", ["forward", "reverse"])
+def test_masked_kernel_equals_the_vmap_kernel(mode):
+    """tune's two batch kernels (the masked adaptive Runge–Kutta loop and jax.vmap(simulate)) take the
+    same steps member by member: the loss and its gradient in (γ, p0, T) agree to the solver's
+    rounding."""
+    p0 = (20.0, 0.1, 0.3)
+    v_m, g_m = _tune_gradient_cached(mode, p0, "masked")
+    v_v, g_v = _tune_gradient_cached(mode, p0, "vmap")
+    assert v_m == pytest.approx(v_v, rel=1e-9)
+    np.testing.assert_allclose(g_m, g_v, rtol=1e-7)
+
+
+def test_tune_picks_the_masked_kernel_where_the_problem_allows_it():
+    lsr, ts = LSR, TS_CY
+    assert _tune.batch_kernel(lsr, ts) == "masked"
+    assert _tune.batch_kernel(lsr, ts, mode="forward") == "masked"
+    assert _tune.batch_kernel(lsr, ts, plant_batched=True) == "vmap"  # a plant per scenario
+    assert _tune.batch_kernel(lsr, ts, simulate_kwargs={"adaptive": False, "dt0": 0.01}) == "vmap"
+    assert _tune.batch_kernel(lsr, ts, simulate_kwargs={"solver": diffrax.Kvaerno5()}) == "vmap"
+    assert _tune.batch_kernel(lsr, ts, simulate_kwargs={"max_steps": None}) == "vmap"
+    assert _tune.batch_kernel(lsr, ts, noise=obsjax.noise.WhiteNoise(0.1)) == "vmap"
 
 
 def test_forward_mode_with_a_complex_leaf_follows_jax_grad_convention():
@@ -124,6 +158,7 @@ def test_tune_runs_the_same_in_forward_and_reverse_mode():
         runs[mode] = obsjax.tune(obs, PLANT, where=where, loss=obsjax.losses.ise, x0s=X0S, xhat0s=XH0S,
                                  ts=TS, steps=6, optimizer=optax.adam(0.1), progress=False, mode=mode)
     assert runs["auto"].history["mode"] == "forward"  # two poles: a few scalars
+    assert {r.history["kernel"] for r in runs.values()} == {"masked"}
     assert runs["reverse"].history["mode"] == "reverse"
     f, r = runs["forward"].history, runs["reverse"].history
     assert f["skipped"] == r["skipped"] == 0

@@ -17,8 +17,9 @@ import optax
 from .. import _trace_cache
 from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
-from .._integrate import _validate
+from .._integrate import _masked, _validate
 from .._simulate import SUCCESS, _check_ts, num_segments, simulate
+from .._simulate_batch import simulate_batch
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
 BACKTRACK = 0.5
@@ -110,14 +111,28 @@ def _sorted_weighted(losses, weights):
     return jnp.where(jnp.all(jnp.isfinite(losses)), jnp.sum(weights * s), jnp.nan)
 
 
+def _loss_value(loss, traj):
+    """``loss(traj)`` for one trajectory, checked to be a real scalar (refused while tracing)."""
+    val = jnp.asarray(loss(traj))
+    if val.shape != () or not jnp.issubdtype(val.dtype, jnp.floating):
+        raise ValueError(
+            "`loss` must map a trajectory to a real scalar (e.g. obsjax.losses.ise), "
+            f"got an array of shape {val.shape} and dtype {val.dtype}: reduce it (sum, "
+            "mean) to one number."
+        )
+    return jnp.where(traj.status == SUCCESS, val, jnp.nan)
+
+
 @_trace_cache.filter_jit  # eqx.filter_jit; the traced program saved when the trace cache is on
 def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, spec):
     """J(θ) and ∇J for :func:`tune`.  Module-level, with every array an argument: calls that differ
     only in array values (initial gains, scenarios, risk weights, keys) reuse one compilation.
     ``spec`` holds the static rest (where, loss, single, plant_batched, noise, u, max_segments,
-    simulate_kwargs, ts as a tuple of floats: simulate needs concrete save times, and the mode of
-    differentiation, ``"forward"`` or ``"reverse"``)."""
-    where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts, mode = spec
+    simulate_kwargs, ts as a tuple of floats: simulate needs concrete save times, the mode of
+    differentiation, ``"forward"`` or ``"reverse"``, and the batch kernel, ``"masked"`` for
+    ``simulate_batch(lockstep=False)`` on the masked adaptive Runge–Kutta loop or ``"vmap"`` for
+    ``jax.vmap(simulate)``)."""
+    where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts, mode, kernel = spec
     ts = np.asarray(ts, dtype=float)  # concrete inside the trace
     plant_axis = eqx.if_array(0) if plant_batched else None
     sim_kwargs = dict(simulate_kwargs)
@@ -127,6 +142,23 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
     def J(th):
         new = tuple(th) if signs is None else tuple(s * jnp.exp(t) for s, t in zip(signs, th))
         obs = eqx.tree_at(where, observer, new[0] if single else new)
+        if kernel == "masked":
+            traj = simulate_batch(
+                plant,
+                obs,
+                x0s,
+                xhat0s,
+                ts,
+                keys=keys if noise is not None else None,
+                u=u,
+                noise=noise,
+                throw=False,
+                max_segments=max_segments,
+                lockstep=False,
+                **sim_kwargs,
+            )
+            losses = jax.vmap(lambda tr: _loss_value(loss, tr))(traj)
+            return _sorted_weighted(losses, weights)
 
         def one(pl, x0, xh0, k):
             traj = simulate(
@@ -142,14 +174,7 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
                 max_segments=max_segments,
                 **sim_kwargs,
             )
-            val = jnp.asarray(loss(traj))
-            if val.shape != () or not jnp.issubdtype(val.dtype, jnp.floating):
-                raise ValueError(
-                    "`loss` must map a trajectory to a real scalar (e.g. obsjax.losses.ise), "
-                    f"got an array of shape {val.shape} and dtype {val.dtype}: reduce it (sum, "
-                    "mean) to one number."
-                )
-            return jnp.where(traj.status == SUCCESS, val, jnp.nan)
+            return _loss_value(loss, traj)
 
         losses = eqx.filter_vmap(one, in_axes=(plant_axis, 0, 0, 0))(plant, x0s, xhat0s, keys)
         return _sorted_weighted(losses, weights)
@@ -157,6 +182,24 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
     if mode == "forward":
         return _forward_value_and_grad(J, theta)
     return jax.value_and_grad(J)(theta)
+
+
+def batch_kernel(observer, ts, *, plant_batched=False, noise=None, mode="reverse",
+                 simulate_kwargs=None) -> str:
+    """How :func:`tune` simulates its scenarios: ``"masked"`` — one
+    ``simulate_batch(..., lockstep=False)``, each scenario with its own adaptive steps on the masked
+    Runge–Kutta loop — when the problem allows it (adaptive steps of an explicit Runge–Kutta pair, no
+    white noise, no observer events, ``max_steps`` set, a plant shared by the scenarios, an adjoint
+    the loop implements); ``"vmap"`` — ``jax.vmap(simulate)`` — otherwise.  Both solve every scenario
+    as :func:`obsjax.simulate` does (to rounding; the masked loop's step budget is ``max_steps`` per
+    segment, shared by a scenario's segments)."""
+    kw = dict(simulate_kwargs or {})
+    if mode == "forward" and "adjoint" not in kw:
+        kw["adjoint"] = diffrax.ForwardMode()
+    if plant_batched:
+        return "vmap"
+    ts_np = np.asarray(ts, dtype=float)
+    return "masked" if _masked.eligible_options(observer, ts_np, noise=noise, **kw) else "vmap"
 
 
 def _forward_value_and_grad(J, theta):
@@ -491,6 +534,17 @@ def tune(
       decides under ``"auto"`` (``diffrax.ForwardMode()`` forward, ``RecursiveCheckpointAdjoint``
       or ``BacksolveAdjoint`` reverse); one that cannot do the requested mode is refused.
 
+    **Batch kernel.**  With adaptive steps of an explicit Runge–Kutta pair (the default Tsit5,
+    Dopri5, …), ``max_steps`` set, no white noise, no observer events, one plant for every scenario
+    and an adjoint the loop implements, the scenarios are one
+    ``simulate_batch(..., lockstep=False)``: each with its own adaptive steps on the masked
+    Runge–Kutta loop, resets crossed inside one loop.  Otherwise they are ``jax.vmap`` of
+    :func:`obsjax.simulate`.  Both solve each scenario as :func:`obsjax.simulate` does (the same
+    tableau and step-size control, to rounding; the masked loop's step budget is ``max_steps`` per
+    segment, shared by a scenario's segments), and both are differentiated in either mode; the masked
+    kernel is several times cheaper per step and to compile (``j_forward_gradient.md``).
+    ``history["kernel"]`` says which one ran.
+
     **Guarantees.**  The arguments are checked before anything is traced (the objects and numbers
     first, then the data, then what ``where`` selects); each bad one raises ``ValueError`` naming it
     (a ``where`` that selects None or a derived property, an optimizer that is not an optax
@@ -526,7 +580,8 @@ def tune(
     object each time).
 
     **Returns:** :class:`TuneResult` (`observer`, `history`, `converged`, `stop_reason`,
-    `steps_taken`); ``history["mode"]`` says which mode computed the gradients.
+    `steps_taken`); ``history["mode"]`` says which mode computed the gradients, ``history["kernel"]``
+    which batch kernel (``"masked"`` or ``"vmap"``) simulated the scenarios.
 
     **Example:**::
 
@@ -548,6 +603,10 @@ def tune(
     weights = jnp.asarray(risk_weights(risk, batch))
     leaves0, single = _selected_leaves(observer, where)
     mode = _resolve_mode(mode, leaves0, simulate_kwargs)
+    kernel = batch_kernel(
+        observer, ts_np, plant_batched=plant_batched, noise=noise, mode=mode,
+        simulate_kwargs=simulate_kwargs,
+    )  # fmt: skip
     optimizer = optax.adam(1e-2) if optimizer is None else optimizer
     keys = jr.split(jr.PRNGKey(0) if key is None else key, batch)
 
@@ -588,6 +647,7 @@ def tune(
             seg_bucket[0] = need if seg_bucket[0] is None else max(seg_bucket[0], need)
         spec = (
             where, loss, single, plant_batched, noise, u, seg_bucket[0], spec_kwargs, ts_key, mode,
+            kernel,
         )  # fmt: skip
         try:
             # the kernel's runtime checks as NaN (a firing check rejects the step): no host
@@ -617,6 +677,7 @@ def tune(
         progress,
     )  # fmt: skip
     result.history["mode"] = mode
+    result.history["kernel"] = kernel
     return result
 
 
