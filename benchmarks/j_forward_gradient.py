@@ -242,6 +242,12 @@ def main(repeat=7, quick=False):
         for cfg in configs
     }
     faster_text = "; ".join(f"{s_} steps, {k_} kernel: n ∈ {faster[(s_, k_)]}" for s_, k_ in configs)
+    by = {(n, s_, k_): m for n, s_, k_, m in cross}
+    per_step = "\n".join(
+        f"| {n} | {by[(n, 'adaptive', 'masked')]['best']['rev']:.4f} s | {by[(n, 'adaptive', 'vmap')]['best']['rev']:.4f} s | "
+        f"{by[(n, 'adaptive', 'masked')]['best']['fmd']:.4f} s | {by[(n, 'adaptive', 'vmap')]['best']['fmd']:.4f} s |"
+        for n in ns
+    )  # fmt: skip
     body = f"""
 What one step of `tune` costs in each mode of differentiation, relative to the forward pass of the same
 batch kernel (the same loss, default adjoint, one `jax.jit`).  Both modes run tune's own compiled kernel
@@ -298,6 +304,18 @@ Luenberger observer on an n-state chain (ẋ_i = −x_i + x_(i+1), y = x_1), gai
 | scalars | solve | kernel | forward pass | reverse mode | forward mode | reverse (CPU time) | forward mode (CPU time) | cheaper (CPU time) | first calls (rev / fwd mode) | forward − reverse (rel.) |
 |---|---|---|---|---|---|---|---|---|---|---|
 {cross_table}
+
+Seconds per step of `tune` (value and gradient, best wall time), the two adaptive kernels side by side:
+
+| scalars | reverse, masked | reverse, vmap | forward mode, masked | forward mode, vmap |
+|---|---|---|---|---|
+{per_step}
+
+The masked kernel's reverse mode is the cheaper at every n; its forward mode grows faster with the number
+of tangents than the vmap kernel's (each tangent costs more than one forward pass there; why is not
+settled: the compiled loop's matrix products on the tangents come with transposes that the forward pass
+does not have), so on this cheap linear plant at 3–4 scalars forward mode on the vmap kernel was the cheapest.  With
+resets (Chen & Yen above) the masked kernel is the cheaper in both modes by a wide margin.
 
 Forward mode is cheaper per step (CPU time) for {faster_text}.  `tune(mode="auto")` uses forward mode up
 to `FORWARD_MODE_MAX_SCALARS` = {FORWARD_MODE_MAX_SCALARS} scalars: its first call (trace and compile) is
