@@ -80,6 +80,36 @@ def test_masked_kernel_equals_the_vmap_kernel(mode):
     np.testing.assert_allclose(g_m, g_v, rtol=1e-7)
 
 
+def test_masked_kernel_equals_the_vmap_kernel_with_noise():
+    """The same with band-limited measurement noise (each scenario its own key): both kernels draw the
+    same noise per scenario.  (γ, p0) only: with adaptive steps over the noise
+    path's kinks the derivative in T is sensitive to the tolerance, in both kernels alike.)"""
+    noise = obsjax.noise.BandLimitedNoise(0.5, dt=0.05)
+    where = lambda o: (o.gamma, o.p0)
+    lsr = obsjax.LeastSquaresReset(CY, 20.0, 0.1, 0.33)
+    leaves0, single = _tune._selected_leaves(lsr, where)
+    x0s = jnp.asarray([[0.5, -1.0], [1.5, 0.3], [0.2, 0.1]])
+    # tight tolerances: the noise path's kinks are stepped over, which limits each solve at rtol 1e-6
+    # to a few 1e-6 of the exact loss (the two kernels' steps differ there)
+    tight = (("atol", 1e-12), ("rtol", 1e-10))
+    out = {}
+    for kernel in ("masked", "vmap"):
+        spec = (where, obsjax.losses.ise, single, False, noise, None, 16, tight, tuple(float(t) for t in TS_CY),
+                "forward", kernel)  # fmt: skip
+        out[kernel] = _tune._value_and_grad(
+            leaves0, None, lsr, CY, x0s, jnp.tile(jnp.asarray([5.0, -5.0]), (3, 1)),
+            jr.split(jr.PRNGKey(3), 3), jnp.asarray(_tune.risk_weights("mean", 3)), spec,
+        )  # fmt: skip
+    (v_m, g_m), (v_v, g_v) = out["masked"], out["vmap"]
+    assert float(v_m) == pytest.approx(float(v_v), rel=1e-8)
+    np.testing.assert_allclose(np.asarray(g_m), np.asarray(g_v), rtol=1e-6)
+    # the noise enters, far above the kernels' difference: both drew the same noise
+    traj0 = obsjax.simulate_batch(CY, lsr, x0s, jnp.tile(jnp.asarray([5.0, -5.0]), (3, 1)), TS_CY,
+                                  lockstep=False, **dict(tight))  # noise-free  # fmt: skip
+    v0 = jnp.mean(jax.vmap(obsjax.losses.ise)(traj0))
+    assert abs(float(v0) - float(v_m)) > 1e3 * abs(float(v_m) - float(v_v))
+
+
 def test_tune_picks_the_masked_kernel_where_the_problem_allows_it():
     lsr, ts = LSR, TS_CY
     assert _tune.batch_kernel(lsr, ts) == "masked"
