@@ -2,6 +2,7 @@
 reverse mode and to central differences of a plain simulation; the same tuning run."""
 
 import functools
+import warnings
 
 import diffrax
 import jax
@@ -196,3 +197,33 @@ def test_tune_runs_the_same_in_forward_and_reverse_mode():
     np.testing.assert_allclose(f["params"][0], r["params"][0], rtol=1e-9)
     np.testing.assert_array_equal(runs["auto"].history["params"][0], f["params"][0])
     assert f["loss"][-1] < f["loss"][0]
+
+
+class _Stop(Exception):
+    pass
+
+
+def _stop_at_trace(traj):
+    raise _Stop  # ends tune at its first trace: the warnings below come before any compilation
+
+
+@pytest.mark.parametrize(
+    "where,kwargs,warns",
+    [
+        (WHERE_CY, {}, True),  # T tuned, adaptive steps
+        (lambda o: (o.gamma, o.p0), {}, False),  # T fixed
+        (WHERE_CY, {"adaptive": False, "dt0": 0.0125}, False),  # fixed steps
+    ],
+)
+def test_tuning_T_under_band_limited_noise_with_adaptive_steps_warns(where, kwargs, warns):
+    noise = obsjax.noise.BandLimitedNoise(0.05, dt=0.05)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        with pytest.raises(_Stop):
+            obsjax.tune(LSR, CY, where=where, loss=_stop_at_trace, x0s=X0_CY, xhat0s=XH_CY, ts=TS_CY,
+                        noise=noise, key=jr.PRNGKey(0), steps=2, progress=False,
+                        simulate_kwargs=kwargs)  # fmt: skip
+    hits = [w for w in rec if issubclass(w.category, obsjax.TuneWarning) and "band-limited" in str(w.message)]
+    assert bool(hits) == warns
+    if warns:
+        assert "dt = 0.05" in str(hits[0].message) and "adaptive=False" in str(hits[0].message)
