@@ -136,9 +136,7 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
     where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts, mode, kernel = spec
     ts = np.asarray(ts, dtype=float)  # concrete inside the trace
     plant_axis = eqx.if_array(0) if plant_batched else None
-    sim_kwargs = dict(simulate_kwargs)
-    if mode == "forward" and "adjoint" not in sim_kwargs:
-        sim_kwargs["adjoint"] = diffrax.ForwardMode()
+    sim_kwargs = _solve_kwargs(simulate_kwargs, mode)
 
     def J(th):
         new = tuple(th) if signs is None else tuple(s * jnp.exp(t) for s, t in zip(signs, th))
@@ -194,13 +192,20 @@ def batch_kernel(observer, ts, *, plant_batched=False, noise=None, mode="reverse
     the loop implements); ``"vmap"`` — ``jax.vmap(simulate)`` — otherwise.  Both solve every scenario
     as :func:`obsjax.simulate` does (to rounding; the masked loop's step budget is ``max_steps`` per
     segment, shared by a scenario's segments)."""
-    kw = dict(simulate_kwargs or {})
-    if mode == "forward" and "adjoint" not in kw:
-        kw["adjoint"] = diffrax.ForwardMode()
     if plant_batched:
         return "vmap"
+    kw = _solve_kwargs(simulate_kwargs or {}, mode)
     ts_np = np.asarray(ts, dtype=float)
     return "masked" if _masked.eligible_options(observer, ts_np, noise=noise, **kw) else "vmap"
+
+
+def _solve_kwargs(simulate_kwargs, mode) -> dict:
+    """simulate's keyword arguments in tune's kernel: forward mode differentiates through
+    ``diffrax.ForwardMode()`` unless an adjoint is given."""
+    kw = dict(simulate_kwargs)
+    if mode == "forward" and "adjoint" not in kw:
+        kw["adjoint"] = diffrax.ForwardMode()
+    return kw
 
 
 def _forward_value_and_grad(J, theta):
@@ -698,21 +703,20 @@ def tune(
             return None, val, None, "the gradient is not finite"
         return obs, val, grads, None
 
-    if isinstance(noise, BandLimitedNoise) and simulate_kwargs.get("adaptive", True):
-        T0 = build(theta0).reset_period
-        if _period_depends_on(build, theta0, T0):
-            warnings.warn(
-                "tune: the reset period T is tuned under band-limited noise with adaptive steps. The "
-                f"solver steps across the noise path's kinks (every dt = {float(noise.dt):g}), and "
-                "the derivative in T is then accurate only far below the solver's tolerance "
-                "(Chen & Yen's example: 27 % off at rtol 1e-6, 2 % at rtol 1e-12; see tune's "
-                "docstring). Use fixed steps, simulate_kwargs=dict(adaptive=False, dt0=h) with h a "
-                "fraction of dt, or a much tighter rtol.",
-                TuneWarning,
-                stacklevel=2,
-            )
+    depends = _period_depends_on(build, theta0, build(theta0).reset_period)
+    if depends and isinstance(noise, BandLimitedNoise) and simulate_kwargs.get("adaptive", True):
+        warnings.warn(
+            "tune: the reset period T is tuned under band-limited noise with adaptive steps. The "
+            f"solver steps across the noise path's kinks (every dt = {float(noise.dt):g}), and "
+            "the derivative in T is then accurate only far below the solver's tolerance "
+            "(Chen & Yen's example: 27 % off at rtol 1e-6, 2 % at rtol 1e-12; see tune's "
+            "docstring). Use fixed steps, simulate_kwargs=dict(adaptive=False, dt0=h) with h a "
+            "fraction of dt, or a much tighter rtol.",
+            TuneWarning,
+            stacklevel=2,
+        )
     result = _descend(
-        evaluate, build, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
+        evaluate, depends, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
         progress,
     )  # fmt: skip
     result.history["mode"] = mode
@@ -739,7 +743,7 @@ def _checked_message(e: Exception) -> str:
 
 def _descend(
     evaluate,
-    build,
+    depends,
     to_leaves,
     theta0,
     optimizer,
@@ -750,14 +754,14 @@ def _descend(
     ts,
     progress,
 ):
-    """The optimisation loop of :func:`tune`: optax updates, backtracking, a stopping rule."""
+    """The optimisation loop of :func:`tune`: optax updates, backtracking, a stopping rule.
+    `depends`: whether the reset period moves with θ (then save times on reset instants warn)."""
     obs, val, grads, why = evaluate(theta0)
     if why is not None:
         raise ValueError(
             f"tune: the initial observer cannot be tuned from: {why}. Check the initial gains, "
             "x0s, xhat0s and the loss."
         )
-    depends = _period_depends_on(build, theta0, obs.reset_period)
     warned: set = set()
     if depends:
         _warn_kinks(obs, ts, 0, warned)

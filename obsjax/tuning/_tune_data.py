@@ -22,6 +22,7 @@ from ._tune import (
     _check_types,
     _checked_message,
     _descend,
+    _period_depends_on,
     _selected_leaves,
     _sorted_weighted,
     risk_weights,
@@ -203,5 +204,6 @@ def tune_on_data(
         return obs, val, grads, None
 
     ts_np = np.asarray(data.ts[0])
-    return _descend(evaluate, build, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
+    depends = _period_depends_on(build, theta0, build(theta0).reset_period)
+    return _descend(evaluate, depends, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
                     progress)
