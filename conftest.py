@@ -92,3 +92,33 @@ try:  # property tests draw the same examples on every run: a CI result can be r
     _hyp_settings.load_profile("obsjax")
 except ImportError:  # pragma: no cover - hypothesis is a test extra
     pass
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """The notebooks (run by nbmake) belong to the ``extended`` tier: each takes one to two minutes, most
+    of it compiling, so the default run leaves them to ``python -m pytest -m extended`` (CI runs both).
+    This runs before pytest's own ``-m`` selection, so the marker is seen by it.
+    """
+    for item in items:
+        if item.path.suffix == ".ipynb":
+            item.add_marker(pytest.mark.extended)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """End the run's report with its largest resident memory, so that a CI log shows it beside pytest's
+    wall time: the largest of this process and the worker processes it has waited for (and theirs: the
+    notebook kernels), from ``getrusage`` (Linux reports kilobytes).
+    """
+    if hasattr(config, "workerinput"):  # a pytest-xdist worker: the controller reports
+        return
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not POSIX
+        return
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    terminalreporter.write_line(
+        f"largest resident memory of one process: {max(own, children) / 1e6:.2f} GB "
+        f"(this process {own / 1e6:.2f} GB, its finished worker processes {children / 1e6:.2f} GB)"
+    )

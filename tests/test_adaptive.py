@@ -63,6 +63,7 @@ def test_resolvent_numerators_match_numpy():
                 np.testing.assert_allclose(lhs, T[i] @ rhs_basis, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.extended
 def test_parametrized_observer_at_matching_point_is_luenberger():
     """With p = p* (6.5) frozen, (6.12): x̂(t) − x(t) = e^{Ft}(x̂0 − x0) exactly (SciPy expm).
 
@@ -100,6 +101,7 @@ def test_parametrized_observer_at_matching_point_is_luenberger():
     )
 
 
+@pytest.mark.extended
 def test_generalized_error_vanishes_at_matching_point():
     """Lion's realisation of (6.18): with p = p* frozen the filtered generalised error 𝒵ᵀp* − Y decays to 0
     (the filtered pair obeys y = Zᵀp* + cᵀe^{Ft}x0 too), and the filter states are successive derivatives:
@@ -159,6 +161,7 @@ def k2_runs():
     "scheme,gamma,horizon",
     [("gradient", 4.0, 150.0), ("generalized", 4.0, 250.0), ("integral", 2.0, 100.0)],
 )
+@pytest.mark.extended
 def test_kreisselmeier_converges_second_order(k2_runs, scheme, gamma, horizon):
     """Rich input (2 frequencies): ‖p − p*‖/‖p*‖ < 1e-3 by the reported horizon, and x̂ → x."""
     ts, err, traj, _ = k2_runs[(scheme, gamma)]
@@ -168,6 +171,7 @@ def test_kreisselmeier_converges_second_order(k2_runs, scheme, gamma, horizon):
     assert float(traj.error_norm[-1]) < 1e-4
 
 
+@pytest.mark.extended
 def test_kreisselmeier_integral_converges_third_order():
     """3rd order, 3 frequencies, integral scheme: relative parameter error < 1e-3 from t = 150 on; x̂ → x."""
     ts, err, traj, obs = simulate_kreisselmeier(
@@ -181,6 +185,7 @@ def test_kreisselmeier_integral_converges_third_order():
     )
 
 
+@pytest.mark.extended
 def test_richness_single_sinusoid_third_order():
     """One sinusoid (2 spectral lines < 2n = 6 parameters): the output error vanishes, the parameters don't.
 
@@ -254,6 +259,7 @@ def _check_kreisselmeier_gradients(scheme, extra):
         assert float(getattr(grads, name)) == pytest.approx(float(fd), rel=1e-4), name
 
 
+@pytest.mark.extended
 def test_kreisselmeier_gradient_wrt_rates_matches_fd():
     """d/dG and d/dq of ∫‖p − p*‖² dt (integral scheme: both rates): autodiff through diffrax against
     central differences."""
@@ -344,6 +350,7 @@ def ln2_run():
     )
 
 
+@pytest.mark.extended
 def test_luders_narendra_lyapunov_non_increasing(ln2_run):
     """(5.11) with x̂_i(0) = x_i(0) (i ≥ 2): f ≡ 0 in (5.13), so V̇ = −λ1 e1² ≤ 0 along the simulation."""
     ex = LUDERS_NARENDRA_2
@@ -398,6 +405,7 @@ def test_luders_narendra_converges_second_order(ln2_run):
     assert float(traj.error_norm[-1]) < 1e-4
 
 
+@pytest.mark.extended
 def test_luders_narendra_converges_third_order():
     """3rd order, four sinusoids: the slowest example (rate ≈ 1.1e-3 /s), cheap once compiled."""
     ts, err, traj, _ = simulate_luders_narendra(LUDERS_NARENDRA_3, gamma=2.0, t1=8000.0, num=401)
@@ -456,6 +464,7 @@ def test_luders_narendra_matches_scipy():
     np.testing.assert_allclose(np.asarray(traj.z.beta), sol.y[6:8].T, atol=1e-6)
 
 
+@pytest.mark.extended
 def test_luders_narendra_gradient_wrt_rates_matches_fd():
     ex = LUDERS_NARENDRA_2
     plant = obsjax.luders_narendra_form(ex["a"], ex["b"], ex["lambdas"])
@@ -548,6 +557,7 @@ def kn_run():
     return Ap, Bp, obs, traj
 
 
+@pytest.mark.extended
 def test_kudva_narendra_lyapunov(kn_run):
     """V = ½[eᵀPe + tr(φᵀΓ₁φ + ψᵀΓ₂ψ)] is non-increasing, and V̇ = −½ eᵀQe pointwise along the flow."""
     Ap, Bp, obs, traj = kn_run
@@ -628,6 +638,7 @@ def test_error_model_2_converges_with_rich_input():
     assert float(jnp.abs(sol.ys[1][-1]).max()) < 1e-3
 
 
+@pytest.mark.extended
 def test_kudva_narendra_gradient_wrt_gamma_matches_fd():
     Ap, Bp, plant, u = _kn_setup()
     obs = obsjax.KudvaNarendra(

@@ -217,6 +217,7 @@ def minimal_rhs(example, G, amps):
     return rhs
 
 
+@pytest.mark.extended
 def test_minimal_matches_scipy(ch4_runs):
     """x̂, â, b̂ of the simulation equal a SciPy DOP853 integration of (4.12)-(4.18) as rebuilt."""
     ts, _, traj, _ = ch4_runs["minimal", "rich"]
@@ -398,6 +399,7 @@ def test_identifier_matches_scipy(ident_runs):
         np.testing.assert_allclose(np.asarray(traj.xhat), sol.y.T, atol=1e-8)
 
 
+@pytest.mark.extended
 def test_identifier_rich_converges_at_the_morgan_narendra_rate(ident_runs):
     """Rich α: K̂ → K no slower than the rate of (4.21)(i) computed by morgan_narendra (worst case over
     windows), itself no slower than its gramian bound; V = ½K̃ᵀΓ⁻¹K̃ is non-increasing."""
@@ -415,6 +417,7 @@ def test_identifier_rich_converges_at_the_morgan_narendra_rate(ident_runs):
     assert np.max(np.diff(V)) <= 1e-12
 
 
+@pytest.mark.extended
 def test_identifier_poor_stalls_along_the_unexcited_direction(ident_runs):
     """α_3 = 2α_2: wᵀ α(t) ≡ 0 for w = (0, 2, −1)/√5, so wᵀK̃ is constant; morgan_narendra finds w."""
     _, Kt, _, _ = ident_runs["poor"]
@@ -475,6 +478,7 @@ def test_morgan_narendra_closed_forms_and_the_pe_test():
     assert pe["rich"].eta1 == pytest.approx(rich.eta1, rel=1e-8)
 
 
+@pytest.mark.extended
 def test_scalar_error_system_420():
     """(4.20) as printed, integrated by SciPy, equals the Kudva–Narendra errors (e, φ, ψ); u = sin t is rich
     (the error system decays), the step u = 1 is not (φ, ψ stall on φ x̄_p + ψ = 0), and morgan_narendra
@@ -562,6 +566,7 @@ def _param_loss(kind):
 
 
 @pytest.mark.parametrize("kind,lam", [("minimal", "lam"), ("nonminimal", "lam0")])
+@pytest.mark.extended
 def test_gradients_match_central_differences(kind, lam):
     """d/dΓ (every adapted entry), d/dλ and d/d(filter poles) of ∫‖(â, b̂) − (a, b)‖² dt over [0, 15]."""
     from obsjax._reproduce.adaptive import build_chapter4_observer

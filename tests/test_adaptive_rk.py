@@ -61,6 +61,7 @@ def _diffrax(solver, y0, args, dt0):
 
 
 @pytest.mark.parametrize("solver", [diffrax.Tsit5(), diffrax.Dopri5()], ids=["Tsit5", "Dopri5"])
+@pytest.mark.extended
 def test_step_for_step_with_diffrax(solver):
     # the same first step (0.01), then the same PID decisions: the same steps, the same numbers
     sol = _solve(solver, Y0, ARGS, 0.01)
@@ -72,6 +73,7 @@ def test_step_for_step_with_diffrax(solver):
     np.testing.assert_allclose(sol.y1, ys[:, -1], rtol=0, atol=1e-12)
 
 
+@pytest.mark.extended
 def test_initial_step_selection_against_scipy():
     # dt0=None: Hairer & Wanner's starting step; the solution meets the tolerance against SciPy's
     # DOP853
@@ -132,6 +134,7 @@ X0S = jnp.array([[0.3, -1.2], [1.0, 0.5], [-0.7, 0.1]])
 XH0S = jnp.tile(jnp.array([5.0, -5.0]), (3, 1))
 
 
+@pytest.mark.extended
 def test_resets_match_the_segmented_diffrax_solve():
     # save times on and between the reset instants; the same first step in every segment as
     # diffrax's
@@ -174,6 +177,7 @@ def _toy_loss(p, adjoint=None):
     return jnp.sum(sol.ys**2)
 
 
+@pytest.mark.extended
 def test_gradients_match_central_differences():
     # reverse mode (checkpointed loop) and forward mode against central differences, with respect to
     # a gain, the reset period (the reset instants move) and an initial state; T = 0.31 keeps the

@@ -95,6 +95,7 @@ def test_regressor_gramian_appendix_identity():
     np.testing.assert_allclose(Wz, Ws, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.extended
 def test_constants_lemma_and_definitions():
     T = 0.93
     c = an.uniform_observability_constants(SW, T, 9.3)
@@ -139,6 +140,7 @@ def test_is_persistently_exciting_closed_form():
     assert not flat and abs(flat.eta1) < 1e-12 and abs(flat.eta2 - 1.0) < 1e-9
 
 
+@pytest.mark.extended
 def test_chen_yen_bound_formula_and_small_T():
     c = an.uniform_observability_constants(CY, 2.0, 10.0)
     rho = np.asarray(an.chen_yen_bound(CY, 20.0, 0.1, 2.0, 10.0))

@@ -70,6 +70,7 @@ def test_import_does_not_turn_the_cache_on():
     assert line == "None"
 
 
+@pytest.mark.extended
 def test_a_second_process_reads_what_the_first_wrote(tmp_path):
     d = str(tmp_path / "cache")
     first = json.loads(_python(_STUDY, d))

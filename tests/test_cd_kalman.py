@@ -72,6 +72,7 @@ def test_continuous_discrete_equals_discrete_kalman_of_the_exact_discretisation(
     np.testing.assert_allclose(np.asarray(est.innovation), np.asarray(data.y) - prior @ C.T, atol=1e-8)
 
 
+@pytest.mark.extended
 def test_continuous_discrete_kalman_in_simulate_samples_the_plant_at_its_period():
     # simulate with a sampling period and estimate on the plant's samples are the same filter: the plant
     # is free (u = 0), so the samples are exact and the two drivers must agree to the solver tolerance
@@ -104,6 +105,7 @@ def runs():
     return experiment(80, 1), experiment(60, 2), experiment(100, 3)
 
 
+@pytest.mark.extended
 def test_output_error_gradient_matches_finite_differences(runs):
     data = runs[0]
     kf = obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0)
@@ -125,6 +127,7 @@ def test_output_error_gradient_matches_finite_differences(runs):
     assert abs(float(gq[1, 1])) > 1e-6 and abs(float(gr[0, 0])) > 1e-6
 
 
+@pytest.mark.extended
 def test_tune_on_data_improves_a_held_out_experiment(runs):
     train = [runs[0], runs[1]]  # different lengths: padded and masked
     held_out = runs[2]

@@ -150,6 +150,7 @@ def test_document_modules_only():
     assert "references" not in present and set(cli.DOCUMENT_MODULES) <= set(present)
 
 
+@pytest.mark.extended
 def test_hassan_values_match_the_thesis():
     # The cheapest document module: its stated values (example (2.8), (2.13)-(2.16), (3.3), Theorem 4).
     from obsjax._reproduce import luenberger

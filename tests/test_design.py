@@ -108,6 +108,7 @@ def test_trajectory_linearization_builds_for_indices_2_1():
     assert obs.indices == (2, 1)
 
 
+@pytest.mark.extended
 def test_trajectory_linearization_for_the_static_third_state():
     """The issue's plant: a 2-chain and a static third state, y = (x1, x3).  The TLO finds (2, 1)
     itself, and its error obeys the placed PD-spectrum: for this LTI plant the canonical form is
@@ -153,6 +154,7 @@ def _ltv_margins(c, d):
 
 @pytest.mark.parametrize("c", SCALES)
 @pytest.mark.parametrize("d", SCALES)
+@pytest.mark.extended
 def test_ltv_margins_do_not_depend_on_units(c, d):
     """The LTV decisions (strong observability, the canonical form's margin, the TLC's strong
     controllability) are those of the staircase: unchanged under a change of time unit
@@ -349,6 +351,7 @@ def test_given_gain_must_be_finite():
         run(jnp.array([[jnp.nan], [1.0]])).block_until_ready()
 
 
+@pytest.mark.extended
 def test_reduced_order_with_more_outputs_than_unmeasured_states():
     """m = 3 outputs of a 4-state plant: the pair (A22, A12) has a 3 × 1 A12 (it used to be refused as
     'at most n independent outputs').  The pole is placed on (A22, R), A12 = Q R, G = G_r Qᵀ; checked by
@@ -377,6 +380,7 @@ def test_reduced_order_with_more_outputs_than_unmeasured_states():
     np.testing.assert_allclose(jax.grad(J)(p0), (J(p0 + h) - J(p0 - h)) / (2 * h), rtol=1e-5)
 
 
+@pytest.mark.extended
 def test_square_output_placement_is_the_real_form_and_differentiable():
     """m = n: L = (A − F) C⁻¹ with F the real form of the poles (A − LC = F exactly, T = I).  The robust
     minimiser had no unique optimum there and its implicit derivative was not the derivative of the
@@ -397,6 +401,7 @@ def test_square_output_placement_is_the_real_form_and_differentiable():
     np.testing.assert_allclose(jax.grad(f)(q0), fd, rtol=1e-6)
 
 
+@pytest.mark.extended
 def test_reduced_order_gradient_with_two_unmeasured_states_and_four_outputs():
     """ReducedOrder with m = 4 > n − m = 2: the pair (A22, R) is square, and the ISE's gradient in the
     poles agrees with central differences (it was [2.09, −0.01] against [2.03, 0.04])."""
@@ -418,6 +423,7 @@ def test_reduced_order_gradient_with_two_unmeasured_states_and_four_outputs():
     np.testing.assert_allclose(jax.grad(J)(p0), fd, rtol=1e-5, atol=1e-8)
 
 
+@pytest.mark.extended
 def test_canonical_repeated_pole_in_one_block_warns():
     rng = np.random.default_rng(5)
     A, C = rng.standard_normal((4, 4)), rng.standard_normal((2, 4))

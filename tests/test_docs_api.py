@@ -74,6 +74,7 @@ def _examples(mod):
 
 
 @pytest.mark.parametrize("mod", MODULES, ids=IDS)
+@pytest.mark.extended
 def test_module_docstring_examples_run(mod, tmp_path, monkeypatch):
     import matplotlib
 
@@ -130,6 +131,7 @@ def _run_script(code, tmp_path):
     return out.stdout
 
 
+@pytest.mark.extended
 def test_readme_first_snippet_prints_what_it_promises(tmp_path):
     first = _readme_snippets()[0]
     assert "Luenberger.from_poles" in first

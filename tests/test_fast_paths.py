@@ -86,6 +86,7 @@ def test_grid_puts_breakpoints_on_saves_resets_and_before_jumps():
     assert g["nsteps"].tolist() == [5, 6, 1] and g["h"][-1] == 0.0
 
 
+@pytest.mark.extended
 def test_fixed_step_scan_matches_diffrax_constant_steps_with_resets():
     """Same tableau, same steps: the direct scan equals diffeqsolve(ConstantStepSize) segment by segment."""
     ts = np.linspace(0.0, 5.0, 21)
@@ -113,6 +114,7 @@ def test_fixed_step_scan_matches_diffrax_constant_steps_with_resets():
         ),
     ],
 )
+@pytest.mark.extended
 def test_fixed_step_converges_at_the_method_order(plant, obs, ts, order):
     """Halving h divides the error by ≈ 2^order (Tsit5: 5), measured against a tight adaptive solve."""
     x0 = jnp.ones(plant.n)
@@ -126,6 +128,7 @@ def test_fixed_step_converges_at_the_method_order(plant, obs, ts, order):
     assert rate > order - 1.0, (errs, rate)
 
 
+@pytest.mark.extended
 def test_fixed_step_gradient_matches_finite_differences():
     ts = np.linspace(0.0, 2.0, 9)
 
@@ -159,6 +162,7 @@ def _batch(n=16, seed=0):
     return x0s, jnp.broadcast_to(XH0, (n, 2))
 
 
+@pytest.mark.extended
 def test_lockstep_batch_matches_individual_solves():
     x0s, xh0s = _batch()
     lock = obsjax.simulate_batch(CY_PLANT, CY_OBS, x0s, xh0s, TS_B, rtol=1e-9, atol=1e-11)
@@ -170,6 +174,7 @@ def test_lockstep_batch_matches_individual_solves():
     np.testing.assert_array_equal(lock.status, 0)
 
 
+@pytest.mark.extended
 def test_lockstep_batch_with_band_limited_noise_matches_individual_solves():
     x0s, xh0s = _batch(6)
     keys = jr.split(jr.key(3), 6)
@@ -183,6 +188,7 @@ def test_lockstep_batch_with_band_limited_noise_matches_individual_solves():
     np.testing.assert_allclose(lock.error, ref.error, atol=5e-7)
 
 
+@pytest.mark.extended
 def test_lockstep_nonfinite_member_does_not_stop_the_others():
     x0s, xh0s = _batch(4)
     x0s = x0s.at[1, 0].set(jnp.nan)
@@ -197,6 +203,7 @@ def test_lockstep_norm_is_the_worst_members_rms():
     np.testing.assert_allclose(lockstep_norm(y), np.sqrt(12.5))
 
 
+@pytest.mark.extended
 def test_lockstep_batch_gradient_matches_finite_differences():
     x0s, xh0s = _batch(4)
 
@@ -211,6 +218,7 @@ def test_lockstep_batch_gradient_matches_finite_differences():
     np.testing.assert_allclose(g, (lj(0.1 + h) - lj(0.1 - h)) / (2 * h), rtol=1e-5)
 
 
+@pytest.mark.extended
 def test_simulate_batch_falls_back_to_vmap_for_fixed_steps():
     x0s, xh0s = _batch(3)
     a = obsjax.simulate_batch(CY_PLANT, CY_OBS, x0s, xh0s, TS_B, adaptive=False, dt0=0.025)
@@ -232,6 +240,7 @@ def test_simulate_batch_rejects_bad_input():
         )
 
 
+@pytest.mark.extended
 def test_adjoint_is_passed_to_diffrax():
     """Another adjoint, the same gradient; an invalid one is rejected by diffrax (so it does reach it)."""
     ts = np.linspace(0.0, 1.0, 5)

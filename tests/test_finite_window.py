@@ -66,6 +66,7 @@ def random_plant(n, m, p, seed):
 # ------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.extended
 def test_norm_31_reference_table_both_formulas():
     obs28 = obsjax.FiniteWindow(MODEL29, 1.0)
     obs25 = obsjax.FiniteWindow(MODEL29, 1.0, alpha=[1.0, 1.0], beta=[1.0, 1.0])
@@ -88,6 +89,7 @@ def test_norm_31_reference_table_both_formulas():
 # ------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.extended
 def test_kernels_match_closed_form_30_and_25_equals_28():
     T = 1.0
     t = np.linspace(0.0, T, 7)
@@ -120,6 +122,7 @@ def test_kernels_match_closed_form_30_and_25_equals_28():
 
 
 @pytest.mark.parametrize("n,m,p,seed", [(2, 1, 1, 0), (3, 1, 2, 1), (4, 2, 1, 2)])
+@pytest.mark.extended
 def test_unbiasedness_volterra_and_exact_reconstruction(n, m, p, seed):
     A, B, C = random_plant(n, m, p, seed)
     rng = np.random.default_rng(100 + seed)
@@ -273,6 +276,7 @@ def test_minimality_against_the_gram_observer_and_other_members_of_S():
 # ------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.extended
 def test_disturbance_error_is_bounded_by_the_norm():
     T, K = 1.0, 401
     obs = obsjax.FiniteWindow(MODEL29, T)
@@ -325,6 +329,7 @@ def _fd(f, x, h=1e-3):
     return (-f(x + 2 * h) + 8 * f(x + h) - 8 * f(x - h) + f(x - 2 * h)) / (12 * h)
 
 
+@pytest.mark.extended
 def test_gradient_of_norm_wrt_T_alpha_beta_general_formula():
     A, B, C = random_plant(3, 1, 1, seed=5)
     model = obsjax.LTI(A, B, C)
@@ -354,6 +359,7 @@ def test_gradient_of_norm_wrt_T_alpha_beta_general_formula():
         assert float(g.beta[i]) == pytest.approx(db, rel=1e-6, abs=1e-9)
 
 
+@pytest.mark.extended
 def test_gradient_of_norm_formula_28_matches_closed_form_and_fd():
     obs = obsjax.FiniteWindow(MODEL29, 1.0)
     g = eqx.filter_grad(lambda o: o.norm())(obs)
@@ -393,6 +399,7 @@ def test_gradient_of_norm_formula_28_matches_closed_form_and_fd():
 # ------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.extended
 def test_sliding_window_observer_open_loop_unstable_plant():
     """x̂(t) = x(t) for t ≥ T; at the instants t0 + kh < T, x̂ equals (14) over [t − T, t] computed from
     SciPy-simulated data and the history (36) (the free response through x̂0)."""
@@ -462,6 +469,7 @@ def test_lemma4_exponential_solutions_give_the_spectrum_of_A_plus_BP():
         assert abs(1.0 - (P @ obs_resp)[0, 0]) < 1e-8
 
 
+@pytest.mark.extended
 def test_closed_loop_deadbeat_and_decay_of_A_plus_BP():
     """(33)-(35) on the double integrator (29), u = P x̂ with eig(A + BP) = {−1, −2}: for t ≥ T the state
     is the state-feedback trajectory of (42) (Lemma 4) and decays at the rate of eig(A + BP)."""

@@ -83,6 +83,7 @@ def transition(ts):
     return sol.y.T.reshape(-1, 3, 3)
 
 
+@pytest.mark.extended
 def test_exact_reconstruction_of_x_t1_from_noise_free_data():
     sol = plant_solution()
     xT = np.asarray(sol.ys[-1])
@@ -101,6 +102,7 @@ def test_exact_reconstruction_of_x_t1_from_noise_free_data():
         )  # Simpson, h = 0.01
 
 
+@pytest.mark.extended
 def test_beta_zero_gives_the_gramian_kernel():
     """γ = 0: G1(t) = M⁻¹ Φ(t, t1)ᵀ C(t)ᵀ with the window gramian M (SciPy transition matrix, Simpson)."""
     ts = np.linspace(T0, T1, 401)
@@ -151,6 +153,7 @@ def _discrete_qp(alpha, beta, K):
     return total, np.stack(rows, axis=1), ts
 
 
+@pytest.mark.extended
 def test_norm_and_kernels_match_a_discretised_minimum_norm_program():
     fw = obsjax.FiniteWindowLTV(PLANT3, T0, T1, ALPHA, BETA)
     exact = float(fw.norm()) ** 2
@@ -163,6 +166,7 @@ def test_norm_and_kernels_match_a_discretised_minimum_norm_program():
     np.testing.assert_allclose(G1, G1d, atol=2e-3 * np.abs(G1d).max())
 
 
+@pytest.mark.extended
 def test_lti_plant_agrees_with_the_matrix_exponential_observer():
     A = np.array([[0.4, 1.0, 0.0], [0.0, -1.0, 1.0], [-1.0, 0.0, -0.5]])
     B, C = np.array([[0.0], [1.0], [0.5]]), np.array([[1.0, 0.0, 0.0]])
@@ -176,6 +180,7 @@ def test_lti_plant_agrees_with_the_matrix_exponential_observer():
         np.testing.assert_allclose(mine, theirs, atol=1e-9 * np.abs(np.asarray(theirs)).max())
 
 
+@pytest.mark.extended
 def test_parameter_identification_of_a_constant_force():
     """ẋ = A x + B u + E θ: the window gives x(t1) and θ exactly from noise-free data."""
     theta = 0.7
@@ -194,6 +199,7 @@ def test_parameter_identification_of_a_constant_force():
         obsjax.FiniteWindowLTV(still, 0.0, 1.0, D=lambda t: jnp.ones((1, 1)))
 
 
+@pytest.mark.extended
 def test_norm_gradient_wrt_window_and_weights():
     fw = obsjax.FiniteWindowLTV(PLANT3, T0, T1, ALPHA, BETA)
 
@@ -254,6 +260,7 @@ def delay_run(consistent, N):
     )
 
 
+@pytest.mark.extended
 def test_delay_loop_is_second_order_and_equals_sample_and_propagate_on_consistent_data():
     """x̂0 = x0: the history is the plant's own free response, the data are model-consistent, and both
     forms give x(t) = e^{(A+BP)t} x0: the sample-and-propagate form to the ODE tolerance, the delay loop

@@ -199,6 +199,7 @@ def reduced_run():
     return plant, obs, ts, traj.x, traj.z, z0, traj
 
 
+@pytest.mark.extended
 def test_reduced_defining_property_exact(reduced_run):
     """z − T w = expm(F t)(z0 − T0 w0) (with F = −5I: e^{−5t}), to solver tolerance, under an input."""
     _plant, obs, ts, xs, ps, z0, _traj = reduced_run
@@ -287,6 +288,7 @@ def S_full(t):
     return jnp.array([[1.0, 0.0], [1.0, 0.2 * jnp.sin(t)], [0.0, 1.0], [0.3 * jnp.cos(t), 1.0]])
 
 
+@pytest.mark.extended
 def test_full_state_defining_property_and_convergence():
     plant = LTV(A_ex, lambda t: C_full, lambda t: B_ex)
     T = lovass_nagy_T(A_ex, C_full, F_full, S_full)
@@ -393,6 +395,7 @@ def _full_loss(lams, t1=1.0, dt=0.02):
     [(_reduced_loss, [-4.0, -6.0]), (_full_loss, [-2.0, -3.0, -4.0, -5.0])],
     ids=["reduced", "full"],
 )
+@pytest.mark.extended
 def test_gradient_wrt_F_eigenvalues_matches_finite_differences(loss, lams):
     lams = jnp.array(lams)
     f = jax.jit(loss)

@@ -124,6 +124,7 @@ def test_extended_kalman_gradients(name):
 # ----------------------------------------------------------------------------
 
 
+@pytest.mark.extended
 def test_tlo_rho_bar_gradient():
     """Van der Pol with an unmodelled disturbance; the gain designed along ξ̄ = 0 with the
     PD-spectrum ρ̄ ω/ε."""
@@ -173,6 +174,7 @@ def test_kreisselmeier_poles_gradient():
 # -----------------------------------
 
 
+@pytest.mark.extended
 def test_finite_window_alpha_beta_gradients():
     """Formula (25) (general γᵢ = βᵢ/αᵢ), a plant that differs from the model and an input, so the
     window estimate depends on the weights; T = 1.03 and 3 pieces keep the reset instants (kT/3) off

@@ -139,6 +139,7 @@ def test_decreasing_ts_under_jit_never_integrates_backwards():
         jax.block_until_ready(f(jnp.asarray(TS).at[3].set(TS[2])))
 
 
+@pytest.mark.extended
 def test_traced_dt0_is_checked_under_jit():
     """A traced initial/fixed step: a positive one integrates as the concrete one does; zero, negative
     and NaN raise with a message naming `dt0`, whatever `throw` says (never a silent stall or NaN)."""
@@ -172,6 +173,7 @@ def _xhat0_sometimes_huge(key):
     return jnp.where(jax.random.uniform(key) < 0.25, 1e200, 0.0) * jnp.ones(2)
 
 
+@pytest.mark.extended
 def test_overflowing_members_are_failures_of_a_study():
     """Issue item 3 in a study: the overflowing rows are counted failed, and no statistic sees them."""
     res = obsjax.monte_carlo(PLANT, OBS, jax.random.key(2), 32, x0_sampler=np.asarray(X0),
@@ -184,6 +186,7 @@ def test_overflowing_members_are_failures_of_a_study():
     assert np.all(np.isfinite(res.bands)) and np.all(np.isfinite(res.ise[~huge]))
 
 
+@pytest.mark.extended
 def test_every_field_of_a_failed_trajectory_carries_the_failure():
     """With throw=True a computation that reads only x, x̂, y or z (not x̃) of a failed trajectory still raises
     under jit (the check is not dead code of an unread field); with throw=False the status says so."""
@@ -223,6 +226,7 @@ def test_traced_reset_period_must_be_covered_by_max_segments():
         jax.block_until_ready(f(0.3))
 
 
+@pytest.mark.extended
 def test_nan_start_or_gain_stops_at_once():
     """A NaN x0 (or x̂0, or gain) is NONFINITE, found within a few steps: with a step budget that a regular run
     does not meet (status 1) the NaN runs still end with status 2, not by exhausting the budget."""
@@ -255,6 +259,7 @@ TIGHT = dict(rtol=1e-8, atol=1e-10)
 _ALONE = jax.jit(jax.vmap(lambda a, b: sim(CUBIC, CUBIC_OBS, a, b, TS_C, **TIGHT)))
 
 
+@pytest.mark.extended
 def test_lockstep_batch_isolates_failing_members():
     """64 members, 3 escaping in finite time: exactly those 3 fail; the other 61 equal independent solves."""
     x0s = jnp.linspace(-0.9, 0.9, 64)[:, None]
@@ -274,6 +279,7 @@ def _x0_cubic(key):
     return jnp.where(jax.random.uniform(k1) < 0.08, 1.5, jax.random.uniform(k2, (1,), minval=-0.9, maxval=0.9))
 
 
+@pytest.mark.extended
 def test_monte_carlo_lockstep_counts_only_the_failing_members():
     """Issue item 4: a lock-step study counts exactly the members that fail alone (x0 = 1.5 escapes in
     finite time), and the others keep the result of their own solve."""
@@ -301,6 +307,7 @@ ROTOR = obsjax.Nonlinear(_rotor, lambda t, x, u: x[:1], n=3, m=1)
 ROTOR_OBS = obsjax.Luenberger(obsjax.LTI(-np.eye(3), None, [[1.0, 0.0, 0.0]]), L=[[1.0], [0.0], [0.0]])
 
 
+@pytest.mark.extended
 def test_lockstep_evicts_a_finite_member_that_alone_drags_the_step_down():
     """Issue item 4, the stiff case: one member rotating at 2000 rad/s needs more than max_steps alone (status
     1) but stays finite; it is evicted from the shared step control and integrated alone, the other seven keep
@@ -336,6 +343,7 @@ def _fw_cost(T):
 
 
 @pytest.mark.parametrize("cost, T0", [(_lsr_cost, 0.37), (_fw_cost, 1.037)], ids=["lsr-fixed", "window-adaptive"])
+@pytest.mark.extended
 def test_eager_gradient_in_the_reset_period_moves_the_resets(cost, T0):
     """jax.grad without jit: T's primal value is concrete, but the reset instants t0 + kT must still carry
     its derivative (they were read as constants: dJ/dT = 0 with fixed steps, a wrong value with adaptive
@@ -351,6 +359,7 @@ def test_eager_gradient_in_the_reset_period_moves_the_resets(cost, T0):
 
 
 @pytest.mark.parametrize("kw", [dict(adaptive=False, dt0=0.01), dict(rtol=1e-10, atol=1e-12)], ids=["fixed", "adaptive"])
+@pytest.mark.extended
 def test_eager_gradient_in_the_save_times(kw):
     """d/ds of a cost over the save times s·ts, without jit: the fixed-step grid was built from the primal
     times and gave 0.  Against jit(grad) and a central difference."""

@@ -74,6 +74,7 @@ def _copy(reference, tmp_path):
     return dst
 
 
+@pytest.mark.extended
 def test_an_equal_study_built_anew_resumes(reference, tmp_path):
     """Fingerprints are by content, not identity: freshly built equal objects load every chunk."""
     ck = _copy(reference, tmp_path)

@@ -129,6 +129,7 @@ def test_depends_on_gamma_p0_only_through_product():
     assert not np.allclose(np.asarray(_example(40.0, 0.1, 0.25).error), base, rtol=1e-3)
 
 
+@pytest.mark.extended
 def test_state_matches_transition_matrix_and_regressor_gramian():
     # Inside the first period of T = 2: Φ(t, 0) of (11), and P⁻¹(t)/γ - I/(γ p0) = ∫ w wᵀ (proof, (16)).
     gamma, p0 = 20.0, 0.1
@@ -151,6 +152,7 @@ def test_state_matches_transition_matrix_and_regressor_gramian():
     np.testing.assert_allclose(tr.z.Qinv[j], np.eye(2) / (gamma * p0), rtol=1e-14)
 
 
+@pytest.mark.extended
 def test_inputs_B_u_leave_error_dynamics_unchanged():
     # With an input and B(t) in both the plant and the model, x̃ still obeys (9): same error as Fig. 1.
     B = lambda t: jnp.array([[0.0], [1.0 + 0.5 * jnp.sin(t)]])
@@ -181,6 +183,7 @@ def test_theorem_bound_example(gamma, p0):
         assert rho.max() < 1
 
 
+@pytest.mark.extended
 def test_theorem_bound_switching_system():
     T, K = 0.93, 8
     ts = T * jnp.arange(K + 1.0)
@@ -214,6 +217,7 @@ def _rates(g, p, T):
     return jax.vmap(one)(g, p, T)
 
 
+@pytest.mark.extended
 def test_remarks_decay_rate_gamma_p0_and_T():
     gam = [10.0, 20.0, 40.0, 80.0, 160.0]
     p0s = [0.05, 0.1, 0.2, 0.4, 0.8]
@@ -255,6 +259,7 @@ def _ise_and_grad(params):
     return jax.value_and_grad(J)(params)
 
 
+@pytest.mark.extended
 def test_gradients_gamma_p0_T_switching_fd():
     params = (jnp.asarray(20.0), jnp.asarray(1.0), jnp.asarray(0.93))
     _, grad = _ise_and_grad(params)
@@ -339,6 +344,7 @@ def test_kalman_bucy_lti_converges_to_are():
     assert float(tr.error_norm[-1]) < 1e-6
 
 
+@pytest.mark.extended
 def test_kalman_bucy_ltv_riccati_matches_scipy():
     Q, R, P0 = 0.1 * np.eye(2), np.array([[0.05]]), np.eye(2)
     kb = obsjax.KalmanBucy(CY, Q, R, P0)

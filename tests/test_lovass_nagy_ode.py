@@ -168,6 +168,7 @@ def test_algebraic_completion_fails_for_3_states_1_output():
 
 
 @pytest.mark.parametrize("n", [3, 4])
+@pytest.mark.extended
 def test_T_ode_matches_scipy_and_satisfies_the_solvability_condition(n):
     A, C, _, F, G = PLANTS[n]
     ts = np.linspace(0.0, 4.0, 41)
@@ -204,6 +205,7 @@ def _runner(n):
 
 
 @pytest.mark.parametrize("n", [3, 4])
+@pytest.mark.extended
 def test_error_law_z_minus_Tx_is_exp_Ft(n):
     """The defining property (7): z − T x = e^{F(t−t0)}(z0 − T0 x0), to 1e-8, and x̂ → x."""
     A, C, _B, F, G = PLANTS[n]
@@ -224,6 +226,7 @@ def test_error_law_z_minus_Tx_is_exp_Ft(n):
     assert float(tr.error_norm[-1]) < 1e-6
 
 
+@pytest.mark.extended
 def test_singular_T_is_refused_and_named():
     """Scalar case: Ṫ = −T + 1 from T0 = −1 gives T = 1 − 2e^{−t}, singular at t = ln 2."""
     plant = obsjax.LTV(lambda t: jnp.zeros((1, 1)), lambda t: jnp.ones((1, 1)))

@@ -45,6 +45,7 @@ def _vmap_sim(plant, obs, x0s, xh0s, ts, **kw):
 
 
 @pytest.mark.parametrize("solver", [diffrax.Tsit5(), diffrax.Dopri5()], ids=["Tsit5", "Dopri5"])
+@pytest.mark.extended
 def test_masked_batch_is_simulate_member_by_member(spy, solver):
     """Chen & Yen (12 resets on [0, 3]): the same steps as diffrax's segmented solve, so the two agree to
     rounding; both are within the tolerance of a tight solve."""
@@ -62,6 +63,7 @@ def test_masked_batch_is_simulate_member_by_member(spy, solver):
     np.testing.assert_allclose(got.error, tight.error, rtol=5e-5, atol=1e-5)  # global error at rtol 1e-6
 
 
+@pytest.mark.extended
 def test_masked_batch_crosses_plant_jumps_and_resets(spy):
     """A 3-state plant switching every 0.3 s with resets every 1.93 s: the jumps are stepped onto from
     below, the resets exactly, as in simulate."""
@@ -77,6 +79,7 @@ def test_masked_batch_crosses_plant_jumps_and_resets(spy):
     np.testing.assert_allclose(got.error, ref.error, rtol=0, atol=1e-10)
 
 
+@pytest.mark.extended
 def test_masked_batch_with_band_limited_noise_draws_each_members_noise(spy):
     x0s, xh0s = _batch(5)
     keys = jr.split(jr.key(3), 5)
@@ -96,6 +99,7 @@ CUBIC = obsjax.Nonlinear(lambda t, x, u: -x + x**3, lambda t, x, u: x, n=1, m=1)
 CUBIC_OBS = obsjax.Luenberger.from_poles(obsjax.LTI([[-1.0]], None, [[1.0]]), [-3.0])
 
 
+@pytest.mark.extended
 def test_masked_batch_status_per_member(spy):
     """Members that escape in finite time are NONFINITE, one started at NaN too, one out of steps
     SOLVER_FAILED; the others are unaffected: the codes of jax.vmap(simulate)."""
@@ -121,6 +125,7 @@ def test_masked_batch_status_per_member(spy):
         obsjax.simulate_batch(CUBIC, CUBIC_OBS, x0s, xh0s, ts, lockstep=False, rtol=1e-8, atol=1e-10)
 
 
+@pytest.mark.extended
 def test_masked_batch_gradients_match_finite_differences():
     """d/d(p0, T) of the mean ISE (T a traced leaf: the resets move with it), reverse mode through the
     checkpointed loop and forward mode (ForwardMode), against central differences."""
@@ -147,6 +152,7 @@ def test_masked_batch_gradients_match_finite_differences():
     np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-9)
 
 
+@pytest.mark.extended
 def test_problems_the_masked_loop_does_not_take_go_through_vmap(spy):
     """An implicit solver, no bound on the steps, and observer events are jax.vmap(simulate), bit for bit."""
     x0s, xh0s = _batch(3)
@@ -163,6 +169,7 @@ def test_problems_the_masked_loop_does_not_take_go_through_vmap(spy):
     assert not _masked.eligible(plan)
 
 
+@pytest.mark.extended
 def test_monte_carlo_default_kernel_is_the_masked_loop(spy):
     """monte_carlo without a param_sampler runs each chunk on the masked loop; every trajectory equals
     simulate on its own draw."""

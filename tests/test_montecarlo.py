@@ -260,6 +260,7 @@ def scale_a(key, plant):
     return eqx.tree_at(lambda p: p.A, plant, jr.uniform(key, (1, 1), minval=0.3, maxval=0.7))
 
 
+@pytest.mark.extended
 def test_resetting_observer_with_sampled_plants_against_scipy():
     ts = np.linspace(0.0, 2.0, 9)
     key = jr.PRNGKey(11)
@@ -315,6 +316,7 @@ def test_plot_and_summary(base):
 # ---- bad input: one test per ValueError ---------------------------------------------------------------------
 
 
+@pytest.mark.extended
 def test_lockstep_agrees_with_independent_solves():
     """Lock-step batches take other steps than independent solves: the same study to the tolerance."""
     tight = dict(rtol=1e-10, atol=1e-12)
@@ -430,6 +432,7 @@ _SHARD_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.extended
 def test_sharded_equals_unsharded():
     env = dict(os.environ)
     env["XLA_FLAGS"] = (
@@ -455,6 +458,7 @@ def test_sharded_equals_unsharded():
     print(line)
 
 
+@pytest.mark.extended
 def test_band_limited_noise_is_simulates_realisation():
     # Trajectory i of the study sees the path simulate(noise=..., key=k_noise_i) draws (run outside jit).
     noise = obsjax.noise.BandLimitedNoise(0.2, dt=0.1)
@@ -525,6 +529,7 @@ def test_cli_reproduce_unknown_document_exits():
         cli.main(["reproduce", "no-such-paper"])
 
 
+@pytest.mark.extended
 def test_white_noise_is_simulates_realisation():
     # White measurement noise (an SDE, Euler–Maruyama): trajectory i sees simulate's path for its key.
     noise = obsjax.noise.WhiteNoise(0.1)
@@ -535,6 +540,7 @@ def test_white_noise_is_simulates_realisation():
         np.testing.assert_allclose(res.error_norm[i], traj.error_norm, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.extended
 def test_demo_smoke(tmp_path, capsys):
     # The `obsjax demo` pipeline at toy sizes: the paper's figures against SciPy, tuning, two studies, PNGs.
     import matplotlib
@@ -555,6 +561,7 @@ def test_demo_smoke(tmp_path, capsys):
 # ---- several processes (jax.distributed on localhost, CPU collectives) ---------------------------------------
 
 
+@pytest.mark.extended
 def test_two_processes_equal_one_process():
     # benchmarks/multihost_local.py starts 2 processes that call jax.distributed.initialize and run the Chen &
     # Yen study over a mesh spanning both, then the same study in one ordinary process.
@@ -583,6 +590,7 @@ def test_two_processes_equal_one_process():
     assert r["partial_mesh_refused"] and r["other_study_refused"]
 
 
+@pytest.mark.extended
 def test_study_kernels_carry_no_host_callbacks():
     """Runtime checks inside a study become NaN (status 2), not host callbacks: a multi-device CPU program
     with callbacks runs its shards one after another (benchmarks/results/d_sharding.md)."""

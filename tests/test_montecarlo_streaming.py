@@ -134,6 +134,7 @@ def _assert_stream_matches(st, ex, rtol):
         assert _bound_holds(s[key], e[key], rtol), key
 
 
+@pytest.mark.extended
 def test_streaming_statistics_equal_the_in_memory_ones(exact):
     assert 0 < exact.n_failed < N and 0 < exact.converged_fraction < 1  # failures, both outcomes
     for rtol in (1e-3, 3e-2):
@@ -236,6 +237,7 @@ print("RESULT " + json.dumps(out), flush=True)
 """
 
 
+@pytest.mark.extended
 def test_two_processes_stream_like_one(tmp_path):
     import hashlib
     import json

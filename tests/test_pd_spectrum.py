@@ -106,6 +106,7 @@ def _ddt(fn, order):
 
 
 @pytest.mark.parametrize("n", [2, 3, 4])
+@pytest.mark.extended
 def test_modes_exp_integral_rho_solve_both_operators(n):
     """Defining property: y_j = exp(ρ̄_j ∫ω) solves the LPDO δⁿ + Σ α_k δ^{k-1} and the RPDO δⁿ + Σ δ^{k-1}∘β_k."""
     rho = jnp.array(RHO[n])

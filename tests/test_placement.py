@@ -119,6 +119,7 @@ def check_against_scipy(A, C, poles, L):
     m=st.sampled_from([1, 2, 3]),
     cf=st.sampled_from([0.0, 0.5]),
 )
+@pytest.mark.extended
 def test_random_systems_against_scipy_and_python_control(seed, n, m, cf):
     rng = np.random.default_rng(seed)
     A, C = rng.standard_normal((n, n)), rng.standard_normal((m, n))
@@ -144,11 +145,13 @@ def _structured():
     for n, m in [(10, 1), (12, 2), (16, 3), (20, 4), (20, 2)]:
         A, C = rng.standard_normal((n, n)), rng.standard_normal((m, n))
         slow = [pytest.mark.slow] if (n, m) in [(16, 3), (20, 2)] else []  # measured in the benchmark
+        if not slow and (n, m) != (10, 1):
+            slow = [pytest.mark.extended]
         cases.append(pytest.param(f"random n={n} m={m}", A, C, random_poles(rng, n), marks=slow, id=f"random n={n} m={m}"))
     chain = np.diag(np.ones(7), 1)
     Cc = np.zeros((2, 8))
     Cc[0, 0] = Cc[1, 4] = 1.0
-    cases.append(pytest.param("two integrator chains", chain, Cc, random_poles(rng, 8), id="two chains"))
+    cases.append(pytest.param("two integrator chains", chain, Cc, random_poles(rng, 8), marks=pytest.mark.extended, id="two chains"))
     return cases
 
 
@@ -196,6 +199,7 @@ def test_scaled_A(c):
         np.testing.assert_allclose(Lc, (c / d) * L0, rtol=1e-8, atol=1e-12 * abs(c / d) * np.abs(L0).max())
 
 
+@pytest.mark.extended
 def test_python_control_test_systems():
     """The systems and spectra of python-control's placement tests (statefbk tests), dual pairs."""
     A = np.array(
@@ -238,6 +242,7 @@ def test_against_slicot_sb01bd_when_available():
 
 
 # ---------------------------------------------------------------- repeated poles and Jordan structure
+@pytest.mark.extended
 def test_repeated_poles_up_to_m_are_diagonalisable():
     rng = np.random.default_rng(5)
     A, C = rng.standard_normal((6, 6)), rng.standard_normal((2, 6))
@@ -251,6 +256,7 @@ def test_repeated_poles_up_to_m_are_diagonalisable():
         assert np.linalg.matrix_rank(A - L @ C - lam * np.eye(6), tol=1e-8) == 4
 
 
+@pytest.mark.extended
 def test_multiplicity_above_m_gets_jordan_chains_with_a_warning():
     rng = np.random.default_rng(6)
     A, C = rng.standard_normal((6, 6)), rng.standard_normal((2, 6))

@@ -31,6 +31,7 @@ def eig_error(A, C, L, poles) -> float:
 
 
 # ---------------------------------------------------------------- derivatives, jit, vmap
+@pytest.mark.extended
 def test_gradient_mimo_against_central_differences():
     """d‖L‖²/d(A, C, poles) for n = 6, m = 2 (real poles and a conjugate pair, the pair through its
     real encoding) against central differences of the re-optimised placement."""
@@ -58,6 +59,7 @@ def test_gradient_mimo_against_central_differences():
         np.testing.assert_allclose(np.ravel(g), fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
 
 
+@pytest.mark.extended
 def test_jit_vmap_over_pole_sets_matches_a_loop():
     rng = np.random.default_rng(9)
     A, C = rng.standard_normal((5, 5)), rng.standard_normal((2, 5))
@@ -109,6 +111,7 @@ def _independent_batched_lapack_calls(hlo: str) -> list:
     return pairs
 
 
+@pytest.mark.extended
 def test_batched_factorisations_never_run_at_once():
     """jaxlib 0.10's batched LAPACK kernels wait for their chunks inside the CPU thread pool; two
     running at once deadlocked jit(vmap(place)) over a few hundred pole sets on two cores.  In the
@@ -126,6 +129,7 @@ def test_batched_factorisations_never_run_at_once():
     assert _independent_batched_lapack_calls(hlo) == []
 
 
+@pytest.mark.extended
 def test_under_jit_bad_values_raise():
     rng = np.random.default_rng(10)
     A, C = rng.standard_normal((4, 4)), rng.standard_normal((2, 4))
@@ -164,6 +168,7 @@ def test_design_refuses_float32_mode():
 
 
 # ---------------------------------------------------------------- observers: no complex leaf, no NaN
+@pytest.mark.extended
 def test_complex_poles_never_reach_diffrax():
     plant = obsjax.LTI([[0.0, 1.0], [-2.0, -0.3]], [[0.0], [1.0]], [[1.0, 0.0]])
     obs = obsjax.Luenberger.from_poles(plant, [-3 + 2j, -3 - 2j])
@@ -177,6 +182,7 @@ def test_complex_poles_never_reach_diffrax():
     assert match(eig, [-3 + 2j, -3 - 2j]) < 1e-12
 
 
+@pytest.mark.extended
 def test_mimo_luenberger_error_obeys_the_placed_spectrum():
     """A 4-state, 2-output plant: the simulated error equals exp((A − LC) t) x̃(0)."""
     import scipy.linalg
@@ -211,6 +217,7 @@ def test_canonical_form_single_output_is_python_controls_observable_form():
 
 
 @pytest.mark.parametrize("seed,n,m", [(14, 7, 3), (15, 6, 2), (16, 4, 2)])
+@pytest.mark.extended
 def test_canonical_form_structure_3_1c(seed, n, m):
     """The defining structure of (3.1c) and Fig. 3.3, and the spectrum of A kept."""
     rng = np.random.default_rng(seed)
@@ -249,6 +256,7 @@ def test_canonical_form_structure_3_1c(seed, n, m):
     )
 
 
+@pytest.mark.extended
 def test_canonical_placement_and_section_3_2_example():
     """place(..., method='canonical') = m single-output designs (Fig. 3.4); on the fourth-order
     example of §3.2 (subsystem (3.2) and a second block consistent with (3.5)-(3.7)) the reduced-order
@@ -302,6 +310,7 @@ def _canonical_estimate(A, C, poles, method="canonical") -> float:
     "n, m, seed, pairs",
     [(6, 1, 0, 0), (8, 1, 0, 0), (10, 1, 0, 0), (12, 1, 0, 0), (12, 2, 5, 0), (15, 3, 5, 0), (8, 2, 3, 2)],
 )
+@pytest.mark.extended
 def test_canonical_estimate_bounds_the_exact_error(n, m, seed, pairs):
     """The canonical design's accuracy check against eigenvalues computed in 60-digit arithmetic: the
     estimate is never below the exact error (it used to take only each companion block's backward error
@@ -338,6 +347,7 @@ def _robust_case(kind, n, m, seed):
     [("chain", 6, 1, 0), ("chain", 8, 1, 0), ("chain", 10, 1, 0), ("random", 10, 1, 0), ("random", 12, 1, 0),
      ("random", 12, 2, 5), ("random", 20, 2, 5), ("random", 20, 4, 7)],
 )
+@pytest.mark.extended
 def test_robust_estimate_bounds_the_exact_error(kind, n, m, seed):
     """The robust design's accuracy check against 60-digit eigenvalues of A − L·C: never below the exact
     error, and within 1e3 of it.  It used to multiply ε·‖A − LC‖ by each eigenvalue's condition number,
@@ -354,6 +364,7 @@ def test_robust_estimate_bounds_the_exact_error(kind, n, m, seed):
 
 
 @pytest.mark.parametrize("method", ["robust", "canonical"])
+@pytest.mark.extended
 def test_nan_pole_in_a_batch_is_that_members_status(method):
     """vmap over the poles of an observer with one member's pole NaN: that member's status is 2
     (NONFINITE) and the others are unaffected -- the design's run-time check used to abort the whole
@@ -382,6 +393,7 @@ def test_nan_pole_in_a_batch_is_that_members_status(method):
 
 
 @pytest.mark.parametrize("s", [1e4, 1e7, 1e10])
+@pytest.mark.extended
 def test_estimate_under_a_change_of_state_units(s):
     """x → D x with D spanning s² in scale: the robust estimate is never below the exact error.  Its
     floor was 10⁻³·‖A‖_F, which a change of units inflates (‖A‖_F ≈ 1e20 at s = 1e10), so that any

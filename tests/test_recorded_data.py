@@ -33,6 +33,7 @@ _est = eqx.filter_jit(lambda obs, data, xh0: obsjax.estimate(obs, data, xh0, rto
 
 
 @pytest.mark.parametrize("hold,order", [("zoh", 1), ("linear", 2), ("cubic", 3)])
+@pytest.mark.extended
 def test_estimate_agrees_with_simulate_to_the_interpolation_error_of_the_hold(truth, hold, order):
     ts, y, u, xhat = truth
     # two sample rates (every 4th and every 2nd point of the fine grid) in one stacked, masked batch
@@ -54,6 +55,7 @@ def test_estimate_agrees_with_simulate_to_the_interpolation_error_of_the_hold(tr
     assert order - 0.3 < rate < order + 1.3, (errs, rate)
 
 
+@pytest.mark.extended
 def test_vmap_over_initial_estimates_and_jit(truth):
     ts, y, u, _ = truth
     data = obsjax.Measurements(ts[::4], y[::4], u[::4], hold="linear")
@@ -69,6 +71,7 @@ def test_vmap_over_initial_estimates_and_jit(truth):
     np.testing.assert_allclose(np.asarray(batch.innovation[2]), np.asarray(data.y - batch.xhat[2][:, :1]), atol=1e-12)
 
 
+@pytest.mark.extended
 def test_experiments_of_different_lengths_batch_with_a_mask(truth):
     ts, y, u, _ = truth
     a = obsjax.Measurements(ts[::4], y[::4], u[::4], hold="cubic")
@@ -108,6 +111,7 @@ def test_no_valid_sample_is_refused_or_nan(truth):
         obsjax.simulate_batch(PLANT, OBS, jnp.zeros((0, 2)), jnp.zeros((0, 2)), ts)
 
 
+@pytest.mark.extended
 def test_reset_observer_on_data_agrees_with_simulate():
     plant = obsjax.chen_yen_example()
     obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.9)

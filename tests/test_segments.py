@@ -8,6 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 import scipy.linalg
 
 import obsjax
@@ -43,6 +44,7 @@ def _terminal(T, rtol, declared):
 _TERMINAL = jax.jit(jax.value_and_grad(_terminal), static_argnums=2)  # one compilation for values and slopes
 
 
+@pytest.mark.extended
 def test_reset_period_gradient_with_several_jumps_per_segment():
     """Issue item 6: a 3-state plant switching every 0.3 s, T = 1.93 (every reset segment of [0, 7.5] holds
     5-6 jumps), terminal squared error: d/dT against central differences at rtol 1e-6 and 1e-10."""
@@ -57,6 +59,7 @@ def test_reset_period_gradient_with_several_jumps_per_segment():
         np.testing.assert_allclose(g, fd, rtol=tol)
 
 
+@pytest.mark.extended
 def test_undeclared_jumps_give_finite_gradients():
     """Steps across an undeclared switch leave the LSR gain's domain on rejected steps (NaN stages); their
     gradient is zero, so the derivative is finite (not exact: declare the jumps)."""
@@ -110,6 +113,7 @@ def _sampled_closed_form(K, x0, xh0):
     return np.stack(out)
 
 
+@pytest.mark.extended
 def test_sampled_data_observer_matches_the_discrete_closed_form():
     ref = _sampled_closed_form(SAMPLED.K, X0, XH0)
     a = sim(PLANT, SAMPLED, X0, XH0, TS_EV, u=U, rtol=1e-11, atol=1e-13)
@@ -121,6 +125,7 @@ def test_sampled_data_observer_matches_the_discrete_closed_form():
     np.testing.assert_allclose(c, ref, atol=1e-9)
 
 
+@pytest.mark.extended
 def test_events_in_lock_step_and_their_gradient():
     x0s = jnp.array([[1.0, -1.0], [0.5, 2.0], [-1.0, 0.0]])
     xh0s = jnp.zeros((3, 2))
@@ -164,6 +169,7 @@ class _Recorder(obsjax.AbstractObserver):
         return (z[0], z[0], y)
 
 
+@pytest.mark.extended
 def test_event_semantics_reset_first_then_update_with_the_measurement():
     ts = np.array([0.0, 0.3, 0.4, 0.5, 0.75, 1.0])
     for kw in (dict(rtol=1e-10, atol=1e-12), dict(adaptive=False, dt0=0.01)):

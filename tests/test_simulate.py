@@ -21,6 +21,7 @@ U = obsjax.signals.multisine([1.0, 0.5], [1.0, 2.7])
 TIGHT = dict(rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.extended
 def test_luenberger_error_matches_closed_form():
     """x̃(t) = exp((A - LC) t) x̃(0), whatever the input (Theorem 1 with T = I)."""
     obs = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0])
@@ -32,6 +33,7 @@ def test_luenberger_error_matches_closed_form():
     assert int(tr.status) == 0
 
 
+@pytest.mark.extended
 def test_reduced_order_error_matches_closed_form():
     obs = obsjax.ReducedOrder.from_poles(PLANT, [-3.0])
     x0, xh0 = jnp.array([1.0, -2.0]), jnp.array([0.0, 0.5])
@@ -60,6 +62,7 @@ def test_functional_observer_closed_form():
     np.testing.assert_allclose(tr.error[:, 0], ref, atol=1e-9)
 
 
+@pytest.mark.extended
 def test_vmap_over_64_initial_conditions_equals_loop():
     obs = obsjax.Luenberger.from_poles(PLANT, [-2.0, -4.0])
     key = jr.PRNGKey(0)
@@ -71,6 +74,7 @@ def test_vmap_over_64_initial_conditions_equals_loop():
     np.testing.assert_allclose(batched, looped, rtol=1e-7, atol=1e-9)
 
 
+@pytest.mark.extended
 def test_throw_false_reports_per_trajectory_status_under_vmap():
     obs = obsjax.Luenberger.from_poles(PLANT, [-2.0, -4.0])
     x0s = jnp.array([[1.0, 0.0], [jnp.nan, 0.0], [0.0, 1.0]])
@@ -84,6 +88,7 @@ def test_throw_false_reports_per_trajectory_status_under_vmap():
     assert np.all(np.isfinite(tr.error[0])) and np.all(np.isfinite(tr.error[2]))
 
 
+@pytest.mark.extended
 def test_throw_true_raises_on_solver_failure():
     obs = obsjax.Luenberger.from_poles(PLANT, [-2.0, -4.0])
     with pytest.raises(Exception, match="did not reach the end"):
@@ -120,6 +125,7 @@ class _ClockReset(obsjax.AbstractObserver):
         return (z[0], jnp.zeros(()))
 
 
+@pytest.mark.extended
 def test_segmented_resets_match_smooth_solve_and_reset_clock():
     obs = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0]).prepare()
     r = _ClockReset(obs, jnp.asarray(0.33))
@@ -134,6 +140,7 @@ def test_segmented_resets_match_smooth_solve_and_reset_clock():
     np.testing.assert_allclose(c, b.z[1], atol=1e-9)
 
 
+@pytest.mark.extended
 def test_gradient_wrt_reset_period_matches_finite_differences():
     obs = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0]).prepare()
     r = _ClockReset(obs, jnp.asarray(0.347))
@@ -156,6 +163,7 @@ def test_traced_period_without_max_segments_is_a_clear_error():
 
 
 @pytest.mark.parametrize("seed", range(5))
+@pytest.mark.extended
 def test_separation_principle_random_systems(seed):
     """Thesis ch. 2 Theorem 4 / (3.12): the closed loop through the estimate has eig(A+BK) ∪ eig(A−LC)."""
     rng = np.random.default_rng(seed)
@@ -182,6 +190,7 @@ def test_separation_principle_random_systems(seed):
     np.testing.assert_allclose(tr.x, refx, atol=1e-8)
 
 
+@pytest.mark.extended
 def test_band_limited_noise_is_keyed_and_vmappable():
     obs = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0])
     noise = obsjax.noise.BandLimitedNoise(0.1, dt=0.05)
@@ -198,6 +207,7 @@ def test_band_limited_noise_is_keyed_and_vmappable():
     assert 0.05 < resid.std() < 0.2  # σ = 0.1 samples, linearly interpolated
 
 
+@pytest.mark.extended
 def test_white_noise_steady_state_covariance_matches_lyapunov():
     """Under white measurement noise σ dW, the error covariance solves (A−LC)P + P(A−LC)ᵀ + σ² L Lᵀ = 0."""
     obs = obsjax.Luenberger.from_poles(PLANT, [-2.0, -3.0])

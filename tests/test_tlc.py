@@ -149,6 +149,7 @@ def _siso_loop():
     return ts, run
 
 
+@pytest.mark.extended
 def test_tracking_error_modes_follow_exp_integral_rho():
     """The assigned PD-spectrum, checked on the solution: z_1 = qᵀ x̃ (q from the definition) is a
     combination of exp(ρ̄_k ∫ω dt); a 20 % wrong spectrum does not fit."""
@@ -211,6 +212,7 @@ def y_arm(t):
     return jnp.array([0.8 * jnp.sin(t)])
 
 
+@pytest.mark.extended
 def test_dynamic_inversion_reproduces_the_plant_and_the_output():
     nom = obsjax.dynamic_inversion(ARM, y_arm)
     assert nom.degrees == (2,)
@@ -325,6 +327,7 @@ def _peaking_setup():
     return nom, tlc, state_feedback, output_feedback
 
 
+@pytest.mark.extended
 def test_state_feedback_tracks_the_nominal():
     nom, _tlc, state_feedback, _ = _peaking_setup()
     xs = state_feedback()
@@ -337,6 +340,7 @@ def test_state_feedback_tracks_the_nominal():
     assert rate == pytest.approx(-1.5, abs=0.1)
 
 
+@pytest.mark.extended
 def test_peaking_with_and_without_saturation():
     """Without saturation the control peaks like 1/ε and the plant is kicked away from the state-feedback
     trajectory however small ε is; with |u| ≤ 3 (above the state-feedback control, max ≈ 0.64) the

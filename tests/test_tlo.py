@@ -108,6 +108,7 @@ def _jitted_tv(n):
 
 
 @pytest.mark.parametrize("n", [3, 4])
+@pytest.mark.extended
 def test_canonical_form_matches_definition_11(n):
     A, C, idx, _ = SYSTEMS[n]
     assert ltv_observability_indices(A, C, np.linspace(0.0, 6.0, 7)) == idx
@@ -160,6 +161,7 @@ def test_changing_observability_indices_are_refused():
 
 
 @pytest.mark.parametrize("n", [3, 4])
+@pytest.mark.extended
 def test_constant_bandwidth_gives_lti_error_dynamics_with_eigenvalues_rho_omega(n):
     from scipy.integrate import solve_ivp
 
@@ -202,6 +204,7 @@ def test_time_varying_bandwidth_closed_loop_is_the_decoupled_observer_form_of_be
         np.testing.assert_allclose(M, expected, atol=1e-8 * np.abs(expected).max())
 
 
+@pytest.mark.extended
 def test_time_varying_bandwidth_error_modes_follow_exp_integral_rho():
     """MIMO n = 4, two outputs: simulate plant + TLO; in canonical coordinates each block output z_{d_i}
     is a combination of exp(ρ̄_k ∫ω dt) over the block's ρ̄_k (fitted by least squares, residual ~ 0)."""
@@ -290,6 +293,7 @@ def test_high_gain_van_der_pol_steady_state_falls_peak_grows():
     assert pk[-1] > 10 * pk[0]  # peaking ~ 1/ε
 
 
+@pytest.mark.extended
 def test_high_gain_mimo_duffing_steady_state_falls_peak_grows():
     h = lambda t, x, u: jnp.array([x[0], x[2]])
     plant, model = obsjax.Nonlinear(duffing(0.5), h, 4, 2), obsjax.Nonlinear(duffing(0.0), h, 4, 2)
@@ -429,6 +433,7 @@ def _gradient_problem():
     return plant, obs, x0, J
 
 
+@pytest.mark.extended
 def test_gradient_wrt_eps_and_bandwidth_matches_finite_differences():
     *_, J = _gradient_problem()
     p = jnp.array([0.3, 1.0, 3.0, 1.0])
@@ -439,6 +444,7 @@ def test_gradient_wrt_eps_and_bandwidth_matches_finite_differences():
     assert np.all(np.abs(fd) > 1e-5)
 
 
+@pytest.mark.extended
 def test_tune_finds_an_interior_optimum_of_eps():
     plant, obs, x0, J = _gradient_problem()
     w = obs.omega
@@ -609,6 +615,7 @@ def test_simulate_applies_the_solver_rule_by_default():
     np.testing.assert_array_equal(np.asarray(a.xhat), np.asarray(b.xhat))
 
 
+@pytest.mark.extended
 def test_nonfinite_initial_state_is_a_status_not_an_abort():
     """A NaN initial state (plant or estimate) with throw=False is status 2 (NONFINITE) eagerly, under
     jit and per member of a batch: the TLO's gain used to raise 'lost strong observability' from the NaN

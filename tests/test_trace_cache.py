@@ -65,6 +65,7 @@ def _run(arg, scale=1.0, **env_extra):
     return json.loads(_python([_RUN, arg, repr(scale)], env_extra, drop))
 
 
+@pytest.mark.extended
 def test_a_second_process_reads_the_programs_and_computes_the_same_numbers(tmp_path):
     d = str(tmp_path / "cache")
     first = _run(d)
@@ -220,6 +221,7 @@ def test_the_command_line_turns_it_on_for_its_run_only_and_import_does_not():
     assert before == "None" and during.endswith(_trace_cache.SUBDIR) and after == "None"
 
 
+@pytest.mark.extended
 def test_a_sharded_study_is_saved_and_read_back(tmp_path):
     """Two host devices: the study's kernel (shard_map over a mesh) is exported, read back by the
     next process and computes what one device computes."""
@@ -243,6 +245,7 @@ def _devices_after(env_extra):
     return _python([code], env_extra, ("XLA_FLAGS", "OBSJAX_DEMO_DEVICES"))
 
 
+@pytest.mark.extended
 def test_the_demo_uses_one_host_device_per_core_unless_told_otherwise():
     assert _devices_after({"OBSJAX_DEMO_DEVICES": "3"}) == "3 3"
     assert _devices_after({"OBSJAX_DEMO_DEVICES": "1"}) == "None 1"

@@ -54,6 +54,7 @@ def _batch_loss(obs_of, loss=obsjax.losses.ise):
         ("ReducedOrder.G", lambda p: obsjax.ReducedOrder(PLANT, G=p), [[2.0]]),
     ],
 )
+@pytest.mark.extended
 def test_gradient_of_every_tunable_leaf_matches_fd(name, obs_of, p0):
     J = _batch_loss(obs_of)
     g = np.asarray(jax.grad(J)(jnp.asarray(p0)))
@@ -61,6 +62,7 @@ def test_gradient_of_every_tunable_leaf_matches_fd(name, obs_of, p0):
 
 
 @pytest.mark.parametrize("loss", [obsjax.losses.itae, obsjax.losses.peak, obsjax.losses.terminal])
+@pytest.mark.extended
 def test_gradient_of_each_loss_matches_fd(loss):
     J = _batch_loss(lambda p: obsjax.Luenberger.from_poles(PLANT, p), loss)
     p0 = [-2.0, -3.5]
@@ -68,6 +70,7 @@ def test_gradient_of_each_loss_matches_fd(loss):
     np.testing.assert_allclose(g, _fd(J, p0), rtol=2e-4, atol=1e-7)
 
 
+@pytest.mark.extended
 def test_tune_finds_interior_optimum_of_the_noise_tradeoff():
     """Example (2.8) with measurement noise: from slow and from fast poles, tune lands in between."""
     obs_slow = obsjax.Luenberger.from_poles(PLANT, [-0.5, -0.6])
@@ -89,6 +92,7 @@ def test_tune_finds_interior_optimum_of_the_noise_tradeoff():
     assert np.all(np.asarray(r_slow.observer.poles) < 0)  # sign kept by the reparametrisation
 
 
+@pytest.mark.extended
 def test_tune_skips_nonfinite_steps_and_returns_best():
     obs = obsjax.Luenberger.from_poles(PLANT, [-2.0, -2.5])
 
@@ -108,6 +112,7 @@ def test_tune_skips_nonfinite_steps_and_returns_best():
     assert len({tuple(p) for p in h["params"][0]}) == len(h["params"][0])
 
 
+@pytest.mark.extended
 def test_tune_over_sampled_plants_with_risk_measures():
     keys = jr.split(jr.PRNGKey(3), 6)
     A = jnp.stack([jnp.array([[-2.0, 1.0], [0.0, -1.0]]) + 0.3 * jr.normal(k, (2, 2)) for k in keys])
@@ -162,6 +167,7 @@ def test_risk_weights_reproduce_risk_measure():
                     loss=obsjax.losses.ise, x0s=X0S, xhat0s=XH0S, ts=TS, steps=1, progress=False, risk="median")
 
 
+@pytest.mark.extended
 def test_tune_reuses_its_compilation_across_risks_and_initial_gains():
     traces = []
 
@@ -243,6 +249,7 @@ def _tune_eps(eps0, risk, optimizer, steps):
 
 
 @pytest.mark.parametrize("risk", ["mean", ("cvar", 0.75), "worst"])
+@pytest.mark.extended
 def test_tune_gradient_wrt_eps_over_a_plant_batch_matches_fd(risk):
     """One sgd step of tune reveals its gradient: θ1 = θ0 − lr·dJ/dθ with ε = exp(θ), so
     dJ/dε = (log ε0 − log ε1) / (lr·ε0); against central differences of the risk of plain simulations."""
@@ -257,6 +264,7 @@ def test_tune_gradient_wrt_eps_over_a_plant_batch_matches_fd(risk):
     np.testing.assert_allclose(g_tune, fd, rtol=1e-5)
 
 
+@pytest.mark.extended
 def test_tune_eps_robustly_matches_a_grid_search():
     """Mean and worst-case ISE over the scenario set, tuned from ε = 0.2 by gradient descent, against a grid
     search of the same risk (plain simulate): interior minimisers, bracketed by the grid, and different."""
@@ -336,6 +344,7 @@ def _tune_k(k0, loss, **kw):
     return obsjax.tune(_Gain(jnp.asarray(k0)), SCALAR, where=WHERE_K, loss=loss, **kw)
 
 
+@pytest.mark.extended
 def test_a_step_across_a_validity_boundary_is_rejected_and_backtracked():
     """sgd with a large rate steps k below −1 (check() fails): the step is halved until the point is
     valid; the run goes on, warns, never evaluates a point twice and returns the best observer."""
@@ -525,6 +534,7 @@ def test_reset_coincidences():
     assert reset_coincidences(0.5, np.linspace(0.0, 2.0, 21)) == pytest.approx([0.5, 1.0, 1.5, 2.0])
 
 
+@pytest.mark.extended
 def test_kink_in_T_at_a_save_time_is_one_sided_and_tune_warns():
     """With save times on the reset instants the ISE has a kink in T: autodiff returns the
     derivative from one side (here the left: a slightly shorter period puts the reset before the

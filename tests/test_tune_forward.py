@@ -49,6 +49,7 @@ def _tune_gradient(mode, p=(20.0, 0.1, 0.3), kernel="vmap"):
 
 
 @pytest.mark.parametrize("kernel", ["vmap", "masked"])
+@pytest.mark.extended
 def test_forward_gradient_of_gamma_p0_T_equals_reverse_mode_and_central_differences(kernel):
     p0 = np.array([20.0, 0.1, 0.3])
     v_fwd, g_fwd = _tune_gradient_cached("forward", tuple(p0), kernel)
@@ -70,6 +71,7 @@ def test_forward_gradient_of_gamma_p0_T_equals_reverse_mode_and_central_differen
 
 
 @pytest.mark.parametrize("mode", ["forward", "reverse"])
+@pytest.mark.extended
 def test_masked_kernel_equals_the_vmap_kernel(mode):
     """tune's two batch kernels (the masked adaptive Runge–Kutta loop and jax.vmap(simulate)) take the
     same steps member by member: the loss and its gradient in (γ, p0, T) agree to the solver's
@@ -81,6 +83,7 @@ def test_masked_kernel_equals_the_vmap_kernel(mode):
     np.testing.assert_allclose(g_m, g_v, rtol=1e-7)
 
 
+@pytest.mark.extended
 def test_masked_kernel_equals_the_vmap_kernel_with_noise():
     """The same with band-limited measurement noise (each scenario its own key): both kernels draw the
     same noise per scenario.  (γ, p0) only: with adaptive steps over the noise
@@ -181,6 +184,7 @@ def test_a_mode_the_adjoint_cannot_do_is_refused_before_tracing(mode, kwargs, ma
     assert not traces
 
 
+@pytest.mark.extended
 def test_tune_runs_the_same_in_forward_and_reverse_mode():
     where = lambda o: o.poles
     obs = obsjax.Luenberger.from_poles(PLANT, [-1.0, -1.5])
@@ -215,6 +219,7 @@ def _stop_at_trace(traj):
         (WHERE_CY, {"adaptive": False, "dt0": 0.0125}, False),  # fixed steps
     ],
 )
+@pytest.mark.extended
 def test_tuning_T_under_band_limited_noise_with_adaptive_steps_warns(where, kwargs, warns):
     noise = obsjax.noise.BandLimitedNoise(0.05, dt=0.05)
     with warnings.catch_warnings(record=True) as rec:
