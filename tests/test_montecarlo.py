@@ -396,6 +396,36 @@ def test_bad_param_sampler():
         run(param_sampler=3)
 
 
+def test_max_segments_lets_studies_of_two_periods_share_one_program():
+    """``simulate_kwargs["max_segments"]`` at least ceil(span/T) of either period: the second period's study
+    traces and compiles nothing, and equals a study that holds exactly its own count of segments."""
+    kw = dict(x0_sampler=x0_uniform, xhat0_sampler=np.zeros(1), ts=np.linspace(0.0, 2.0, 9), chunk_size=8,
+              progress=False)
+    obs_b = eqx.tree_at(lambda o: o.T, RESET_OBS, jnp.array(0.3))  # 7 segments on [0, 2]; RESET_OBS: 4
+    shared = {"simulate_kwargs": {"max_segments": 9}}
+    obsjax.monte_carlo(SCALAR_PLANT, RESET_OBS, jr.PRNGKey(6), 16, **kw, **shared)
+    events = []
+
+    def listener(event, duration, **_):
+        if event.endswith(("jaxpr_trace_duration", "backend_compile_duration")):
+            events.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        b_shared = obsjax.monte_carlo(SCALAR_PLANT, obs_b, jr.PRNGKey(6), 16, **kw, **shared)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert events == []
+    b_own = obsjax.monte_carlo(SCALAR_PLANT, obs_b, jr.PRNGKey(6), 16, **kw)
+    np.testing.assert_array_equal(b_shared.status, b_own.status)
+    np.testing.assert_allclose(b_shared.error_norm, b_own.error_norm, rtol=1e-12, atol=1e-14)
+    with pytest.raises(ValueError, match=r"max_segments'\]` = 6 is below the 7 reset segments"):
+        obsjax.monte_carlo(SCALAR_PLANT, obs_b, jr.PRNGKey(6), 16, **kw, simulate_kwargs={"max_segments": 6})
+    for bad in (2.5, 0, True):
+        with pytest.raises(ValueError, match="max_segments"):
+            obsjax.monte_carlo(SCALAR_PLANT, obs_b, jr.PRNGKey(6), 16, **kw, simulate_kwargs={"max_segments": bad})
+
+
 def test_bad_ts():
     with pytest.raises(ValueError, match="`ts`"):
         run(ts=np.array([1.0, 0.0]))

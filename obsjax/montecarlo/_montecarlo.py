@@ -20,6 +20,7 @@ from .. import _trace_cache
 from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
 from .._integrate import _masked, _validate
+from .._integrate._schedule import MAX_RESET_SEGMENTS
 from .._simulate import NONFINITE, SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch
 from ._checkpoint import _read_chunk
@@ -615,6 +616,25 @@ def _batch(dyn, cfg: _Config, key, idx, lockstep: bool):
     return traj.error_norm, traj.status
 
 
+def _given_segments(given, needed, T) -> int:
+    """``simulate_kwargs["max_segments"]``: a bound on the reset segments that the chunk kernel holds, at
+    least the `needed` ceil((t1 − t0)/T) of the observer's period (``None`` without resets)."""
+    if isinstance(given, bool) or not isinstance(given, (int, np.integer)):
+        raise ValueError(f"`simulate_kwargs['max_segments']` must be a positive integer, got {given!r}.")
+    given = int(given)
+    if not 1 <= given <= MAX_RESET_SEGMENTS:
+        raise ValueError(
+            f"`simulate_kwargs['max_segments']` must be in [1, {MAX_RESET_SEGMENTS}], got {given}."
+        )
+    if needed is not None and given < needed:
+        raise ValueError(
+            f"`simulate_kwargs['max_segments']` = {given} is below the {needed} reset segments that the "
+            f"observer's period T = {float(np.asarray(T)):g} needs on the save times' span; give at least "
+            f"{needed} (or leave it out)."
+        )
+    return given
+
+
 def _wrap_key(key_data, impl):
     return jr.wrap_key_data(key_data) if impl is None else jr.wrap_key_data(key_data, impl=impl)
 
@@ -834,8 +854,11 @@ def monte_carlo(
       checkpoint a study whose samplers or plant read objects that cannot be fingerprinted by
       content.
     - `simulate_kwargs`: extra keyword arguments of :func:`obsjax.simulate` (``solver``, ``rtol``,
-      ``atol``, ``dt0``, ``adaptive``, ``max_steps``); ``throw`` is always ``False`` (failures are counted
-      from the per-trajectory ``status``).
+      ``atol``, ``dt0``, ``adaptive``, ``max_steps``, ``max_segments``); ``throw`` is always ``False``
+      (failures are counted from the per-trajectory ``status``).  Without ``max_segments`` a resetting
+      observer's study holds exactly the ceil((t1 − t0)/T) reset segments of its period, so studies of
+      two periods (a paper's gain against a tuned one) compile one program each; the same
+      ``max_segments`` (at least either count, else a ``ValueError``) lets them share one.
     - `keep`: ``"all"`` (default: the per-trajectory arrays are returned) or ``"summary"``
       (streaming statistics in memory bounded by a chunk; see **Streaming**).
     - `sketch_rtol`: the relative accuracy α of the streaming quantiles (``keep="summary"``),
@@ -900,9 +923,10 @@ def monte_carlo(
     takes_x0 = isinstance(xhat0_sampler, _Fixed) or _n_positional(xhat0_sampler) >= 2
 
     sim_kwargs = dict(simulate_kwargs or {})
-    for bad in ("throw", "noise", "key", "max_segments"):
+    for bad in ("throw", "noise", "key"):
         if bad in sim_kwargs:
             raise ValueError(f"`simulate_kwargs` must not contain {bad!r}: monte_carlo sets it.")
+    given_segments = sim_kwargs.pop("max_segments", None)
     sim_kw = _hashable_kwargs(sim_kwargs)
 
     # Key handling: raw key data travels through jit/shard_map; the implementation is static.
@@ -918,9 +942,11 @@ def monte_carlo(
             )
         key_impl = None
 
-    # Reset observers: the number of segments is computed once from the concrete period.
+    # Reset observers: the number of segments is computed once from the concrete period, unless given.
     T = observer.reset_period
     max_segments = None if T is None else num_segments(T, ts_arr[0], ts_arr[-1])
+    if given_segments is not None:
+        max_segments = _given_segments(given_segments, max_segments, T)
 
     devices = _resolve_devices(devices)
     D = len(devices)
@@ -997,7 +1023,7 @@ def monte_carlo(
             xhat0_sampler=xhat0_sampler,
             xhat0_takes_x0=takes_x0,
             param_sampler=param_sampler,
-            simulate_kwargs=sim_kw,
+            simulate_kwargs=sim_kw if given_segments is None else (*sim_kw, ("max_segments", max_segments)),
             ts=ts_arr,
             key_data=np.asarray(key_data),
             key_impl=key_impl,
