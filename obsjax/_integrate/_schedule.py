@@ -56,21 +56,22 @@ def num_segments(T, t0, t1) -> int | None:
     return max(1, math.ceil(r - 1e-9 * max(1.0, r)))
 
 
-def reset_segments(T, ts, ts_np, max_segments) -> int:
-    """Number of reset segments (resets + 1): from `max_segments` when given, else from concrete T and ts."""
+def reset_segments(T, ts, ts_np, max_segments, name="`max_segments`") -> int:
+    """Number of reset segments (resets + 1): from `max_segments` when given (checked, and against the
+    concrete period when `ts_np` is given; `name` is how errors call it), else from concrete T and ts."""
     if max_segments is not None:
         if isinstance(max_segments, bool) or not isinstance(max_segments, (int, np.integer)):
-            raise ValueError(f"`max_segments` must be a positive integer, got {max_segments!r}.")
+            raise ValueError(f"{name} must be a positive integer, got {max_segments!r}.")
         if not 1 <= max_segments <= MAX_RESET_SEGMENTS:
-            raise ValueError(
-                f"`max_segments` must be in [1, {MAX_RESET_SEGMENTS}], got {max_segments}."
-            )
+            raise ValueError(f"{name} must be in [1, {MAX_RESET_SEGMENTS}], got {max_segments}.")
         n = int(max_segments)
         if ts_np is not None:  # a concrete period must be covered by the bound
             need = num_segments(T, ts_np[0], ts_np[-1])
             if need is not None and need > n:
                 raise ValueError(
-                    f"`max_segments` = {n} does not cover the horizon: the reset period needs {need} segments."
+                    f"{name} = {n} is below the {need} reset segments that the reset period "
+                    f"T = {float(np.asarray(concrete_value(T)).reshape(())):g} needs on "
+                    f"[{float(ts_np[0]):g}, {float(ts_np[-1]):g}]; give at least {need} (or leave it out)."
                 )
         return n
     n = None if ts_np is None else num_segments(T, ts_np[0], ts_np[-1])

@@ -20,7 +20,7 @@ from .. import _trace_cache
 from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
 from .._integrate import _masked, _validate
-from .._integrate._schedule import MAX_RESET_SEGMENTS
+from .._integrate._schedule import reset_segments
 from .._simulate import NONFINITE, SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch
 from ._checkpoint import _read_chunk
@@ -616,25 +616,6 @@ def _batch(dyn, cfg: _Config, key, idx, lockstep: bool):
     return traj.error_norm, traj.status
 
 
-def _given_segments(given, needed, T) -> int:
-    """``simulate_kwargs["max_segments"]``: a bound on the reset segments that the chunk kernel holds, at
-    least the `needed` ceil((t1 − t0)/T) of the observer's period (``None`` without resets)."""
-    if isinstance(given, bool) or not isinstance(given, (int, np.integer)):
-        raise ValueError(f"`simulate_kwargs['max_segments']` must be a positive integer, got {given!r}.")
-    given = int(given)
-    if not 1 <= given <= MAX_RESET_SEGMENTS:
-        raise ValueError(
-            f"`simulate_kwargs['max_segments']` must be in [1, {MAX_RESET_SEGMENTS}], got {given}."
-        )
-    if needed is not None and given < needed:
-        raise ValueError(
-            f"`simulate_kwargs['max_segments']` = {given} is below the {needed} reset segments that the "
-            f"observer's period T = {float(np.asarray(T)):g} needs on the save times' span; give at least "
-            f"{needed} (or leave it out)."
-        )
-    return given
-
-
 def _wrap_key(key_data, impl):
     return jr.wrap_key_data(key_data) if impl is None else jr.wrap_key_data(key_data, impl=impl)
 
@@ -944,9 +925,12 @@ def monte_carlo(
 
     # Reset observers: the number of segments is computed once from the concrete period, unless given.
     T = observer.reset_period
-    max_segments = None if T is None else num_segments(T, ts_arr[0], ts_arr[-1])
-    if given_segments is not None:
-        max_segments = _given_segments(given_segments, max_segments, T)
+    if given_segments is None:
+        max_segments = None if T is None else num_segments(T, ts_arr[0], ts_arr[-1])
+    else:
+        max_segments = reset_segments(
+            T, None, None if T is None else ts_arr, given_segments, name="`simulate_kwargs['max_segments']`"
+        )
 
     devices = _resolve_devices(devices)
     D = len(devices)
