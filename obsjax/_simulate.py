@@ -97,7 +97,8 @@ def simulate(
     switches.
 
     **Back-ends** (``obsjax/_integrate/``): fixed steps of an explicit Runge–Kutta solver with concrete save
-    times and breakpoints run as a direct ``lax.scan`` over the Butcher tableau; everything else runs one
+    times and ``dt0`` run as a direct ``lax.scan`` over the Butcher tableau (the breakpoints may be traced,
+    as with a tuned reset period T: the same grid is then built inside the trace); everything else runs one
     ``diffrax.diffeqsolve`` per segment.
 
     **Status.**  0 success; 1 the solver did not reach the end of the horizon (``max_steps``, an implicit
@@ -122,9 +123,9 @@ def simulate(
       max|ρ̄|·ω/ε makes the problem stiff), else ``Tsit5``.
     - `rtol`, `atol`: tolerances of the adaptive PID controller (> 0).
     - `dt0`, `adaptive`: ``adaptive=False`` with ``dt0`` > 0 gives fixed steps.  With an explicit Runge–Kutta
-      solver and concrete ``ts`` and breakpoints, fixed steps bypass ``diffeqsolve``: a ``lax.scan`` over
-      the solver's Butcher tableau on a grid through every save time and breakpoint, each interval cut into
-      ⌈Δ/dt0⌉ equal steps.
+      solver and concrete ``ts`` and ``dt0``, fixed steps bypass ``diffeqsolve``: a ``lax.scan`` over the
+      solver's Butcher tableau on a grid through every save time and breakpoint, each interval cut into
+      ⌈Δ/dt0⌉ equal steps (an interval ending at a plant jump ends, stages included, one float before it).
     - `max_steps`: per solve (per segment), a positive integer.
     - `adjoint`: how diffrax differentiates each solve (default ``RecursiveCheckpointAdjoint()``, with
       log₂(max_steps) checkpoints); e.g. ``RecursiveCheckpointAdjoint(checkpoints=max_steps)`` stores every

@@ -206,6 +206,7 @@ def test_richness_single_sinusoid_third_order():
     assert np.linalg.matrix_rank(R, tol=1e-10 * np.linalg.norm(R)) == 2
 
 
+@pytest.mark.extended
 def test_kreisselmeier_rates_match_averaging(k2_runs):
     """Fitted decay rates of ‖p − p*‖ against λ_min(G M̄) from the frequency response (no simulation);
     for the same G the integral scheme is faster by about 1/q."""

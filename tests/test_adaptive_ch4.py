@@ -444,6 +444,7 @@ def test_identifier_bad_input():
 
 
 # =========================================================================== Morgan–Narendra (4.20)-(4.21)
+@pytest.mark.extended
 def test_morgan_narendra_closed_forms_and_the_pe_test():
     """α = (1, sin t, cos 2t), T = 2π: ∫ααᵀ = diag(2π, π, π), so η1 = π and a = 1/2; the moving integrals
     over δ0 are δ0, 2 sin(δ0/2) sin(τ + δ0/2) and sin δ0 cos(2τ + δ0), orthogonal over a period, so

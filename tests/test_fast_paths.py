@@ -143,6 +143,112 @@ def test_fixed_step_gradient_matches_finite_differences():
     np.testing.assert_allclose(g, (lj(20.0 + h) - lj(20.0 - h)) / (2 * h), rtol=1e-6)
 
 
+# ---------------------------------------------------------------- fixed steps with a traced reset period
+
+SWITCH = obsjax.switching_ltv_example(period=0.7, horizon=4.0)
+
+
+def _traced_route(monkeypatch):
+    """Make the diffrax back-end unreachable: a fixed-step solve that still takes it fails the test."""
+
+    def refuse(*a, **k):
+        raise AssertionError("fixed steps with a traced reset period went to the diffrax back-end")
+
+    monkeypatch.setattr(obsjax._integrate._diffrax, "integrate", refuse)
+
+
+def _switch_run(T, ts, max_segments=None, dt0=0.025):
+    obs = obsjax.LeastSquaresReset(SWITCH, 20.0, 1.0, T)
+    return obsjax.simulate(SWITCH, obs, jnp.ones(3), jnp.zeros(3), ts, adaptive=False, dt0=dt0,
+                           max_segments=max_segments, throw=False)
+
+
+@pytest.mark.parametrize(
+    "T", [0.25] + [pytest.param(T, marks=pytest.mark.extended) for T in (0.23, 0.31, 1.7, 5.9)]
+)
+def test_traced_reset_period_takes_the_concrete_fixed_step_grid(T, monkeypatch):
+    """Under jit with T traced (tune's case) the fixed steps run on the grid of a concrete T: the same
+    trajectory to rounding (resets on save times, between them, one reset, band-limited noise)."""
+    ts = np.linspace(0.0, 6.0, 61)
+    kw = dict(adaptive=False, dt0=0.0125, noise=obsjax.noise.BandLimitedNoise(0.05, dt=0.05),
+              key=jr.PRNGKey(1), throw=False)
+
+    def run(T, ms=None):
+        obs = obsjax.LeastSquaresReset(CY_PLANT, gamma=20.0, p0=0.1, T=T)
+        return obsjax.simulate(CY_PLANT, obs, X0, XH0, ts, max_segments=ms, **kw)
+
+    ref = run(T)
+    _traced_route(monkeypatch)
+    got = jax.jit(lambda T: run(T, 40))(jnp.asarray(T))
+    assert int(got.status) == 0
+    np.testing.assert_allclose(got.xhat, ref.xhat, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(got.z.Qinv, ref.z.Qinv, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("T", [0.93, 0.7, 0.5, 0.35])
+@pytest.mark.extended
+def test_traced_reset_period_on_a_switched_plant_matches_an_adaptive_solve(T, monkeypatch):
+    """Declared jumps with traced resets, including resets on the jumps (T = 0.7, 0.35) and on the save
+    times (T = 0.5): the fixed-step solve equals the concrete one and a tight adaptive solve to the
+    method's accuracy (an interval before a jump never evaluates the vector field after it)."""
+    ts = np.linspace(0.0, 3.0, 7)
+    ref = obsjax.simulate(SWITCH, obsjax.LeastSquaresReset(SWITCH, 20.0, 1.0, T), jnp.ones(3), jnp.zeros(3),
+                          ts, **TIGHT)
+    concrete = _switch_run(T, ts)
+    _traced_route(monkeypatch)
+    traced = jax.jit(lambda T: _switch_run(T, ts, 12))(jnp.asarray(T))
+    np.testing.assert_allclose(traced.xhat, concrete.xhat, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(traced.error, ref.error, rtol=0, atol=3e-7)
+
+
+def test_fixed_step_last_stage_stays_before_a_jump():
+    """A reset 1e-8 after a save time leaves an interval of 8 steps before the jump at 0.7 whose last stage
+    time, t + h, rounds onto the jump; the stage is held one float before it.  (Before: error 0.22.)"""
+    T = 0.5 + 1e-8
+    ts = np.array([0.0, 0.5, 1.0])
+    ref = obsjax.simulate(SWITCH, obsjax.LeastSquaresReset(SWITCH, 20.0, 1.0, T), jnp.ones(3), jnp.zeros(3),
+                          ts, **TIGHT)
+    np.testing.assert_allclose(_switch_run(T, ts).error, ref.error, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("T0", [0.93, 0.61])
+@pytest.mark.extended
+def test_traced_reset_period_gradient_matches_finite_differences(T0):
+    """d/dT of Σ‖x̃‖² through the traced fixed-step grid, reverse and forward mode, against central
+    differences of the concrete solves (T off the save times and jumps, so the grid's step counts do not
+    change within ±h)."""
+    ts = np.linspace(0.0, 3.0, 7)
+
+    def loss(T):
+        return jnp.sum(_switch_run(T, ts, 12).error_norm ** 2)
+
+    rev = jax.jit(jax.grad(loss))(T0)
+    fwd = jax.jit(jax.jacfwd(loss))(T0)
+    lj = jax.jit(loss)
+    h = 1e-6
+    fd = (lj(T0 + h) - lj(T0 - h)) / (2 * h)
+    np.testing.assert_allclose(rev, fd, rtol=1e-6)
+    np.testing.assert_allclose(fwd, rev, rtol=1e-12)
+
+
+def test_traced_reset_on_a_save_time_gives_the_left_derivative():
+    """At T with a reset on a save time the loss has a kink; the traced grid orders the reset before the
+    save (the save sees the state after it), so autodiff returns the derivative from below, as the diffrax
+    back-end does."""
+    ts = np.array([0.0, 0.5, 0.6])
+
+    def loss(T):
+        return jnp.sum(_switch_run(T, ts, 3).error_norm ** 2)
+
+    lj = jax.jit(loss)
+    h = 1e-5  # one-sided differences of second order
+    left = (3 * lj(0.5) - 4 * lj(0.5 - h) + lj(0.5 - 2 * h)) / (2 * h)
+    right = -(3 * lj(0.5) - 4 * lj(0.5 + h) + lj(0.5 + 2 * h)) / (2 * h)
+    g = jax.jit(jax.grad(loss))(0.5)
+    assert abs(left - right) > 0.5  # a real kink
+    np.testing.assert_allclose(g, left, rtol=2e-5)
+
+
 def test_fixed_step_euler_is_forward_euler():
     plant = obsjax.LTI([[-1.0]], None, [[1.0]])
     obs = obsjax.Luenberger(plant, [[1.0]])

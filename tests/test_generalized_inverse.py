@@ -225,6 +225,7 @@ def test_reduced_reproduces_slides_convergence(reduced_run):
     assert np.all(err[i25:] < 1e-3 * err[0])
 
 
+@pytest.mark.extended
 def test_reduced_p_form_equals_form_with_ydot(reduced_run):
     """The differentiation-free p-form (run by obsjax.simulate) and ż = Fz + G(ẏ − A11y − B1u) + TA21y +
     TB2u with the plant's true ẏ (run by the harness here) give the same z."""
@@ -256,6 +257,7 @@ def test_reduced_p_form_equals_form_with_ydot(reduced_run):
     assert np.abs(np.asarray(sol.ys[1] - zs)).max() < 1e-7
 
 
+@pytest.mark.extended
 def test_slides_reduced_form_violates_the_property(reduced_run):
     """The slides' final form (G from their (12) with the T·A21·C term, no T·A21·y, no Ġ·y) leaves a
     persistent bias in z − T w: the derivation matters for time-varying T."""

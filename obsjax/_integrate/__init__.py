@@ -5,8 +5,9 @@
 
 - ``_diffrax.py``: the general back-end, one ``diffrax.diffeqsolve`` per segment (any solver, adaptive or
   constant steps, white noise as an SDE, any adjoint), with the early-stop guards of ``_status.py``;
-- ``_fixed_step.py``: fixed steps of an explicit Runge–Kutta method on a grid known before tracing, a direct
-  ``lax.scan`` over the Butcher tableau;
+- ``_fixed_step.py``: fixed steps of an explicit Runge–Kutta method, a direct ``lax.scan`` over the Butcher
+  tableau, on a grid through the save times and breakpoints (built before tracing, or inside the trace when
+  the breakpoints are traced, e.g. a tuned reset period);
 - ``_lockstep.py``: a batch as one adaptive ODE (``simulate_batch``), with failure isolation;
 - ``_masked.py``: a batch whose members each take their own adaptive steps (``simulate_batch(lockstep=False)``
   and ``monte_carlo``'s default kernel) on the masked explicit Runge–Kutta loop of ``_adaptive_rk.py``.
@@ -23,6 +24,8 @@ takes any ``event_times(t0, t1)`` callable (e.g. the sample times of a data set)
 
 from __future__ import annotations
 
+import numpy as np
+
 from . import _diffrax, _fixed_step, _lockstep, _schedule
 from ._system import Args
 from ._validate import Plan
@@ -38,6 +41,11 @@ def integrate(args: Args, state0, plan: Plan):
             g = _fixed_step.grid(plan.ts_np, opt.dt0, sched.concrete, tol)
             if g is not None:
                 return _fixed_step.integrate(args, state0, sched, g, tab)
+            dt0 = _fixed_step.concrete_value(opt.dt0)
+            if dt0 is not None and sched.concrete is None:  # traced breakpoints (a tuned T)
+                return _fixed_step.integrate_traced(
+                    args, state0, sched, plan.ts_np, float(np.asarray(dt0).reshape(())), tab, tol
+                )
     # One trajectory: diffrax.  (Batches with independent adaptive steps go to ``_masked.py`` from
     # ``simulate_batch``, where the batch is visible.)
     return _diffrax.integrate(args, state0, plan.ts, sched, opt)

@@ -19,22 +19,31 @@ inner ``lax.scan`` of K steps, K the largest step count of any interval (shorter
 steps).  The jump of a breakpoint (reset, then event update) is applied at the start of the interval it
 opens, before the state there is saved (right-continuous, like the segmented back-end).
 
-The path needs concrete save times and breakpoints (they fix the grid); otherwise, and for white noise (an
-SDE), :func:`obsjax.simulate` uses the diffrax back-end.
+With traced breakpoints (a reset period T being tuned, traced event times) and concrete save times and dt0,
+:func:`integrate_traced` builds the same grid inside the trace: the nodes are sorted by value, and one
+``lax.scan`` of a length fixed before tracing (⌈(t1 − t0)/dt0⌉ + the number of intervals, a bound on the steps
+of any placement of the breakpoints) walks the intervals step by step.  Its result at a traced T equals the
+concrete grid's at the same T to rounding, and d/dT reaches the step sizes of the intervals beside each reset.
+It replaces, for ``tune``'s fixed-step kernels, a ``lax.scan`` over reset segments holding one
+``diffeqsolve`` each, whose tracing under ``jvp`` and ``vmap`` took most of a first tune step.
+
+Traced save times or dt0, and white noise (an SDE), go to the diffrax back-end.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value
 from . import _system
-from ._status import SUCCESS
+from ._status import SOLVER_FAILED, SUCCESS
 
 _EULER = (np.zeros((0, 0)), np.ones(1), np.zeros(1))
 
@@ -65,7 +74,7 @@ def grid(ts, dt0, breakpoints, tol):
 
     `breakpoints`: ``Schedule.concrete``, i.e. NumPy (times, reset, event, jump) sorted by time; `tol`: the
     schedule's tolerance.  Returns a dict of NumPy arrays over the intervals between consecutive nodes:
-    ``start``, ``h`` step size, ``nsteps``, ``reset`` and ``event`` (what to apply at the interval's start);
+    ``start``, ``end``, ``h`` step size, ``nsteps``, ``reset`` and ``event`` (what to apply at the interval's start);
     ``save_idx`` (len(ts),) the node of each save time; ``K`` the largest step count.
     """
     ts = concrete_value(ts)
@@ -111,6 +120,7 @@ def grid(ts, dt0, breakpoints, tol):
     nsteps = np.maximum(1, np.ceil(span / dt0 - 1e-9)).astype(np.int64)
     return dict(
         start=start,
+        end=end,
         h=span / nsteps,
         nsteps=nsteps,
         reset=np.array([nd[2] for nd in nodes[:-1]], bool),
@@ -128,6 +138,38 @@ def integrate(args: _system.Args, state0, sched, g, tableau):
     return out, jnp.asarray(SUCCESS, jnp.int32)
 
 
+def rk_stepper(drift, args, tableau):
+    """``rk_step(t, y, h, t_end)``: one step of the explicit RK `tableau` on ``drift(t, y, args)``.
+
+    Stage times t + c_i h are clipped to `t_end`, the end of the interval: the interval before a plant jump τ
+    ends one float below τ, and t + h of its last step, rounded, can land on τ itself, where the vector field
+    is already the one after the jump (an O(h) error in that step; seen on a switched plant).
+
+    The drift is wrapped in ``eqx.filter_jit``: its jaxpr is traced once and reused by every stage and by
+    every transformation of the loop around it (``jvp``, ``vmap``, the scan's fixed-point passes), instead of
+    being traced again for each stage; XLA inlines the calls, so the compiled program is the same.  JAX caches
+    that trace by the function object, so the drift is first given one object per mode of equinox's runtime
+    checks (:func:`_system.for_check_mode`): a trace with raising checks is never reused by a kernel traced
+    with the checks as NaN, nor the other way round."""
+    a, b, c = (np.asarray(v) for v in tableau)
+    s = len(b)
+    tmap = jax.tree_util.tree_map
+    f = eqx.filter_jit(_system.for_check_mode(drift))
+
+    def rk_step(t, y, h, t_end):
+        ks = []
+        for i in range(s):
+            yi = y
+            coeffs = [(j, a[i, j]) for j in range(i) if a[i, j] != 0.0]
+            if coeffs:
+                yi = tmap(lambda y0, *kk: y0 + h * sum(float(w) * kk[j] for j, w in coeffs), y, *ks)
+            ks.append(f(jnp.minimum(t + float(c[i]) * h, t_end), yi, args))
+        terms = [(j, b[j]) for j in range(s) if b[j] != 0.0]
+        return tmap(lambda y0, *kk: y0 + h * sum(float(w) * kk[j] for j, w in terms), y, *ks)
+
+    return rk_step
+
+
 def _act(args, has_reset, has_event, t, state, do_reset, do_event):
     return _system.act(args, t, state, do_reset, do_event, has_reset, has_event)
 
@@ -138,32 +180,19 @@ def _scan(drift, args, state0, g, tableau, act):
     `drift(t, y, args)` is the joint vector field; `act(t, state, do_reset, do_event) -> state` the jump
     applied at the start of every interval (it branches on the flags).
     """
-    a, b, c = (np.asarray(v) for v in tableau)
-    s = len(b)
     tmap = jax.tree_util.tree_map
-
-    def rk_step(t, y, h):
-        ks = []
-        for i in range(s):
-            yi = y
-            coeffs = [(j, a[i, j]) for j in range(i) if a[i, j] != 0.0]
-            if coeffs:
-                yi = tmap(lambda y0, *kk: y0 + h * sum(float(w) * kk[j] for j, w in coeffs), y, *ks)
-            ks.append(drift(t + float(c[i]) * h, yi, args))
-        terms = [(j, b[j]) for j in range(s) if b[j] != 0.0]
-        return tmap(lambda y0, *kk: y0 + h * sum(float(w) * kk[j] for j, w in terms), y, *ks)
-
+    rk_step = rk_stepper(drift, args, tableau)
     K = g["K"]
     uniform = bool(np.all(g["nsteps"] == K))
 
     @jax.checkpoint
     def interval(state, xs):
-        t_start, h, n, do_reset, do_event = xs
+        t_start, t_end, h, n, do_reset, do_event = xs
         state = act(t_start, state, do_reset, do_event)
         at_start = state
 
         def step(y, j):
-            y1 = rk_step(t_start + j * h, y, h)
+            y1 = rk_step(t_start + j * h, y, h, t_end)
             if not uniform:
                 y1 = tmap(lambda new, old: jnp.where(j < n, new, old), y1, y)
             return y1, None
@@ -174,6 +203,7 @@ def _scan(drift, args, state0, g, tableau, act):
     dtype = jnp.result_type(*jax.tree_util.tree_leaves(state0))
     xs = (
         jnp.asarray(g["start"], dtype),
+        jnp.asarray(g["end"], dtype),
         jnp.asarray(g["h"], dtype),
         jnp.asarray(g["nsteps"]),
         jnp.asarray(g["reset"]),
@@ -184,3 +214,87 @@ def _scan(drift, args, state0, g, tableau, act):
     bps = tmap(lambda s_, e: jnp.concatenate([s_, e[None]], axis=0), starts, end)
     idx = jnp.asarray(g["save_idx"])
     return tmap(lambda v: v[idx], bps)
+
+
+def traced_steps(ts_np, dt0, n_nodes) -> int:
+    """The step budget of :func:`integrate_traced`: ⌈(t1 − t0)/dt0⌉ + (number of intervals).
+
+    Every interval of span Δ takes max(1, ⌈Δ/dt0⌉) ≤ Δ/dt0 + 1 steps and the spans sum to t1 − t0, so the
+    steps of any placement of the breakpoints fit (a small relative slack absorbs rounding of the spans)."""
+    span = float(ts_np[-1]) - float(ts_np[0])
+    return math.ceil(span / dt0 * (1.0 + 1e-12) + 1e-9) + max(n_nodes - 1, 0)
+
+
+def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol):
+    """Fixed steps on a grid whose breakpoints are traced (a tuned reset period T, traced event times).
+
+    The same grid as :func:`grid` (nodes: the save times and the breakpoints, a breakpoint within `tol` of a
+    save time moved onto it; every interval cut into max(1, ⌈Δ/dt0⌉) equal steps; an interval that ends at a
+    plant jump ends one float before it), but built inside the trace: the nodes are sorted by value, and one
+    ``lax.scan`` of a fixed length (:func:`traced_steps`) walks the intervals step by step, applying each
+    breakpoint's jump at the first step of the interval it opens; steps past the grid's last are masked.  A
+    breakpoint moved onto a save time keeps its derivative (only its value moves), so d/dT of a reset instant
+    flows into the step sizes of the two intervals beside it, as it does into the segment ends of the
+    diffrax back-end.  Returns ((xs, zs) at the save times, status code): ``SOLVER_FAILED`` if the grid had
+    more steps than the budget (it cannot, by the bound; the check guards the bound itself).
+    """
+    tmap = jax.tree_util.tree_map
+    sg = jax.lax.stop_gradient
+    dtype = jnp.result_type(*jax.tree_util.tree_leaves(state0))
+    ts_np = np.asarray(ts_np, dtype=np.float64)
+    N = len(ts_np)
+    ts = jnp.asarray(ts_np, dtype)
+    bt = jnp.asarray(sched.times, dtype)
+    Nb = int(bt.shape[0])
+    # a breakpoint within tol of a save time is moved onto it (its value; its derivative is kept)
+    hi = jnp.clip(jnp.searchsorted(ts, sg(bt)), 0, N - 1)
+    lo = jnp.clip(hi - 1, 0, N - 1)
+    near = jnp.where(jnp.abs(ts[lo] - sg(bt)) <= jnp.abs(ts[hi] - sg(bt)), lo, hi)
+    close = jnp.abs(ts[near] - sg(bt)) <= tol
+    bt = jnp.where(close, bt + sg(ts[near] - bt), bt)
+    # nodes: breakpoints, then save times; sorted by (time, breakpoint before save time, given order)
+    M = Nb + N
+    t_all = jnp.concatenate([bt, ts])
+    kind = jnp.concatenate([jnp.zeros(Nb, jnp.int32), jnp.ones(N, jnp.int32)])
+    no = jnp.zeros(N, bool)
+    order = jnp.lexsort((jnp.arange(M), kind, sg(t_all)))
+    tn = t_all[order]
+    kind = kind[order]
+    reset, event, jump = (jnp.concatenate([f, no])[order] for f in (sched.reset, sched.event, sched.jump))
+    start, end = tn[:-1], tn[1:]
+    before = jnp.nextafter(sg(end), jnp.asarray(-jnp.inf, dtype))
+    end = jnp.where(jump[1:], before, end)
+    # never a negative span; a tie keeps `end`, whose derivative may differ from `start`'s (a reset moved
+    # onto a save time: its zero-length interval carries the instant's derivative)
+    end = jnp.where(end >= start, end, start)
+    span = end - start
+    nsteps = jnp.maximum(1, jnp.ceil(sg(span) / dt0 - 1e-9)).astype(jnp.int32)
+    h = span / nsteps
+    offsets = jnp.cumsum(nsteps) - nsteps  # the first step of each interval
+    total = jnp.sum(nsteps)
+    S = traced_steps(ts_np, dt0, M)
+    rk_step = rk_stepper(_system.drift, args, tableau)
+    has_reset, has_event = sched.has_reset, sched.has_event
+
+    @jax.checkpoint  # reverse mode stores the carry of each step, not its stages
+    def body(carry, step):
+        y, k, j = carry
+        live = step < total
+        t_k, h_k, n_k = start[k], h[k], nsteps[k]
+        first = live & (j == 0)
+        y = _system.act(args, t_k, y, first & reset[k], first & event[k], has_reset, has_event)
+        y1 = rk_step(t_k + j * h_k, y, h_k, end[k])
+        y_next = tmap(lambda new, old: jnp.where(live, new, old), y1, y)
+        done = j + 1 >= n_k
+        k_next = jnp.where(live & done, jnp.minimum(k + 1, M - 2), k)
+        j_next = jnp.where(done, 0, j + 1)
+        return (y_next, k_next, j_next), y
+
+    zero = jnp.zeros((), jnp.int32)
+    (y_end, _, _), ys = jax.lax.scan(body, (state0, zero, zero), jnp.arange(S, dtype=jnp.int32))
+    # the state at each node: the (post-jump) state at each interval's first step, then the final state
+    bps = tmap(lambda v, e: jnp.concatenate([v[offsets], e[None]], axis=0), ys, y_end)
+    pos = jnp.nonzero(kind == 1, size=N)[0]  # save times are sorted among themselves
+    out = tmap(lambda v: v[pos], bps)
+    code = jnp.where(total <= S, SUCCESS, SOLVER_FAILED).astype(jnp.int32)
+    return out, code

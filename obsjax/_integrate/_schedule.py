@@ -229,13 +229,18 @@ def _merge(ts, ts_np, tol, tol_rt, parts) -> Schedule:
         first = jnp.asarray([0, N], jnp.int32)
         return Schedule(t0, t1, jnp.zeros((0,), ts.dtype), no, no, no, first, N, False, False, concrete)
     times = jnp.concatenate([p.times for p in parts])
+    # Breakpoints at one instant are ordered plant jumps first, then the rest in the order resets, events:
+    # the segment before the instant then ends one float before it (the jump's rule), whatever else happens
+    # there.  Were a reset first, the segment before would end exactly at the jump and its last stage would
+    # see the vector field after it.
+    is_jump_part = np.concatenate([np.full(p.times.shape, p.kind == "jump") for p in parts])
     flags = [
         jnp.concatenate([p.active if p.kind == kind else jnp.zeros(p.active.shape, bool) for p in parts])
         for kind in ("reset", "event", "jump")
     ]
     if ts_np is not None and all(p.values is not None for p in parts):
         vals = np.concatenate([p.values for p in parts])
-        order = np.argsort(vals, kind="stable")
+        order = np.lexsort((~is_jump_part, vals))  # stable; at a tie, a plant jump first (see below)
         np_flags = [
             np.concatenate([np.full(p.values.shape, p.kind == kind) for p in parts])[order]
             for kind in ("reset", "event", "jump")
@@ -247,7 +252,7 @@ def _merge(ts, ts_np, tol, tol_rt, parts) -> Schedule:
         concrete = (vals, *np_flags)
         order = jnp.asarray(order)
     else:
-        order = jnp.argsort(jax.lax.stop_gradient(times), stable=True)
+        order = jnp.lexsort((jnp.arange(times.shape[0]), ~jnp.asarray(is_jump_part), jax.lax.stop_gradient(times)))
         starts = jax.lax.stop_gradient(times[order])
         inner = jnp.searchsorted(ts, starts - tol_rt, side="left").astype(jnp.int32)
         first_save = jnp.concatenate([jnp.zeros(1, jnp.int32), inner, jnp.full(1, N, jnp.int32)])
