@@ -213,7 +213,7 @@ _TARGETS = {
 _WHAT = {
     "demo": "`obsjax demo` (whole process; section = the demo's own total)",
     "tune": "first `tune` step of the README example, fixed steps (section: the `tune(..., steps=1)` call)",
-    "tune-adaptive": "first `tune` step, the same with adaptive steps and 16 scenarios (section: as above)",
+    "tune-adaptive": "first `tune` step, the README's earlier example: adaptive steps, 16 scenarios, noise dt 0.02 (section: as above)",
     "mc": "first Monte-Carlo chunk, 2500 trajectories (section: the `monte_carlo` call)",
 }
 
