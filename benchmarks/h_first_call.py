@@ -161,10 +161,17 @@ def main(only=("demo", "tune", "tune-adaptive", "mc"), demo_n=10_000):
             cache = os.path.join(work, f"cache-{name}")
             for mode in _MODES[name]:
                 env = dict(base)
-                for k in ("OBSJAX_NO_COMPILATION_CACHE", "OBSJAX_NO_TRACE_CACHE", "OBSJAX_H_TRACES"):
+                for k in (
+                    "OBSJAX_NO_COMPILATION_CACHE",
+                    "OBSJAX_NO_TRACE_CACHE",
+                    "OBSJAX_H_TRACES",
+                    "OBSJAX_DEFAULT_XLA_OPTIONS",
+                ):
                     env.pop(k, None)
+                if mode.endswith("default XLA options"):
+                    env["OBSJAX_DEFAULT_XLA_OPTIONS"] = "1"
                 env["OBSJAX_COMPILATION_CACHE_DIR"] = cache
-                if mode == "off":
+                if mode.startswith("off"):
                     env["OBSJAX_NO_COMPILATION_CACHE"] = "1"
                 elif mode.startswith("cold"):
                     shutil.rmtree(cache, ignore_errors=True)
@@ -195,11 +202,15 @@ def main(only=("demo", "tune", "tune-adaptive", "mc"), demo_n=10_000):
 # cache); the library workloads run as a user's script that turns on the compilation cache only, and
 # again with obsjax.enable_trace_cache() ("+ traces").
 _MODES = {
-    "demo": ("off", "cold", "warm", "cold, traces off", "warm, traces off"),
-    "tune": ("off", "cold", "warm", "cold + traces", "warm + traces"),
-    "tune-adaptive": ("off", "cold", "warm", "cold + traces", "warm + traces"),
-    "mc": ("off", "cold", "warm", "cold + traces", "warm + traces"),
-}
+    "demo": (
+        "off", "cold", "warm", "cold, traces off", "warm, traces off", "cold, default XLA options",
+    ),
+    "tune": ("off", "off, default XLA options", "cold", "warm", "cold + traces", "warm + traces"),
+    "tune-adaptive": (
+        "off", "off, default XLA options", "cold", "warm", "cold + traces", "warm + traces",
+    ),
+    "mc": ("off", "off, default XLA options", "cold", "warm", "cold + traces", "warm + traces"),
+}  # fmt: skip
 _TARGETS = {
     ("demo", "cold"): 30.0,
     ("demo", "warm"): 12.0,
@@ -247,7 +258,9 @@ def _report(rows, demo_n):
         "Each row is a fresh process. *off*: `OBSJAX_NO_COMPILATION_CACHE=1`; *cold*: cache on, "
         "directory just emptied (first run after installation); *warm*: cache on, filled by the "
         "cold run (second run); *+ traces*: the script calls `obsjax.enable_trace_cache()` instead "
-        "of `obsjax.enable_compilation_cache()`; *traces off*: `OBSJAX_NO_TRACE_CACHE=1`. "
+        "of `obsjax.enable_compilation_cache()`; *traces off*: `OBSJAX_NO_TRACE_CACHE=1`; "
+        "*default XLA options*: `OBSJAX_DEFAULT_XLA_OPTIONS=1`, the kernels compiled with XLA's default "
+        "CPU emitters (every other row: the elemental emitters, `xla_cpu_use_fusion_emitters=False`). "
         f"The demo runs with `-n {demo_n}`."
     )
     header = (

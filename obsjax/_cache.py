@@ -15,7 +15,8 @@ programs accumulate in a long process, see the README's "Long processes": both d
 
 What is not cached: JAX writes no entry for a program that carries host callbacks
 (``jax.debug.print``, progress bars, and ``eqx.error_if``'s checks, which ``throw=True`` adds), nor
-for one that compiled in less than ``min_compile_time_secs``.  Tracing and lowering run in every
+for one that compiled in less than ``min_compile_time_secs`` (0.2 s by default; the ``obsjax`` command
+uses 0, so its second run compiles nothing).  Tracing and lowering run in every
 process; only XLA's compilation is saved here (:mod:`obsjax._trace_cache` saves the traced programs of
 ``tune`` and ``monte_carlo`` beside it, when turned on).
 """

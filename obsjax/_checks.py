@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import threading
 
 import equinox as eqx
 import jax
@@ -131,6 +132,11 @@ def _fmt(shape) -> str:
     return "(" + ", ".join("k" if s is None else str(s) for s in shape) + ")"
 
 
+#: runtime_checks_as_nan's state, shared by the threads of the process (equinox's mode is one per process)
+_AS_NAN = {"depth": 0, "saved": None}
+_AS_NAN_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def runtime_checks_as_nan():
     """Trace with equinox's runtime checks (``eqx.error_if``, also inside diffrax) as NaN instead of a host
@@ -145,22 +151,35 @@ def runtime_checks_as_nan():
     shards of a ``shard_map`` run in parallel (benchmarks/results/d_sharding.md).  equinox reads its error
     mode when a check is traced, from ``equinox._errors``; a fresh jitted check function avoids reusing one
     traced in raise mode.  If equinox's internals differ, this does nothing.
+
+    equinox's mode is one per process, so the context is counted across threads: the first to enter
+    switches the mode, the last to leave restores it (two threads inside it at once, e.g. the demo's
+    study running beside its tuning, never restore it under each other).  While any thread is inside,
+    checks traced by every thread are NaN checks.
     """
     try:
         import equinox._errors as E
 
-        old = (E.EQX_ON_ERROR, E.branched_error_if_impl_jit)
+        E.EQX_ON_ERROR, E.branched_error_if_impl_jit  # noqa: B018 - both must exist
     except (ImportError, AttributeError):
         yield
         return
-    impl = E.branched_error_if_impl
+    with _AS_NAN_LOCK:
+        if _AS_NAN["depth"] == 0:
+            _AS_NAN["saved"] = (E.EQX_ON_ERROR, E.branched_error_if_impl_jit)
+            impl = E.branched_error_if_impl
 
-    def as_nan(x, pred, index, msgs, *, on_error):  # a new function: a new jit cache, no raise-mode reuse
-        return impl(x, pred, index, msgs, on_error="nan" if on_error == "default" else on_error)
+            def as_nan(x, pred, index, msgs, *, on_error):  # a new function: a new jit cache
+                return impl(x, pred, index, msgs, on_error="nan" if on_error == "default" else on_error)
 
-    E.EQX_ON_ERROR = "nan"
-    E.branched_error_if_impl_jit = eqx.filter_jit(as_nan)
+            E.EQX_ON_ERROR = "nan"
+            E.branched_error_if_impl_jit = eqx.filter_jit(as_nan)
+        _AS_NAN["depth"] += 1
     try:
         yield
     finally:
-        E.EQX_ON_ERROR, E.branched_error_if_impl_jit = old
+        with _AS_NAN_LOCK:
+            _AS_NAN["depth"] -= 1
+            if _AS_NAN["depth"] == 0:
+                E.EQX_ON_ERROR, E.branched_error_if_impl_jit = _AS_NAN["saved"]
+                _AS_NAN["saved"] = None

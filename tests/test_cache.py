@@ -110,6 +110,25 @@ def test_the_command_line_turns_it_on_by_default(tmp_path):
     assert line == d and os.path.isdir(d)
 
 
+def test_the_command_writes_every_program_and_restores_the_threshold(tmp_path):
+    """While the command runs, a program that compiles in a few milliseconds is written too (the demo's
+    random draws and optimiser updates); a process that called ``cli.main`` gets its threshold back."""
+    d = str(tmp_path / "cli-small")
+    code = (
+        "import os, jax, jax.numpy as jnp; from obsjax import cli; "
+        "run = cli._run; seen = []; "
+        "cli._run = lambda p, a: (seen.append(jax.config.jax_persistent_cache_min_compile_time_secs), "
+        "jax.jit(lambda x: jnp.sin(x) * 3.0 + 1.0)(jnp.arange(3.0)).block_until_ready(), run(p, a))[2]; "
+        "before = jax.config.jax_persistent_cache_min_compile_time_secs; "
+        "cli.main(['reproduce', '--list']); "
+        "print(before, seen[0], jax.config.jax_persistent_cache_min_compile_time_secs, "
+        f"sum(len(fs) for _, _, fs in os.walk({d!r})))"
+    )
+    before, during, after, files = _python(code, **{_cache.DIR_ENV: d}).split()
+    assert float(during) == 0.0 and float(after) == float(before)
+    assert int(files) >= 1  # the tiny program's executable is in the cache
+
+
 def test_default_directory(tmp_path, monkeypatch):
     monkeypatch.delenv(_cache.DIR_ENV, raising=False)
     if sys.platform.startswith("linux"):
@@ -195,3 +214,9 @@ def test_the_command_drops_only_the_benign_loader_complaint():
              "from a child\n", "last, no newline", "done\n"]  # fmt: skip
     pos = [err.index(s) for s in order]
     assert pos == sorted(pos), err
+
+
+def test_import_leaves_scipy_unloaded():
+    """SciPy (0.4 s of every process's start) is imported where a function needs it, not by ``import obsjax``."""
+    line = _python("import sys, obsjax; print(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))")
+    assert line == "[]"

@@ -76,6 +76,18 @@ def test_matches_closed_form_error(base):
     assert base.complete and base.n_failed == 0 and base.failure_fraction == 0.0
 
 
+def test_band_is_the_quantile_of_the_successful_rows(base):
+    """``band(q)`` at a level the result holds returns that band (computed once with the result), and at
+    another level the same quantile computed afresh: both equal NumPy's quantile of the successful rows."""
+    rows = base.error_norm[base.ok]
+    for q in (*base.quantiles, 0.3, 0.99):
+        np.testing.assert_array_equal(base.band(q), np.quantile(rows, q, axis=0))
+    q = base.quantiles[0]
+    b = base.band(q)
+    b[:] = -1.0  # a copy: the result's bands are not changed through it
+    assert np.all(base.bands[0] >= 0.0)
+
+
 def test_chunk_size_does_not_change_result(base):
     other = run(chunk_size=24)  # 40 = 24 + 16 (padded last chunk)
     np.testing.assert_array_equal(other.status, base.status)
@@ -652,3 +664,39 @@ def test_study_kernels_carry_no_host_callbacks():
     assert np.isnan(fired)
     with pytest.raises(Exception, match="fires"):  # outside a study, checks raise again
         jax.block_until_ready(jax.jit(lambda x: eqx.error_if(x, x > 0, "fires"))(jnp.ones(())))
+
+
+def test_nan_checks_are_counted_across_threads():
+    """equinox's error mode is one per process: when two threads are inside ``runtime_checks_as_nan`` (a
+    study running beside a tuning), the first to leave does not switch the checks back under the other,
+    and the last to leave restores raising checks (the state before it was taken is not lost)."""
+    import threading
+
+    import equinox as eqx
+    import equinox._errors as E
+
+    from obsjax._checks import runtime_checks_as_nan
+
+    def check(v):  # a new function each time: no jit-cached trace
+        return jax.jit(lambda x: eqx.error_if(x, x > 0, "fires"))(jnp.full((), v))
+
+    mode = E.EQX_ON_ERROR
+    entered, leave, left = threading.Event(), threading.Event(), threading.Event()
+
+    def other():
+        with runtime_checks_as_nan():
+            entered.set()
+            leave.wait(60)
+        left.set()
+
+    t = threading.Thread(target=other)
+    t.start()
+    assert entered.wait(60)
+    with runtime_checks_as_nan():
+        leave.set()
+        assert left.wait(60)  # the other thread has left; this one is still inside
+        assert E.EQX_ON_ERROR == "nan" and np.isnan(check(1.0))
+    t.join()
+    assert E.EQX_ON_ERROR == mode
+    with pytest.raises(Exception, match="fires"):
+        jax.block_until_ready(check(2.0))

@@ -356,3 +356,36 @@ def test_the_versions_of_every_numerical_library_are_in_the_key():
     for pkg in ("jax=", "jaxlib=", "diffrax=", "equinox=", "lineax=", "optax=", "optimistix=",
                 "jaxtyping=", "obsjax="):  # fmt: skip
         assert pkg in head, pkg
+
+
+def test_fast_compile_options_compile_the_same_program(monkeypatch):
+    """A kernel compiled with XLA:CPU's elemental emitters (``fast_compile``) returns what the default
+    compilation returns; the options are probed once, and a jaxlib that refuses them (or the opt-out)
+    gives the defaults."""
+    opts = _trace_cache.fast_compile_options()
+    if jax.default_backend() == "cpu":
+        assert opts in ({}, _trace_cache.FAST_COMPILE_OPTIONS)
+    else:
+        assert opts == {}
+    monkeypatch.setenv(_trace_cache.DEFAULT_COMPILE_ENV, "1")
+    assert _trace_cache.fast_compile_options() == {}
+    monkeypatch.delenv(_trace_cache.DEFAULT_COMPILE_ENV)
+
+    def kernel(x, n):
+        def body(c, _):
+            return jnp.sin(c) * 1.5 + jnp.cos(c[::-1]) * 0.25, c.sum()
+
+        return jax.lax.scan(body, x, None, length=n)
+
+    fast = _trace_cache.filter_jit(kernel, fast_compile=True)
+    plain = _trace_cache.filter_jit(kernel)
+    x = jnp.linspace(-1.0, 2.0, 7)
+    a, b = fast(x, 50), plain(x, 50)
+    for u, v in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(np.asarray(u), np.asarray(v), rtol=1e-13, atol=1e-13)
+    # a jaxlib without the option: the probe refuses it and the kernel compiles with the defaults
+    monkeypatch.setattr(_trace_cache, "FAST_COMPILE_OPTIONS", {"xla_no_such_option_here": True})
+    monkeypatch.setattr(_trace_cache, "_fast_options", {})
+    assert _trace_cache.fast_compile_options() == {}
+    c = _trace_cache.filter_jit(kernel, fast_compile=True)(x, 50)
+    np.testing.assert_allclose(np.asarray(c[0]), np.asarray(b[0]), rtol=0, atol=0)

@@ -22,7 +22,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.linalg
 
 from .._checks import as_float_array
 
@@ -102,6 +101,8 @@ def balance_pair(A, C) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     An, Cn = _unit(A), _unit(C / np.where(rows > 0, rows, 1.0))
     M = np.zeros((n + m, n + m))
     M[:n, :n], M[n:, :n] = An, Cn
+    import scipy.linalg  # imported on first use: importing obsjax stays free of SciPy's 0.4 s
+
     _, (scale, _) = scipy.linalg.matrix_balance(M, permute=False, separate=True)
     d = scale[:n]
     Ab = _unit(An * (d[None, :] / d[:, None]))

@@ -234,6 +234,8 @@ class MonteCarloResult:
 
     def band(self, q: float) -> np.ndarray:
         """The q-quantile of ‖x̃(t)‖ over successful trajectories, (T,)."""
+        if q in self.quantiles:  # computed with the result (the same quantile of the same rows)
+            return np.array(self.bands[self.quantiles.index(q)], copy=True)
         if self._stream is not None:
             return self._stream.norms.quantile((q,))[0]
         return _quantiles(self.error_norm[self.ok], (q,))[0]
@@ -647,7 +649,7 @@ def _chunk_kernel(dyn, key_data, idx, cfg: _Config):
 
 # The same kernel, its traced program saved across processes when the trace cache is on (the ``obsjax``
 # command; see obsjax/_trace_cache.py; a mesh enters the key by its axes and devices).
-_chunk_kernel_saved = _trace_cache.filter_jit(_chunk_kernel.__wrapped__)
+_chunk_kernel_saved = _trace_cache.filter_jit(_chunk_kernel.__wrapped__, fast_compile=True)
 
 
 def _hashable_kwargs(kw: dict) -> tuple:

@@ -27,7 +27,6 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-import scipy.optimize
 
 from .._checks import concrete_value
 
@@ -134,12 +133,18 @@ def _solve_lp(ybar, psi, eps):
     c = np.zeros(n + 1)
     c[-1] = 1.0
     bounds = [(None, None)] * n + [(0.0, None)]
-    res = scipy.optimize.linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
+    res = _linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
     if res.status != 0:
         raise ValueError(
             f"The min-max linear program failed (HiGHS status {res.status}: {res.message})."
         )
     return res.x[:n], float(res.x[-1])
+
+
+def _linprog(*args, **kwargs):
+    import scipy.optimize  # imported on first use: importing obsjax stays free of SciPy's 0.4 s
+
+    return scipy.optimize.linprog(*args, **kwargs)
 
 
 def _solve_lp_sum(ybar, psi, eps, m):
@@ -151,7 +156,7 @@ def _solve_lp_sum(ybar, psi, eps, m):
     b_ub = np.concatenate([-ybar - eps, ybar - eps])
     c = np.concatenate([np.zeros(n), np.ones(K)])
     bounds = [(None, None)] * n + [(0.0, None)] * K
-    res = scipy.optimize.linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
+    res = _linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
     if res.status != 0:
         raise ValueError(
             f"The min-max linear program (cost (1)) failed (HiGHS status {res.status}: {res.message})."
