@@ -153,8 +153,8 @@ def runtime_checks_as_nan():
     traced in raise mode.  If equinox's internals differ, this does nothing.
 
     equinox's mode is one per process, so the context is counted across threads: the first to enter
-    switches the mode, the last to leave restores it (two threads inside it at once, e.g. the demo's
-    study running beside its tuning, never restore it under each other).  While any thread is inside,
+    switches the mode, the last to leave restores it (two threads inside it at once, e.g. studies run
+    from two threads, never restore it under each other).  While any thread is inside,
     checks traced by every thread are NaN checks.
     """
     try:
