@@ -26,6 +26,7 @@ BENCHMARKS = {
     "h": "h_first_call.py",
     "i": "i_recorded_data.py",
     "j": "j_forward_gradient.py",
+    "k": "k_plant_uncertainty.py",
     "s": "s_streaming_study.py",
 }
 

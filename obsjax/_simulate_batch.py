@@ -91,17 +91,59 @@ def simulate_batch(
         traj.error_norm.shape  # (1024, 41)
     """
     require_x64("obsjax.simulate_batch")
-    _validate.check_types(plant, observer, noise)
-    x0s = _validate.check_state(x0s, "x0s", f"(B, {plant.n}) (a batch of plant states)", 2)
-    xhat0s = _validate.check_state(xhat0s, "xhat0s", f"({x0s.shape[0]}, n̂) (one estimate per member)", 2)
-    if x0s.shape[1] != plant.n:
-        raise ValueError(f"`x0s` must have shape (B, {plant.n}) (a batch of plant states), got {tuple(x0s.shape)}.")
-    if xhat0s.shape[0] != x0s.shape[0]:
+    return _simulate_members(
+        plant, observer, x0s, xhat0s, ts, keys, lockstep=lockstep, plant_batched=False, who="simulate_batch",
+        u=u, controller=controller, noise=noise, solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive,
+        max_steps=max_steps, max_segments=max_segments, adjoint=adjoint, throw=throw,
+    )
+
+
+def simulate_plants(plants, observer, x0s, xhat0s, ts, *, keys=None, **kwargs) -> Trajectory:
+    """Member b: plant b with the shared `observer`, from (x0s[b], xhat0s[b]) (and keys[b] with noise).
+
+    Every array leaf of `plants` has a leading axis B (a batch of plants, e.g. drawn by ``jax.vmap`` of a
+    parameter sampler; the static fields, among them ``jump_ts``, are shared).  Each member takes its own
+    adaptive steps, as ``simulate_batch(..., lockstep=False)``: on the masked adaptive Runge–Kutta loop where
+    the problem allows it (see :func:`simulate_batch`), else ``jax.vmap(simulate)`` over plants, initial
+    states and keys.  Member by member it is :func:`obsjax.simulate` on that member's plant (to rounding and
+    the step choices near save times).  `kwargs`: :func:`obsjax.simulate`'s options.  Used by ``tune``
+    (``plant_batched=True``) and ``monte_carlo`` (``param_sampler``).
+    """
+    require_x64("obsjax.simulate_batch")
+    return _simulate_members(plants, observer, x0s, xhat0s, ts, keys, lockstep=False, plant_batched=True,
+                             who="simulate_batch", **kwargs)
+
+
+def _first_plant(plants, B):
+    """Member 0 of a batch of plants (the one the shapes and the schedule are checked on)."""
+    for leaf in jax.tree_util.tree_leaves(plants):
+        if eqx.is_array(leaf) and (jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != B):
+            raise ValueError(
+                f"every array of the batch of plants must have a leading axis of length {B} (one plant per "
+                f"member), got an array of shape {tuple(jnp.shape(leaf))}."
+            )
+    return jax.tree_util.tree_map(lambda a: a[0] if eqx.is_array(a) else a, plants)
+
+
+def _simulate_members(plant, observer, x0s, xhat0s, ts, keys, *, lockstep, plant_batched, who, u=None,
+                      controller=None, noise=None, solver=None, rtol=1e-6, atol=1e-8, dt0=None, adaptive=True,
+                      max_steps=16384, max_segments=None, adjoint=None, throw=True):
+    if plant_batched:
+        x0s = _validate.check_state(x0s, "x0s", "(B, n) (a batch of plant states)", 2)
+        plant0 = _first_plant(plant, x0s.shape[0])
+    else:
+        plant0 = plant
+    _validate.check_types(plant0, observer, noise)
+    x0s = _validate.check_state(x0s, "x0s", f"(B, {plant0.n}) (a batch of plant states)", 2)
+    B = x0s.shape[0]
+    xhat0s = _validate.check_state(xhat0s, "xhat0s", f"({B}, n̂) (one estimate per member)", 2)
+    if x0s.shape[1] != plant0.n:
+        raise ValueError(f"`x0s` must have shape (B, {plant0.n}) (a batch of plant states), got {tuple(x0s.shape)}.")
+    if xhat0s.shape[0] != B:
         raise ValueError(
-            f"`xhat0s` must have shape ({x0s.shape[0]}, n̂) (one estimate per member of `x0s`), got "
+            f"`xhat0s` must have shape ({B}, n̂) (one estimate per member of `x0s`), got "
             f"{tuple(xhat0s.shape)}."
         )
-    B = x0s.shape[0]
     if B == 0:
         raise ValueError(f"`x0s` must hold at least one member, got shape {tuple(x0s.shape)}.")
     if noise is not None:
@@ -115,36 +157,44 @@ def simulate_batch(
         adaptive=adaptive, max_steps=max_steps, max_segments=max_segments, adjoint=adjoint, throw=throw,
     )
     if not adaptive or isinstance(noise, WhiteNoise):
-        return _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common)
+        return _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common, plant_batched)
 
     ts_np = _validate.concrete_times(ts)
     ts = _validate.check_ts(ts)
     dt0 = _validate.check_options(rtol, atol, dt0, adaptive, max_steps, noise)
     observer = observer.prepare()
-    _validate.check_dimensions(plant, observer, x0s[0], xhat0s[0], ts[0], u, controller, noise)
+    _validate.check_dimensions(plant0, observer, x0s[0], xhat0s[0], ts[0], u, controller, noise)
     plan = _validate.plan(
-        plant, observer, ts, ts_np, noise=noise, key=None, solver=solver, rtol=rtol, atol=atol, dt0=dt0,
+        plant0, observer, ts, ts_np, noise=noise, key=None, solver=solver, rtol=rtol, atol=atol, dt0=dt0,
         adaptive=True, max_steps=max_steps, max_segments=max_segments, adjoint=adjoint,
     )
+    if not lockstep and not _masked.eligible(plan):
+        return _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common, plant_batched)
     paths = None
     if isinstance(noise, BandLimitedNoise):
         t0c, t1c = _validate.concrete_span(ts_np)
-        paths = eqx.filter_vmap(lambda k: realise_band_limited(noise, k, t0c, t1c, plant.m))(keys)
+        paths = eqx.filter_vmap(lambda k: realise_band_limited(noise, k, t0c, t1c, plant0.m))(keys)
     args_b = _Args(plant, observer, u, controller, paths)
-    state0 = per_member(args_b, lambda a, x, xh: initial_state(a, ts[0], x, xh))(x0s, xhat0s)
+    each = lambda fn: per_member(args_b, fn, plant_batched)
+    state0 = each(lambda a, x, xh: initial_state(a, ts[0], x, xh))(x0s, xhat0s)
     if lockstep:
         (xs, zs), codes = _integrate.integrate_batch(args_b, state0, plan)
-    elif _masked.eligible(plan):
-        (xs, zs), codes = _masked.integrate(args_b, state0, plan)
     else:
-        return _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common)
+        (xs, zs), codes = _masked.integrate(args_b, state0, plan, plant_batched)
     codes = jnp.where(jax.vmap(is_finite)(state0), codes, NONFINITE).astype(jnp.int32)  # as simulate
-    traj = per_member(args_b, lambda a, x, z, c: trajectory(a, ts, x, z, c))(xs, zs, codes)
-    return _raise_if(traj, throw, "obsjax.simulate_batch", traj.status)
+    traj = each(lambda a, x, z, c: trajectory(a, ts, x, z, c))(xs, zs, codes)
+    return _raise_if(traj, throw, f"obsjax.{who}", traj.status)
 
 
-def _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common):
-    """``jax.vmap`` of :func:`obsjax.simulate` over the members (and their noise keys, with noise)."""
-    if common["noise"] is None:
-        return jax.vmap(lambda a, b: simulate(plant, observer, a, b, ts, **common))(x0s, xhat0s)
-    return jax.vmap(lambda a, b, k: simulate(plant, observer, a, b, ts, key=k, **common))(x0s, xhat0s, keys)
+def _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common, plant_batched=False):
+    """``jax.vmap`` of :func:`obsjax.simulate` over the members (their plants with `plant_batched`, and their
+    noise keys, with noise)."""
+    plant_axis = eqx.if_array(0) if plant_batched else None
+    key_axis = None if common["noise"] is None else 0
+
+    def one(pl, a, b, k):
+        return simulate(pl, observer, a, b, ts, key=k, **common)
+
+    return eqx.filter_vmap(one, in_axes=(plant_axis, 0, 0, key_axis))(
+        plant, x0s, xhat0s, keys if common["noise"] is not None else None
+    )

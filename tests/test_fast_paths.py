@@ -201,6 +201,7 @@ def test_traced_reset_period_on_a_switched_plant_matches_an_adaptive_solve(T, mo
     np.testing.assert_allclose(traced.error, ref.error, rtol=0, atol=3e-7)
 
 
+@pytest.mark.extended
 def test_fixed_step_last_stage_stays_before_a_jump():
     """A reset 1e-8 after a save time leaves an interval of 8 steps before the jump at 0.7 whose last stage
     time, t + h, rounds onto the jump; the stage is held one float before it.  (Before: error 0.22.)"""
@@ -231,6 +232,7 @@ def test_traced_reset_period_gradient_matches_finite_differences(T0):
     np.testing.assert_allclose(fwd, rev, rtol=1e-12)
 
 
+@pytest.mark.extended
 def test_traced_reset_on_a_save_time_gives_the_left_derivative():
     """At T with a reset on a save time the loss has a kink; the traced grid orders the reset before the
     save (the save sees the state after it), so autodiff returns the derivative from below, as the diffrax

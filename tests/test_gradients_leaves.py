@@ -151,6 +151,7 @@ def test_tlo_rho_bar_gradient():
 # ----------------------------------------------------------------------------
 
 
+@pytest.mark.extended
 def test_kreisselmeier_poles_gradient():
     """d/d(poles) of the parameter-error integral ∫‖p − p*‖² (p* = [f − a; b] moves with the
     poles too)."""

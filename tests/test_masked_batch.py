@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
+import optax
 import pytest
 
 import obsjax
@@ -182,4 +183,109 @@ def test_monte_carlo_default_kernel_is_the_masked_loop(spy):
     x0s = jax.vmap(lambda i: jr.normal(jr.split(jr.fold_in(key, i), 4)[0], (2,)))(jnp.arange(24))
     ref = _vmap_sim(CY_PLANT, CY_OBS, x0s, jnp.tile(jnp.array([5.0, -5.0]), (24, 1)), ts)
     assert res.n_failed == 0
+    np.testing.assert_allclose(res.error_norm, ref.error_norm, rtol=0, atol=1e-11)
+
+
+# ---------------------------------------------------------------------------------------------- a batch of
+# plants: tune(plant_batched=True) and monte_carlo(param_sampler=...) on the same loop
+
+LIN_C = np.array([[1.0, 0.0]])
+LIN_NOM = obsjax.LTI(np.array([[0.0, 1.0], [-2.0, -0.3]]), None, LIN_C)
+LIN_OBS = obsjax.Luenberger.from_poles(LIN_NOM, [-2.0, -3.0])
+
+
+def _sampled_plants(b, seed=0, spread=0.3):
+    """b plants A = A_nom + spread·N(0, 1) (each a different system), as a batch (leading axis b)."""
+    draw = lambda k: eqx.tree_at(lambda p: p.A, LIN_NOM, LIN_NOM.A + spread * jr.normal(k, (2, 2)))
+    return eqx.filter_vmap(draw)(jr.split(jr.key(seed), b))
+
+
+def _vmap_plants(plants, obs, x0s, xh0s, ts, **kw):
+    one = lambda p, a, b: obsjax.simulate(p, obs, a, b, ts, **kw)
+    return eqx.filter_vmap(one)(plants, x0s, xh0s)
+
+
+@pytest.mark.extended
+def test_a_batch_of_plants_runs_member_by_member_on_the_masked_loop(spy):
+    """Member b integrates plant b: equal to simulate on that plant (to rounding), with the statuses of
+    simulate; the members' plants really differ (their errors part by far more than the rounding)."""
+    from obsjax._simulate_batch import simulate_plants
+
+    B = 6
+    plants = _sampled_plants(B)
+    x0s = jr.normal(jr.key(1), (B, 2))
+    x0s = x0s.at[4, 1].set(jnp.nan)  # a member that starts non-finite fails alone
+    xh0s = jnp.zeros((B, 2))
+    ts = jnp.linspace(0.0, 5.0, 11)
+    kw = dict(rtol=1e-8, atol=1e-10, throw=False)
+    got = simulate_plants(plants, LIN_OBS, x0s, xh0s, ts, **kw)
+    assert len(spy) == 1
+    ref = _vmap_plants(plants, LIN_OBS, x0s, xh0s, ts, **kw)
+    np.testing.assert_array_equal(got.status, [0, 0, 0, 0, 2, 0])
+    np.testing.assert_array_equal(got.status, ref.status)
+    ok = np.asarray(got.status) == 0
+    np.testing.assert_allclose(np.asarray(got.error)[ok], np.asarray(ref.error)[ok], rtol=0, atol=1e-12)
+    # the same initial state under each member's plant: the trajectories differ by O(spread)
+    same = simulate_plants(plants, LIN_OBS, jnp.tile(x0s[:1], (B, 1)), xh0s, ts, **kw)
+    assert float(jnp.max(jnp.abs(same.x[1:] - same.x[:1]))) > 1e-2
+    with pytest.raises(ValueError, match="leading axis of length 6"):
+        simulate_plants(LIN_NOM, LIN_OBS, x0s, xh0s, ts, **kw)  # one plant, not a batch
+
+
+@pytest.mark.extended
+def test_gradients_over_a_batch_of_plants_match_finite_differences():
+    """d/d(poles) of the mean ISE over a batch of plants, reverse mode and forward mode (ForwardMode)
+    through the masked loop, against central differences, under jit."""
+    from obsjax._simulate_batch import simulate_plants
+
+    B = 4
+    plants = _sampled_plants(B, seed=2)
+    x0s = jr.normal(jr.key(3), (B, 2))
+    xh0s = jnp.zeros((B, 2))
+    ts = jnp.linspace(0.0, 4.0, 21)
+
+    def loss(poles, adjoint=None):
+        obs = eqx.tree_at(lambda o: o.poles, LIN_OBS, poles)
+        tr = simulate_plants(plants, obs, x0s, xh0s, ts, rtol=1e-10, atol=1e-12, adjoint=adjoint)
+        return jnp.mean(jnp.sum(tr.error_norm**2, axis=1))
+
+    p = jnp.asarray(LIN_OBS.poles)
+    g_rev = jax.jit(jax.grad(loss))(p)
+    g_fwd = jax.jit(jax.jacfwd(lambda q: loss(q, diffrax.ForwardMode())))(p)
+    lj = jax.jit(loss)
+    h = 1e-5
+    fd = np.array([(lj(p + h * e) - lj(p - h * e)) / (2 * h) for e in jnp.eye(2)])
+    assert np.all(np.abs(fd) > 1e-3)
+    np.testing.assert_allclose(g_rev, fd, rtol=1e-5)
+    np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-9)
+
+
+@pytest.mark.extended
+def test_tune_over_a_batch_of_plants_takes_the_masked_loop(spy):
+    plants = _sampled_plants(4, seed=4)
+    r = obsjax.tune(LIN_OBS, plants, where=lambda o: o.poles, loss=obsjax.losses.ise,
+                    x0s=jr.normal(jr.key(5), (4, 2)), xhat0s=jnp.zeros((4, 2)), ts=jnp.linspace(0.0, 4.0, 21),
+                    plant_batched=True, steps=2, optimizer=optax.adam(0.05), progress=False)  # fmt: skip
+    assert r.history["kernel"] == "masked" and len(spy) >= 1
+    assert np.all(np.isfinite(r.history["loss"]))
+
+
+@pytest.mark.extended
+def test_monte_carlo_with_a_param_sampler_takes_the_masked_loop(spy):
+    """Each trajectory draws its own plant (from the fourth key of fold_in(key, i)) and equals simulate on
+    that plant and draw."""
+    key = jr.key(8)
+    ts = np.linspace(0.0, 4.0, 9)
+
+    def sampler(k, plant):
+        return eqx.tree_at(lambda p: p.A, plant, plant.A + 0.3 * jr.normal(k, (2, 2)))
+
+    res = obsjax.monte_carlo(LIN_NOM, LIN_OBS, key, 10, x0_sampler=lambda k: jr.normal(k, (2,)),
+                             xhat0_sampler=np.zeros(2), ts=ts, param_sampler=sampler, chunk_size=5,
+                             progress=False)  # fmt: skip
+    assert len(spy) >= 1 and res.n_failed == 0
+    ks = jax.vmap(lambda i: jr.split(jr.fold_in(key, i), 4))(jnp.arange(10))
+    plants = eqx.filter_vmap(lambda k: sampler(k, LIN_NOM))(ks[:, 3])
+    x0s = jax.vmap(lambda k: jr.normal(k, (2,)))(ks[:, 0])
+    ref = _vmap_plants(plants, LIN_OBS, x0s, jnp.zeros((10, 2)), ts)
     np.testing.assert_allclose(res.error_norm, ref.error_norm, rtol=0, atol=1e-11)

@@ -167,6 +167,7 @@ def test_structured_systems(name, A, C, poles):
     check_against_scipy(A, C, poles, L)
 
 
+@pytest.mark.extended
 def test_non_cyclic_case_of_the_issue_is_placed():
     """Two identical 6×6 blocks, m = 2 (the cyclic reduction returned ‖L‖ = 4e18 there)."""
     rng = np.random.default_rng(3)

@@ -95,6 +95,7 @@ def test_throw_true_raises_on_solver_failure():
         obsjax.simulate(PLANT, obs, jnp.ones(2), jnp.zeros(2), TS, max_steps=3)
 
 
+@pytest.mark.extended
 def test_fixed_step_matches_adaptive():
     obs = obsjax.Luenberger.from_poles(PLANT, [-2.0, -4.0])
     a = obsjax.simulate(PLANT, obs, jnp.ones(2), jnp.zeros(2), TS, u=U, **TIGHT)

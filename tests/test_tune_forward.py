@@ -118,7 +118,7 @@ def test_tune_picks_the_masked_kernel_where_the_problem_allows_it():
     lsr, ts = LSR, TS_CY
     assert _tune.batch_kernel(lsr, ts) == "masked"
     assert _tune.batch_kernel(lsr, ts, mode="forward") == "masked"
-    assert _tune.batch_kernel(lsr, ts, plant_batched=True) == "vmap"  # a plant per scenario
+    assert _tune.batch_kernel(lsr, ts, plant_batched=True) == "masked"  # a plant per scenario, one loop
     assert _tune.batch_kernel(lsr, ts, simulate_kwargs={"adaptive": False, "dt0": 0.01}) == "vmap"
     assert _tune.batch_kernel(lsr, ts, simulate_kwargs={"solver": diffrax.Kvaerno5()}) == "vmap"
     assert _tune.batch_kernel(lsr, ts, simulate_kwargs={"max_steps": None}) == "vmap"

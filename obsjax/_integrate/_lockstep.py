@@ -128,15 +128,22 @@ class LockstepController(diffrax.AbstractAdaptiveStepSizeController):
         return low & jax.lax.cond(jnp.any(low), median_ok, lambda: jnp.asarray(False))
 
 
-def per_member(args_b: _system.Args, fn):
-    """``fn(args_i, *member_arrays)`` vmapped over members; the noise path (if any) is per member."""
-    if args_b.noise_path is None:
+def per_member(args_b: _system.Args, fn, plant_batched: bool = False):
+    """``fn(args_i, *member_arrays)`` vmapped over members; the noise path (if any) is per member, and so
+    is the plant with `plant_batched` (every array leaf of ``args_b.plant`` with a leading member axis)."""
+    if args_b.noise_path is None and not plant_batched:
         return jax.vmap(lambda *a: fn(args_b, *a))
 
-    def one(path, *a):
-        return fn(_system.Args(args_b.plant, args_b.observer, args_b.u, args_b.controller, path), *a)
+    def one(plant, path, *a):
+        return fn(_system.Args(plant, args_b.observer, args_b.u, args_b.controller, path), *a)
 
-    return lambda *a: eqx.filter_vmap(one)(args_b.noise_path, *a)
+    plant_axis = eqx.if_array(0) if plant_batched else None
+
+    def run(*a):
+        in_axes = (plant_axis, eqx.if_array(0)) + (eqx.if_array(0),) * len(a)
+        return eqx.filter_vmap(one, in_axes=in_axes)(args_b.plant, args_b.noise_path, *a)
+
+    return run
 
 
 def member_args(args_b: _system.Args, i) -> _system.Args:

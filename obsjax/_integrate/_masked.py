@@ -78,22 +78,27 @@ def eligible_options(observer, ts_np, *, solver=None, adaptive=True, noise=None,
     )
 
 
-def integrate(args_b: _system.Args, state0_b, plan: Plan):
+def integrate(args_b: _system.Args, state0_b, plan: Plan, plant_batched: bool = False):
     """Integrate the batch `state0_b` = (x0s (B, n), z0s) with independent adaptive steps.
+
+    With `plant_batched`, every array leaf of ``args_b.plant`` has a leading axis B: member b integrates
+    plant b (its static fields, among them the declared jump times, are shared, so the breakpoints of
+    `plan` are every member's).
 
     Returns ((xs, zs) with leading axes (B, len(ts)), codes (B,)).
     """
     opt, sched = plan.opt, plan.sched
-    # Arrays of the plant, observer, input and controller are shared; the noise path's are per member.
-    # Everything that is not an array (functions, static fields) is closed over.
+    # Arrays of the observer, input and controller are shared; the noise path's are per member, and the
+    # plant's either. Everything that is not an array (functions, static fields) is closed over.
     dyn, static = eqx.partition(args_b, eqx.is_array)
-    shared = _system.Args(dyn.plant, dyn.observer, dyn.u, dyn.controller, None)
-    member = dyn.noise_path
+    shared = (None if plant_batched else dyn.plant, dyn.observer, dyn.u, dyn.controller)
+    member = (dyn.plant if plant_batched else None, dyn.noise_path)
+    member_axes = (0 if plant_batched else None, None if dyn.noise_path is None else 0)
 
     def args_of(a):
-        sh, mem = a
-        full = _system.Args(sh.plant, sh.observer, sh.u, sh.controller, mem)
-        return eqx.combine(full, static)
+        (plant, observer, u, controller), (member_plant, path) = a
+        plant = member_plant if plant_batched else plant
+        return eqx.combine(_system.Args(plant, observer, u, controller, path), static)
 
     def vector_field(t, y, a):
         return _system.drift(t, y, args_of(a))
@@ -117,7 +122,7 @@ def integrate(args_b: _system.Args, state0_b, plan: Plan):
         sched.t0,
         sched.t1,
         args=(shared, member),
-        args_axes=(None, None if member is None else 0),
+        args_axes=(None, member_axes),
         solver=opt.solver,
         stepsize_controller=diffrax.PIDController(rtol=opt.rtol, atol=opt.atol, dtmin=floor),
         dt0=dt0,

@@ -22,11 +22,10 @@ from .._config import require_x64
 from .._integrate import _masked, _validate
 from .._integrate._schedule import reset_segments
 from .._simulate import NONFINITE, SUCCESS, _check_ts, num_segments, simulate
-from .._simulate_batch import simulate_batch
-from ._checkpoint import _read_chunk
+from .._simulate_batch import simulate_batch, simulate_plants
+from ._checkpoint import _read_chunk, write_chunk
 from ._checkpoint import chunk_path as _chunk_path
 from ._checkpoint import read_checkpoint as _resume
-from ._checkpoint import write_chunk
 from ._fingerprint import fingerprint
 from ._streaming import DEFAULT_SKETCH_RTOL, LogHistogram
 
@@ -601,20 +600,16 @@ def _batch(dyn, cfg: _Config, key, idx, lockstep: bool):
     """One shard's members as one ``simulate_batch``: in lock step, or each with its own steps (the masked
     adaptive Runge–Kutta loop where the problem allows it, else ``jax.vmap(simulate)``)."""
     plant, observer, noise = eqx.combine(dyn, cfg.static)
-    x0s, xhat0s, kns = jax.vmap(lambda i: _draw(dyn, cfg, key, i)[1:])(idx)
-    traj = simulate_batch(
-        plant,
-        observer,
-        x0s,
-        xhat0s,
-        np.asarray(cfg.ts),
-        noise=noise,
-        keys=kns if noise is not None else None,
-        throw=False,
-        max_segments=cfg.max_segments,
-        lockstep=lockstep,
-        **dict(cfg.sim_kwargs),
-    )
+    kw = dict(noise=noise, throw=False, max_segments=cfg.max_segments, **dict(cfg.sim_kwargs))
+    ts = np.asarray(cfg.ts)
+    if cfg.param_sampler is not None:  # a plant per member (never in lock step)
+        plants, x0s, xhat0s, kns = eqx.filter_vmap(lambda i: _draw(dyn, cfg, key, i))(idx)
+        traj = simulate_plants(plants, observer, x0s, xhat0s, ts, keys=kns if noise is not None else None, **kw)
+    else:
+        x0s, xhat0s, kns = jax.vmap(lambda i: _draw(dyn, cfg, key, i)[1:])(idx)
+        traj = simulate_batch(
+            plant, observer, x0s, xhat0s, ts, keys=kns if noise is not None else None, lockstep=lockstep, **kw
+        )
     return traj.error_norm, traj.status
 
 
@@ -824,10 +819,11 @@ def monte_carlo(
     - `max_chunks`: compute at most this many new chunks in this call.
     - `lockstep`: integrate each device's share of a chunk as one lock-step batch
       (:func:`obsjax.simulate_batch`: one adaptive solve whose step every member accepts) instead of
-      independent solves.  By default (``lockstep=False``) each trajectory takes its own steps: with
-      ``param_sampler=None`` the share is ``simulate_batch(..., lockstep=False)`` (the masked adaptive
-      Runge–Kutta loop for explicit Runge–Kutta pairs, member by member the solve of
-      :func:`obsjax.simulate`, to rounding), otherwise ``jax.vmap`` of :func:`obsjax.simulate`.  Lock step
+      independent solves.  By default (``lockstep=False``) each trajectory takes its own steps: the share
+      is ``simulate_batch(..., lockstep=False)`` (the masked adaptive Runge–Kutta loop for explicit
+      Runge–Kutta pairs, member by member the solve of :func:`obsjax.simulate`, to rounding; with a
+      `param_sampler`, the same loop with each member's own plant), otherwise ``jax.vmap`` of
+      :func:`obsjax.simulate`.  Lock step
       can be faster still on the CPU for adaptive solves of alike trajectories (1.0–1.7× the default on
       the Chen & Yen study: benchmarks/results/d_sharding.md, g_numba_dopri5.md); but the steps then depend on which trajectories share a batch, so results agree with
       the default only to the solver tolerance (not bitwise across chunk sizes or device counts).  A member
@@ -948,7 +944,7 @@ def monte_carlo(
     if D > 1:
         mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
 
-    masked = param_sampler is None and _masked.eligible_options(observer, ts_arr, noise=noise, **sim_kwargs)
+    masked = _masked.eligible_options(observer, ts_arr, noise=noise, **sim_kwargs)
     dyn, static = eqx.partition((plant, observer, noise), eqx.is_array)
     cfg = _Config(
         static=static,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from functools import partial
 from typing import Any
 
 import diffrax
@@ -19,7 +20,7 @@ from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
 from .._integrate import _masked, _validate
 from .._simulate import SUCCESS, _check_ts, num_segments, simulate
-from .._simulate_batch import simulate_batch
+from .._simulate_batch import simulate_batch, simulate_plants
 from ..systems._noise import BandLimitedNoise
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
@@ -143,7 +144,9 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
         new = tuple(th) if signs is None else tuple(s * jnp.exp(t) for s, t in zip(signs, th))
         obs = eqx.tree_at(where, observer, new[0] if single else new)
         if kernel == "masked":
-            traj = simulate_batch(
+            # one plant per scenario (plant_batched) or one shared by all
+            batch = simulate_plants if plant_batched else partial(simulate_batch, lockstep=False)
+            traj = batch(
                 plant,
                 obs,
                 x0s,
@@ -154,7 +157,6 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
                 noise=noise,
                 throw=False,
                 max_segments=max_segments,
-                lockstep=False,
                 **sim_kwargs,
             )
             losses = jax.vmap(lambda tr: _loss_value(loss, tr))(traj)
@@ -189,12 +191,12 @@ def batch_kernel(observer, ts, *, plant_batched=False, noise=None, mode="reverse
     """How :func:`tune` simulates its scenarios: ``"masked"`` — one
     ``simulate_batch(..., lockstep=False)``, each scenario with its own adaptive steps on the masked
     Runge–Kutta loop — when the problem allows it (adaptive steps of an explicit Runge–Kutta pair, no
-    white noise, no observer events, ``max_steps`` set, a plant shared by the scenarios, an adjoint
-    the loop implements); ``"vmap"`` — ``jax.vmap(simulate)`` — otherwise.  Both solve every scenario
-    as :func:`obsjax.simulate` does (to rounding; the masked loop's step budget is ``max_steps`` per
-    segment, shared by a scenario's segments)."""
-    if plant_batched:
-        return "vmap"
+    white noise, no observer events, ``max_steps`` set, an adjoint the loop implements; a plant
+    shared by the scenarios or, with `plant_batched`, one plant per scenario); ``"vmap"`` —
+    ``jax.vmap(simulate)`` — otherwise.  Both solve every scenario as :func:`obsjax.simulate` does (to
+    rounding; the masked loop's step budget is ``max_steps`` per segment, shared by a scenario's
+    segments)."""
+    del plant_batched  # both kernels take a batch of plants
     kw = _solve_kwargs(simulate_kwargs or {}, mode)
     ts_np = np.asarray(ts, dtype=float)
     return "masked" if _masked.eligible_options(observer, ts_np, noise=noise, **kw) else "vmap"
@@ -543,10 +545,10 @@ def tune(
       or ``BacksolveAdjoint`` reverse); one that cannot do the requested mode is refused.
 
     **Batch kernel.**  With adaptive steps of an explicit Runge–Kutta pair (the default Tsit5,
-    Dopri5, …), ``max_steps`` set, no white noise, no observer events, one plant for every scenario
-    and an adjoint the loop implements, the scenarios are one
-    ``simulate_batch(..., lockstep=False)``: each with its own adaptive steps on the masked
-    Runge–Kutta loop, resets crossed inside one loop.  Otherwise they are ``jax.vmap`` of
+    Dopri5, …), ``max_steps`` set, no white noise, no observer events and an adjoint the loop
+    implements, the scenarios are one ``simulate_batch(..., lockstep=False)`` (with
+    ``plant_batched=True``, the same loop with one plant per scenario): each with its own adaptive
+    steps on the masked Runge–Kutta loop, resets crossed inside one loop.  Otherwise they are ``jax.vmap`` of
     :func:`obsjax.simulate`.  Both solve each scenario as :func:`obsjax.simulate` does (the same
     tableau and step-size control, to rounding; the masked loop's step budget is ``max_steps`` per
     segment, shared by a scenario's segments), and both are differentiated in either mode.  On
