@@ -92,7 +92,7 @@ def simulate_batch(
     """
     require_x64("obsjax.simulate_batch")
     return _simulate_members(
-        plant, observer, x0s, xhat0s, ts, keys, lockstep=lockstep, plant_batched=False, who="simulate_batch",
+        plant, observer, x0s, xhat0s, ts, keys, lockstep=lockstep, plant_batched=False,
         u=u, controller=controller, noise=noise, solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive,
         max_steps=max_steps, max_segments=max_segments, adjoint=adjoint, throw=throw,
     )
@@ -111,7 +111,7 @@ def simulate_plants(plants, observer, x0s, xhat0s, ts, *, keys=None, **kwargs) -
     """
     require_x64("obsjax.simulate_batch")
     return _simulate_members(plants, observer, x0s, xhat0s, ts, keys, lockstep=False, plant_batched=True,
-                             who="simulate_batch", **kwargs)
+                             **kwargs)
 
 
 def _first_plant(plants, B):
@@ -125,7 +125,7 @@ def _first_plant(plants, B):
     return jax.tree_util.tree_map(lambda a: a[0] if eqx.is_array(a) else a, plants)
 
 
-def _simulate_members(plant, observer, x0s, xhat0s, ts, keys, *, lockstep, plant_batched, who, u=None,
+def _simulate_members(plant, observer, x0s, xhat0s, ts, keys, *, lockstep, plant_batched, u=None,
                       controller=None, noise=None, solver=None, rtol=1e-6, atol=1e-8, dt0=None, adaptive=True,
                       max_steps=16384, max_segments=None, adjoint=None, throw=True):
     if plant_batched:
@@ -183,7 +183,7 @@ def _simulate_members(plant, observer, x0s, xhat0s, ts, keys, *, lockstep, plant
         (xs, zs), codes = _masked.integrate(args_b, state0, plan, plant_batched)
     codes = jnp.where(jax.vmap(is_finite)(state0), codes, NONFINITE).astype(jnp.int32)  # as simulate
     traj = each(lambda a, x, z, c: trajectory(a, ts, x, z, c))(xs, zs, codes)
-    return _raise_if(traj, throw, f"obsjax.{who}", traj.status)
+    return _raise_if(traj, throw, "obsjax.simulate_batch", traj.status)
 
 
 def _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common, plant_batched=False):
