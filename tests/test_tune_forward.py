@@ -232,3 +232,39 @@ def test_tuning_T_under_band_limited_noise_with_adaptive_steps_warns(where, kwar
     assert bool(hits) == warns
     if warns:
         assert "dt = 0.05" in str(hits[0].message) and "adaptive=False" in str(hits[0].message)
+
+
+@pytest.mark.extended
+def test_fixed_step_derivative_in_T_under_band_limited_noise_is_the_exact_one():
+    """With fixed steps the reset instants move through the jump condition on a grid that does not move
+    with T, so dJ/dT under band-limited noise (a kink in the noise path every 0.05 s) is that of the exact
+    loss: central differences of tight adaptive solves, to 1e-3 at h = dt/4 (it was -30.0 against -28.5
+    while the steps beside each reset moved with T).  Reverse mode, tune's kernel."""
+    noise = obsjax.noise.BandLimitedNoise(0.05, dt=0.05)
+    lsr = obsjax.LeastSquaresReset(CY, 20.0, 0.1, 0.33)
+    x0s = jnp.asarray([[0.5, -1.0], [1.5, 0.3], [0.2, 0.1]])
+    xh0s = jnp.tile(jnp.asarray([5.0, -5.0]), (3, 1))
+    keys = jr.split(jr.PRNGKey(3), 3)
+    where = lambda o: o.T
+    leaves0, single = _tune._selected_leaves(lsr, where)
+    spec = (where, obsjax.losses.ise, single, False, noise, None, 16, (("adaptive", False), ("dt0", 0.0125)),
+            tuple(float(t) for t in TS_CY), "reverse", "vmap")  # fmt: skip
+    _, g = _tune._value_and_grad(leaves0, None, lsr, CY, x0s, xh0s, keys,
+                                 jnp.asarray(_tune.risk_weights("mean", 3)), spec)  # fmt: skip
+    g = float(np.ravel(np.asarray(g[0] if isinstance(g, tuple) else g))[0])
+
+    @jax.jit
+    def exact(T):
+        o = obsjax.LeastSquaresReset(CY, 20.0, 0.1, T)
+
+        def run(x, xh, k):
+            tr = obsjax.simulate(CY, o, x, xh, TS_CY, noise=noise, key=k, throw=False, max_segments=16,
+                                 rtol=1e-12, atol=1e-14, max_steps=100_000)  # fmt: skip
+            return obsjax.losses.ise(tr)
+
+        return jnp.mean(jax.vmap(run)(x0s, xh0s, keys))
+
+    h = 1e-4
+    fd = float((exact(0.33 + h) - exact(0.33 - h)) / (2 * h))
+    assert fd == pytest.approx(-28.5, abs=0.05)  # the reference of the table in tune's docstring
+    assert g == pytest.approx(fd, rel=1e-3)
