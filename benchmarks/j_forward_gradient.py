@@ -250,6 +250,13 @@ def main(repeat=7, quick=False):
     }
     faster_text = "; ".join(f"{s_} steps, {k_} kernel: n ∈ {faster[(s_, k_)]}" for s_, k_ in configs)
     by = {(n, s_, k_): m for n, s_, k_, m in cross}
+    columns = {"reverse, masked": ("adaptive", "masked", "rev"), "reverse, vmap": ("adaptive", "vmap", "rev"),
+               "forward mode, masked": ("adaptive", "masked", "fmd"),
+               "forward mode, vmap": ("adaptive", "vmap", "fmd")}  # fmt: skip
+    cheapest = "; ".join(
+        f"{n}: {min(columns, key=lambda c: by[(n, columns[c][0], columns[c][1])]['best'][columns[c][2]])}"
+        for n in ns
+    )
     per_step = "\n".join(
         f"| {n} | {by[(n, 'adaptive', 'masked')]['best']['rev']:.4f} s | {by[(n, 'adaptive', 'vmap')]['best']['rev']:.4f} s | "
         f"{by[(n, 'adaptive', 'masked')]['best']['fmd']:.4f} s | {by[(n, 'adaptive', 'vmap')]['best']['fmd']:.4f} s |"
@@ -326,7 +333,7 @@ Seconds per step of `tune` (value and gradient, best wall time), the two adaptiv
 The masked kernel's reverse mode is the cheaper at every n; its forward mode grows faster with the number
 of tangents than the vmap kernel's (each tangent costs more than one forward pass there; why is not
 settled: the compiled loop's matrix products on the tangents come with transposes that the forward pass
-does not have), so on this cheap linear plant at 3–4 scalars forward mode on the vmap kernel was the cheapest.  With
+does not have).  The cheapest of the four per step in this run, by the number of scalars: {cheapest}.  With
 resets (Chen & Yen above) the masked kernel is the cheaper in both modes by a wide margin.
 
 Forward mode is cheaper per step (CPU time) for {faster_text}.  `tune(mode="auto")` uses forward mode up

@@ -265,6 +265,26 @@ def test_traced_reset_on_a_save_time_gives_the_left_derivative():
     np.testing.assert_allclose(g, left, rtol=2e-5)
 
 
+@pytest.mark.extended
+def test_traced_reset_on_a_plant_jump_gives_the_derivative_from_below():
+    """Resets on the switched plant's jumps (T = 0.7): the loss has a kink in T there (the vector field
+    before and after the jump differ), and the jump condition reads the vector field before the jump, so
+    autodiff returns the derivative from below (the reset just before the jump), in both modes."""
+    ts = np.array([0.0, 0.5, 1.0, 1.5])  # no save time on a reset; dt0 divides no interval exactly
+
+    def loss(T):
+        return jnp.sum(_switch_run(T, ts, 3, dt0=0.0275).error_norm ** 2)
+
+    lj = jax.jit(loss)
+    h = 1e-5  # one-sided differences of second order
+    left = (3 * lj(0.7) - 4 * lj(0.7 - h) + lj(0.7 - 2 * h)) / (2 * h)
+    right = -(3 * lj(0.7) - 4 * lj(0.7 + h) + lj(0.7 + 2 * h)) / (2 * h)
+    g = jax.jit(jax.grad(loss))(0.7)
+    assert abs(left - right) > 1e-2 * abs(left)  # a real kink
+    np.testing.assert_allclose(g, left, rtol=1e-4)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(loss))(0.7), g, rtol=1e-12)
+
+
 def test_fixed_step_euler_is_forward_euler():
     plant = obsjax.LTI([[-1.0]], None, [[1.0]])
     obs = obsjax.Luenberger(plant, [[1.0]])

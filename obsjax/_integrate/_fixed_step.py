@@ -304,19 +304,21 @@ def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol
     rk_step = rk_stepper(_system.drift, args, tableau)
     has_reset, has_event = sched.has_reset, sched.has_event
     f = eqx.filter_jit(_system.for_check_mode(_system.drift))
-    # the vector field's left limit at node k is read at the end of interval k - 1 (one float before a
-    # plant jump there)
-    left_end = jnp.concatenate([start[:1], end])
 
     def moving_jump(k, y):
         """The jump at node k, y⁺ = act(τ, y⁻), plus its first-order motion when τ moves by δτ:
         y⁺ + δτ·(∂act/∂t + ∂act/∂y f⁻ − f⁺), written as act(τ + δτ, y⁻ + δτ f⁻) − δτ f⁺ with δτ = `motion`,
-        whose value is 0 (the state is unchanged) and whose derivative is the node time's."""
+        whose value is 0 (the state is unchanged) and whose derivative is the node time's.
+
+        f⁻ and f⁺ are read one float before τ: where a plant jump falls on τ too, they are the vector field
+        before it, i.e. the derivative is the one from below (τ just before the plant's jump), as at a
+        reset on a save time; elsewhere the float makes no difference."""
         d = motion[k]
         t_k = start[k]
-        f_minus = _finite(f(left_end[k], y, args))
+        t_left = jnp.nextafter(t_k, jnp.asarray(-jnp.inf, dtype))
+        f_minus = _finite(f(t_left, y, args))
         y_plus = _system.act(args, t_k, y, reset[k], event[k], has_reset, has_event)
-        f_plus = _finite(f(t_k, y_plus, args))
+        f_plus = _finite(f(t_left, y_plus, args))
         y_moved = tmap(lambda v, g: v + d * g, y, f_minus)
         y_jump = _system.act(args, t_k + d, y_moved, reset[k], event[k], has_reset, has_event)
         return tmap(lambda v, g: v - d * g, y_jump, f_plus)
