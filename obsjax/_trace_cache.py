@@ -51,6 +51,10 @@ OPT_OUT = "OBSJAX_NO_TRACE_CACHE"
 SUBDIR = "obsjax-traced"
 #: bumped when the file format or the key changes
 FORMAT = 1
+#: the oldest JAX whose programs, exported by one process and read back by another, run: with jax
+#: 0.6.1, 0.6.2, 0.7.2, 0.8.0, 0.9.0 and 0.9.2 the first call of a program read back crashed the
+#: process (SIGSEGV inside XLA), with 0.10.0 and 0.10.1 it computed the same numbers
+MIN_JAX = (0, 10, 0)
 
 _state = {"dir": None}
 _memo: dict = {}  # in-process: signature -> callable on (dynamic leaves)
@@ -109,7 +113,10 @@ def enable_trace_cache(
     default).
 
     **Returns:** the directory of saved programs, or ``None`` when opted out
-    (``OBSJAX_NO_TRACE_CACHE=1`` or ``OBSJAX_NO_COMPILATION_CACHE=1``).
+    (``OBSJAX_NO_TRACE_CACHE=1`` or ``OBSJAX_NO_COMPILATION_CACHE=1``) or when the installed JAX is
+    older than ``MIN_JAX`` (0.10.0): with older versions a program read back by another process
+    crashed it, so the trace cache stays off there (with a warning) and only the compilation cache is
+    turned on.
     """
     from ._cache import MIN_COMPILE_TIME_SECS, enable_compilation_cache
 
@@ -120,10 +127,30 @@ def enable_trace_cache(
     base = enable_compilation_cache(path, min_compile_time_secs=min_compile_time_secs)
     if base is None:
         return None
+    if not supported():
+        import warnings
+
+        warnings.warn(
+            f"obsjax's trace cache needs jax >= {'.'.join(map(str, MIN_JAX))} (a program read back "
+            f"from it crashed the process with older versions); jax {jax.__version__} is installed, so "
+            "kernels are traced in every process (the compilation cache is on).",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        return None
     d = os.path.join(base, SUBDIR)
     os.makedirs(d, exist_ok=True)
     _state["dir"] = d
     return d
+
+
+def supported() -> bool:
+    """Whether the installed JAX is one the trace cache is used with (``MIN_JAX`` or newer)."""
+    parts = []
+    for p in jax.__version__.split(".")[:3]:
+        digits = "".join(c for c in p if c.isdigit())
+        parts.append(int(digits) if digits else 0)
+    return tuple(parts) >= MIN_JAX
 
 
 def disable_trace_cache() -> None:

@@ -17,6 +17,10 @@ import pytest
 from obsjax import _cache, _trace_cache
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# the tests of programs read back by another process, on the JAX versions the cache is used with
+needs_supported_jax = pytest.mark.skipif(
+    not _trace_cache.supported(), reason=f"the trace cache is off with jax < {_trace_cache.MIN_JAX}"
+)
 
 # A small Monte-Carlo study and two tune steps, with the trace cache in the directory argv[1] (or off
 # when argv[1] is "off").
@@ -66,6 +70,7 @@ def _run(arg, scale=1.0, **env_extra):
 
 
 @pytest.mark.extended
+@needs_supported_jax
 def test_a_second_process_reads_the_programs_and_computes_the_same_numbers(tmp_path):
     d = str(tmp_path / "cache")
     first = _run(d)
@@ -206,6 +211,7 @@ def test_a_program_that_cannot_be_exported_is_traced():
         _trace_cache.disable_trace_cache()
 
 
+@needs_supported_jax
 def test_the_command_line_turns_it_on_for_its_run_only_and_import_does_not():
     """On while the command runs; a process that called ``cli.main`` (a test, a notebook) has it off
     again afterwards."""
@@ -222,6 +228,7 @@ def test_the_command_line_turns_it_on_for_its_run_only_and_import_does_not():
 
 
 @pytest.mark.extended
+@needs_supported_jax
 def test_a_sharded_study_is_saved_and_read_back(tmp_path):
     """Two host devices: the study's kernel (shard_map over a mesh) is exported, read back by the
     next process and computes what one device computes."""
@@ -389,3 +396,50 @@ def test_fast_compile_options_compile_the_same_program(monkeypatch):
     assert _trace_cache.fast_compile_options() == {}
     c = _trace_cache.filter_jit(kernel, fast_compile=True)(x, 50)
     np.testing.assert_allclose(np.asarray(c[0]), np.asarray(b[0]), rtol=0, atol=0)
+
+
+def test_an_older_jax_leaves_the_trace_cache_off_with_a_warning(tmp_path, monkeypatch):
+    """Below MIN_JAX (programs read back crashed another process) enable_trace_cache warns, returns
+    None and leaves only the compilation cache on."""
+    monkeypatch.delenv(_trace_cache.OPT_OUT, raising=False)
+    monkeypatch.delenv(_cache.OPT_OUT, raising=False)
+    monkeypatch.setattr(_trace_cache, "MIN_JAX", (99, 0, 0))
+    # the directory and threshold in use (the suite's), so that nothing else changes
+    before = jax.config.jax_compilation_cache_dir
+    threshold = float(jax.config.jax_persistent_cache_min_compile_time_secs)
+    path = before or str(tmp_path)
+    try:
+        assert not _trace_cache.supported()
+        with pytest.warns(RuntimeWarning, match=r"trace cache needs jax >= 99\.0\.0"):
+            assert _trace_cache.enable_trace_cache(path, min_compile_time_secs=threshold) is None
+        assert _trace_cache.trace_cache_dir() is None
+        assert jax.config.jax_compilation_cache_dir == os.path.abspath(path)
+    finally:
+        _trace_cache.disable_trace_cache()
+        if before is None:
+            jax.config.update("jax_compilation_cache_dir", None)
+
+
+def test_the_order_of_an_equinox_modules_wrapper_fields_is_not_in_the_key():
+    """equinox 0.13.0 keeps a module's wrapper fields (__doc__, __name__, ...) in a set's iteration order,
+    which changes with every process's string hashing; the fingerprint sorts them (on equinox 0.13.0 a
+    second process then found the first one's programs).  Here a stand-in of that node data, in two
+    orders, gives one fingerprint; another value does not."""
+    import dataclasses
+
+    from obsjax.montecarlo._fingerprint import _canonical_node_data, fingerprint
+
+    @dataclasses.dataclass(frozen=True)
+    class FlattenedData:
+        dynamic_field_names: tuple
+        wrapper_fields: tuple
+
+    FlattenedData.__module__ = "equinox._module._module"
+    a = FlattenedData(("A",), (("__doc__", None), ("__name__", "f"), ("__qualname__", "f")))
+    b = FlattenedData(("A",), (("__qualname__", "f"), ("__doc__", None), ("__name__", "f")))
+    c = FlattenedData(("A",), (("__qualname__", "g"), ("__doc__", None), ("__name__", "f")))
+    fp = lambda d: fingerprint({"x": _canonical_node_data(d)})[0]
+    assert fp(a) == fp(b) != fp(c)
+    # node data of other libraries is hashed as it is
+    FlattenedData.__module__ = "mylib"
+    assert fingerprint({"x": _canonical_node_data(a)})[0] != fingerprint({"x": _canonical_node_data(b)})[0]

@@ -97,6 +97,25 @@ def header() -> str:
     return ";".join([f"format{FORMAT}", py] + [f"{p}={_version(p)}" for p in _VERSIONED])
 
 
+def _canonical_node_data(data):
+    """A pytree node's auxiliary data in an order that does not change between processes.
+
+    equinox 0.13.0 keeps a module's wrapper fields (``__doc__``, ``__name__``, ``__qualname__``, ...) as
+    name–value pairs in the iteration order of a set of strings, which Python's string hashing changes
+    from process to process: the same structure would fingerprint differently in every process (the
+    trace cache never found a saved program there).  The pairs are sorted by name.  Later equinox
+    versions keep no such field; other node data is left as it is."""
+    wf = getattr(data, "wrapper_fields", None)
+    if (
+        type(data).__module__.startswith("equinox")
+        and dataclasses.is_dataclass(data)
+        and isinstance(wf, tuple)
+        and all(isinstance(kv, tuple) and len(kv) == 2 and isinstance(kv[0], str) for kv in wf)
+    ):
+        return dataclasses.replace(data, wrapper_fields=tuple(sorted(wf, key=lambda kv: kv[0])))
+    return data
+
+
 class _Hasher:
     """Feeds a canonical, length-prefixed encoding of an object graph into SHA-256."""
 
@@ -262,7 +281,7 @@ class _Hasher:
             self.put("leaf")
             return
         self.visit(node[0], f"{path}.<node type>")
-        self.visit(node[1], f"{path}.<node data>")
+        self.visit(_canonical_node_data(node[1]), f"{path}.<node data>")
         for i, child in enumerate(td.children()):
             self.visit(child, f"{path}.<child {i}>")
 
