@@ -312,15 +312,15 @@ def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol
 
         f⁻ and f⁺ are read one float before τ: where a plant jump falls on τ too, they are the vector field
         before it, i.e. the derivative is the one from below (τ just before the plant's jump), as at a
-        reset on a save time; elsewhere the float makes no difference."""
+        reset on a save time; elsewhere the float makes no difference.  f⁺ is read at the jumped state
+        itself: its own motion enters only multiplied by δτ, i.e. at second order."""
         d = motion[k]
         t_k = start[k]
         t_left = jnp.nextafter(t_k, jnp.asarray(-jnp.inf, dtype))
         f_minus = _finite(f(t_left, y, args))
-        y_plus = _system.act(args, t_k, y, reset[k], event[k], has_reset, has_event)
-        f_plus = _finite(f(t_left, y_plus, args))
         y_moved = tmap(lambda v, g: v + d * g, y, f_minus)
         y_jump = _system.act(args, t_k + d, y_moved, reset[k], event[k], has_reset, has_event)
+        f_plus = _finite(f(t_left, y_jump, args))
         return tmap(lambda v, g: v - d * g, y_jump, f_plus)
 
     @jax.checkpoint  # reverse mode stores the carry of each step, not its stages
