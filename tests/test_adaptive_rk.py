@@ -315,3 +315,105 @@ def test_bad_input_fails_fast():
         adaptive_rk_solve(f, y0, 0.0, 1.0, adjoint=diffrax.BacksolveAdjoint())
     with pytest.raises(ValueError, match="t0"):
         adaptive_rk_solve(f, y0, jnp.zeros(3), 1.0)
+
+
+# ------------------------------------------------------------------------------------------- blocks
+
+
+def _mixed_batch(block_size):
+    # seven members, every per-member input at once: horizons, save times, reset instants, args (a
+    # pytree with a shared and a per-member part); member 4 starts non-finite, member 5 runs out of
+    # steps, member 6 blows up
+    t1 = jnp.array([1.0, 1.5, 2.0, 1.2, 1.0, 1.0, 1.0])
+    ts = jnp.stack([jnp.linspace(0.0, t, 6) for t in t1])
+    rates = jnp.array([1.0, 2.0, 0.5, 3.0, 1.0, 1e6, 0.0])
+    shift = jnp.array([0.3, 0.0])
+
+    def f(t, y, a):
+        shared, rate = a
+        lin = -rate * y + shared * jnp.sin(3.0 * t)
+        return jnp.where(rate > 0, lin, y * y)
+
+    y0 = jnp.stack([jnp.linspace(0.5, 1.5, 7), jnp.linspace(-1.0, 1.0, 7)], axis=1)
+    y0 = y0.at[4, 0].set(jnp.nan).at[6].set(jnp.array([2.0, 2.0]))
+    reset_ts = jnp.stack([jnp.array([0.3, 0.6]) * (1 + 0.1 * k) for k in range(7)])
+    return adaptive_rk_solve(
+        f,
+        y0,
+        0.0,
+        t1,
+        args=(shift, rates),
+        args_axes=(None, 0),
+        ts=ts,
+        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10),
+        reset=lambda t, y, a: 0.5 * y + a[0],
+        reset_ts=reset_ts,
+        max_steps=300,
+        block_size=block_size,
+    )
+
+
+def test_blocks_give_the_solution_of_one_loop():
+    # 7 members in blocks of 3 (three blocks, two padding members) and of 1, against one loop: the
+    # members are independent, so the solution, the step counts and the status agree member by
+    # member
+    whole = _mixed_batch(10_000)
+    np.testing.assert_array_equal(whole.status, [0, 0, 0, 0, NONFINITE, SOLVER_FAILED, whole.status[6]])
+    assert int(whole.status[6]) in (SOLVER_FAILED, NONFINITE)
+    for bs in (3, 1):
+        part = _mixed_batch(bs)
+        for a, b in zip(jax.tree_util.tree_leaves(part), jax.tree_util.tree_leaves(whole)):
+            assert a.shape == b.shape
+            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15, equal_nan=True)
+
+
+@pytest.mark.extended
+def test_gradients_through_blocks_match_central_differences():
+    # the toy loss of the gradient test, its two members in blocks of one: reverse and forward mode
+    # against central differences (the loop runs once per block inside jax.lax.map)
+    def loss(p, adjoint=None, block_size=1):
+        y0 = jnp.array([[1.0, 0.5], [-0.5, 1.0]]).at[0, 0].set(p[2])
+        sol = adaptive_rk_solve(
+            _toy,
+            y0,
+            0.0,
+            1.0,
+            args=p[0],
+            ts=jnp.linspace(0.0, 1.0, 5),
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
+            reset=lambda t, y, a: jnp.array([y[0], 0.5 * y[1] + 1.0]),
+            reset_ts=p[1] * jnp.arange(1, 6),
+            adjoint=adjoint,
+            block_size=block_size,
+        )
+        return jnp.sum(sol.ys**2)
+
+    p = jnp.array([1.3, 0.31, 1.0])
+    rev = jax.jit(jax.grad(loss))(p)
+    fwd = jax.jit(jax.jacfwd(lambda q: loss(q, diffrax.ForwardMode())))(p)
+    f = jax.jit(loss)
+    eps = 1e-6
+    fd = np.array([(f(p + eps * e) - f(p - eps * e)) / (2 * eps) for e in np.eye(3)])
+    np.testing.assert_allclose(rev, fd, rtol=1e-6)
+    np.testing.assert_allclose(fwd, fd, rtol=1e-6)
+    np.testing.assert_allclose(rev, jax.jit(jax.grad(lambda q: loss(q, block_size=2)))(p), rtol=1e-10)
+
+
+def test_default_block_size(monkeypatch):
+    from obsjax._integrate import _adaptive_rk as AR
+
+    # the largest power of two with a (block, n) float64 array of at most 32 KiB, at least 64
+    assert AR.default_block_size(12) == 256  # 32768 / 96 = 341
+    assert AR.default_block_size(4) == 1024
+    assert AR.default_block_size(1) == 4096
+    assert AR.default_block_size(200) == 64
+    assert AR.default_block_size(12, jnp.float32) == 512
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert AR.default_block_size(12) == float("inf")  # the whole batch at once off the CPU
+
+
+def test_bad_block_size_fails_fast():
+    f = lambda t, y, a: -y
+    for bad in (0, -3, True):
+        with pytest.raises(ValueError, match="block_size"):
+            adaptive_rk_solve(f, jnp.ones((2, 1)), 0.0, 1.0, block_size=bad)

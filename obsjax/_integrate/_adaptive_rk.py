@@ -391,6 +391,7 @@ def adaptive_rk_solve(
     jump_ts=None,
     max_steps: int = 4096,
     adjoint: diffrax.AbstractAdjoint | None = None,
+    block_size: int | None = None,
 ) -> AdaptiveRKSolution:
     """Integrate a batch of ODEs with an adaptive explicit Runge–Kutta pair, each member its own
     steps.
@@ -417,6 +418,11 @@ def adaptive_rk_solve(
     - `max_steps`: the most step attempts of one member over [t0, t1] (all segments).
     - `adjoint`: ``diffrax.RecursiveCheckpointAdjoint()`` (default), ``diffrax.ForwardMode()`` or
       ``diffrax.DirectAdjoint()``: which modes of differentiation the loop supports.
+    - `block_size`: the most members one loop integrates together; a larger batch is split into
+      blocks of (about) equal size that run one after another (``jax.lax.map``), each block its own
+      loop.  ``None`` (default): :func:`default_block_size`, i.e. blocks whose state arrays stay
+      within the processor's cache on the CPU, and the whole batch at once on other back-ends.  The
+      result does not depend on it (members are independent); only the speed does.
 
     **Returns:** an :class:`AdaptiveRKSolution`.
 
@@ -459,19 +465,100 @@ def adaptive_rk_solve(
     if reset is not None:
         R = jax.vmap(lambda t, u, a: ravel(reset(t, unravel(u), a)), in_axes=(0, 0, args_axes))
     norm = _batched_norm(ctrl.norm, unravel)
-    step = _make_body(F, R, args, method, ctrl, norm, dt0, targets, ts, max_steps, kind, B, solver)
-    carry0 = _initial_carry(flat0, t0, seg0, ts, B, dtype)
     n_targets = targets.value.shape[1]
-    final = eqxi.while_loop(
-        lambda c: jnp.any(c.status == _RUNNING),
-        step,
-        carry0,
-        max_steps=max_steps + n_targets + 1,
-        buffers=lambda c: c.ys,
-        kind=kind,
-        checkpoints=checkpoints,
-    )
+
+    def loop(flat0, t0, seg0, ts, targets, dt0, args):
+        Bk = flat0.shape[0]
+        step = _make_body(
+            F, R, args, method, ctrl, norm, dt0, targets, ts, max_steps, kind, Bk, solver
+        )
+        return eqxi.while_loop(
+            lambda c: jnp.any(c.status == _RUNNING),
+            step,
+            _initial_carry(flat0, t0, seg0, ts, Bk, dtype),
+            max_steps=max_steps + n_targets + 1,
+            buffers=lambda c: c.ys,
+            kind=kind,
+            checkpoints=checkpoints,
+        )
+
+    if block_size is None:
+        block_size = default_block_size(flat0.shape[1], flat0.dtype)
+    elif isinstance(block_size, bool) or not isinstance(block_size, (int, np.integer)) or (
+        block_size < 1
+    ):
+        raise ValueError(f"`block_size` must be a positive int or None, got {block_size!r}.")
+    per_member = (flat0, t0, seg0, ts, targets, dt0)
+    if B <= block_size:
+        final = loop(*per_member, args)
+    else:
+        final = _blockwise(loop, per_member, args, args_axes, B, int(block_size))
     return _finish(final, ts, t1, jax.vmap(jax.vmap(unravel)), jax.vmap(unravel))
+
+
+#: Bytes of one member-state array of a block on the CPU (see :func:`default_block_size`).
+CPU_BLOCK_BYTES = 32 * 1024
+
+
+def default_block_size(n: int, dtype=jnp.float64) -> int | float:
+    """Members per block of the loop for states of `n` components (the default of `block_size`).
+
+    Every operation of an iteration reads and writes (B, n) arrays, some twenty of them per step of a
+    seven-stage pair.  On the CPU a batch whose arrays leave the cache is slower per member than
+    the same batch run in blocks: on Chen & Yen's example (n = 12, 4096 members, Dopri5) one loop
+    took 1205 ns per member and step, blocks of 1024, 512, 256 and 128 took 940, 870, 825 and 865 ns
+    (smaller blocks also wait less for their slowest member).  The default is the largest power of
+    two whose (block, n) array is at most ``CPU_BLOCK_BYTES`` (32 KiB), and at least 64; on other
+    back-ends (GPU) the whole batch (infinity).
+    """
+    if jax.default_backend() != "cpu":
+        return float("inf")
+    per_member = max(1, int(n)) * jnp.dtype(dtype).itemsize
+    return max(64, 1 << max(0, (CPU_BLOCK_BYTES // per_member).bit_length() - 1))
+
+
+def _blockwise(loop, per_member, args, args_axes, B, block_size):
+    """`loop` over blocks of the members one after another; the final carries stacked again.
+
+    The batch is cut into ceil(B / block_size) blocks of equal size (the last member repeated to
+    fill the last block: at most one member per block is padding).
+    """
+    nb = -(-B // block_size)
+    c = -(-B // nb)
+    pad = nb * c - B
+
+    def blocks(v):
+        if pad:
+            v = jnp.concatenate([v, jnp.broadcast_to(v[-1:], (pad,) + v.shape[1:])])
+        return v.reshape((nb, c) + v.shape[1:])
+
+    leaves, treedef = jtu.tree_flatten(args)
+    axes = _leaf_axes(args, args_axes, treedef)
+    mapped = [blocks(v) for v, ax in zip(leaves, axes) if ax == 0]
+
+    def one(xs):
+        pm, ml = xs
+        it = iter(ml)
+        lv = [next(it) if ax == 0 else v for v, ax in zip(leaves, axes)]
+        return loop(*pm, jtu.tree_unflatten(treedef, lv))
+
+    out = jax.lax.map(one, (tmap(blocks, per_member), mapped))
+    return tmap(lambda v: v.reshape((nb * c,) + v.shape[2:])[:B], out)
+
+
+def _leaf_axes(args, args_axes, treedef):
+    """The ``jax.vmap`` in_axes of every leaf of `args` (a prefix `args_axes` broadcast; -1 for
+    None)."""
+    full = jtu.tree_map(
+        lambda ax, sub: jtu.tree_map(lambda _: -1 if ax is None else ax, sub),
+        args_axes,
+        args,
+        is_leaf=lambda x: x is None,
+    )
+    axes = treedef.flatten_up_to(full)
+    if any(ax not in (0, -1) for ax in axes):
+        raise ValueError(f"`args_axes` must map leaves at axis 0 or None, got {args_axes!r}.")
+    return axes
 
 
 def _packing(y0):
