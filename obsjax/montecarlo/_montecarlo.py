@@ -824,8 +824,9 @@ def monte_carlo(
       Runge–Kutta pairs, member by member the solve of :func:`obsjax.simulate`, to rounding; with a
       `param_sampler`, the same loop with each member's own plant), otherwise ``jax.vmap`` of
       :func:`obsjax.simulate`.  Lock step
-      can be faster still on the CPU for adaptive solves of alike trajectories (1.0–1.7× the default on
-      the Chen & Yen study: benchmarks/results/d_sharding.md, g_numba_dopri5.md); but the steps then depend on which trajectories share a batch, so results agree with
+      is about as fast on the CPU for adaptive solves of alike trajectories (0.88–1.04× the default's
+      throughput on the Chen & Yen study: benchmarks/results/d_sharding.md, g_numba_dopri5.md), and
+      its steps depend on which trajectories share a batch, so results agree with
       the default only to the solver tolerance (not bitwise across chunk sizes or device counts).  A member
       that fails (or alone drags the shared step down) is integrated again alone, so only the members that
       fail on their own are counted failed.  Needs ``param_sampler=None``.
