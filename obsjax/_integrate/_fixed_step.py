@@ -321,7 +321,12 @@ def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol
         y_moved = tmap(lambda v, g: v + d * g, y, f_minus)
         y_jump = _system.act(args, t_k + d, y_moved, reset[k], event[k], has_reset, has_event)
         f_plus = _finite(f(t_left, y_jump, args))
-        return tmap(lambda v, g: v - d * g, y_jump, f_plus)
+        out = tmap(lambda v, g: v - d * g, y_jump, f_plus)
+        if args.controller is None:
+            # open loop: the jump leaves the plant's state and its vector field alone, so f_x⁺ = f_x⁻ and its
+            # motion term is identically zero; dropping it keeps the plant's tangent zero (not carried)
+            out = (y[0], out[1])
+        return out
 
     @jax.checkpoint  # reverse mode stores the carry of each step, not its stages
     def body(carry, step):
