@@ -417,3 +417,16 @@ def test_bad_block_size_fails_fast():
     for bad in (0, -3, True):
         with pytest.raises(ValueError, match="block_size"):
             adaptive_rk_solve(f, jnp.ones((2, 1)), 0.0, 1.0, block_size=bad)
+
+
+def test_blocks_cut_args_along_their_mapped_axis():
+    # args mapped at axis 1 (and at -1): cut along that axis, as jax.vmap reads them
+    rates = jnp.stack([jnp.linspace(0.5, 2.0, 5), jnp.linspace(0.1, 0.3, 5)])  # (2, B)
+    f = lambda t, y, a: -a[0] * y + a[1] * jnp.sin(t)
+    y0 = jnp.linspace(1.0, 2.0, 5)[:, None]
+    run = lambda bs, ax: adaptive_rk_solve(f, y0, 0.0, 1.0, args=rates, args_axes=ax, block_size=bs).y1
+    whole = run(100, 1)
+    np.testing.assert_allclose(run(2, 1), whole, rtol=1e-13)
+    np.testing.assert_allclose(run(2, -1), whole, rtol=1e-13)
+    with pytest.raises(ValueError, match="args"):  # a mapped leaf with another number of members
+        adaptive_rk_solve(f, y0, 0.0, 1.0, args=rates[:, :4], args_axes=1, block_size=2)

@@ -521,7 +521,8 @@ def _blockwise(loop, per_member, args, args_axes, B, block_size):
     """`loop` over blocks of the members one after another; the final carries stacked again.
 
     The batch is cut into ceil(B / block_size) blocks of equal size (the last member repeated to
-    fill the last block: at most one member per block is padding).
+    fill the last block: at most one member per block is padding).  The leaves of `args` that
+    `args_axes` maps are cut along their mapped axis; the others are shared by every block.
     """
     nb = -(-B // block_size)
     c = -(-B // nb)
@@ -534,30 +535,43 @@ def _blockwise(loop, per_member, args, args_axes, B, block_size):
 
     leaves, treedef = jtu.tree_flatten(args)
     axes = _leaf_axes(args, args_axes, treedef)
-    mapped = [blocks(v) for v, ax in zip(leaves, axes) if ax == 0]
+    mapped = []
+    for v, ax in zip(leaves, axes):
+        if ax is _SHARED:
+            continue
+        v = jnp.moveaxis(jnp.asarray(v), ax, 0)
+        if v.shape[0] != B:
+            raise ValueError(
+                f"every leaf of `args` mapped by `args_axes` must have {B} members (the batch of "
+                f"`y0`) along its mapped axis, got a leaf of shape {tuple(v.shape)} (axis {ax} first)."
+            )
+        mapped.append(blocks(v))
 
     def one(xs):
         pm, ml = xs
         it = iter(ml)
-        lv = [next(it) if ax == 0 else v for v, ax in zip(leaves, axes)]
+        lv = [v if ax is _SHARED else jnp.moveaxis(next(it), 0, ax) for v, ax in zip(leaves, axes)]
         return loop(*pm, jtu.tree_unflatten(treedef, lv))
 
     out = jax.lax.map(one, (tmap(blocks, per_member), mapped))
     return tmap(lambda v: v.reshape((nb * c,) + v.shape[2:])[:B], out)
 
 
+_SHARED = object()  # the in_axes of a leaf of `args` that every member shares
+
+
 def _leaf_axes(args, args_axes, treedef):
-    """The ``jax.vmap`` in_axes of every leaf of `args` (a prefix `args_axes` broadcast; -1 for
-    None)."""
+    """The ``jax.vmap`` in_axes of every leaf of `args` (the prefix `args_axes` broadcast to the
+    leaves; ``_SHARED`` for None)."""
     full = jtu.tree_map(
-        lambda ax, sub: jtu.tree_map(lambda _: -1 if ax is None else ax, sub),
+        lambda ax, sub: jtu.tree_map(lambda _: _SHARED if ax is None else ax, sub),
         args_axes,
         args,
         is_leaf=lambda x: x is None,
     )
     axes = treedef.flatten_up_to(full)
-    if any(ax not in (0, -1) for ax in axes):
-        raise ValueError(f"`args_axes` must map leaves at axis 0 or None, got {args_axes!r}.")
+    if any(ax is not _SHARED and not isinstance(ax, (int, np.integer)) for ax in axes):
+        raise ValueError(f"`args_axes` must give an int or None per leaf of `args`, got {args_axes!r}.")
     return axes
 
 
