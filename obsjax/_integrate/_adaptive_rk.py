@@ -422,7 +422,8 @@ def adaptive_rk_solve(
       blocks of (about) equal size that run one after another (``jax.lax.map``), each block its own
       loop.  ``None`` (default): :func:`default_block_size`, i.e. blocks whose state arrays stay
       within the processor's cache on the CPU, and the whole batch at once on other back-ends.  The
-      result does not depend on it (members are independent); only the speed does.
+      result does not depend on it beyond rounding (members are independent; XLA may round a
+      block of a single member differently, 1e-15 in a test); only the speed does.
 
     **Returns:** an :class:`AdaptiveRKSolution`.
 
