@@ -158,7 +158,7 @@ def _toy(t, y, a):
     return jnp.array([-a * y[0] + y[1] * jnp.sin(3.0 * t), -y[1] + jnp.cos(2.0 * t)])
 
 
-def _toy_loss(p, adjoint=None):
+def _toy_loss(p, adjoint=None, block_size=None):
     # p = (a, T, y0): a gain of the vector field, the reset period (reset q -> q/2 + 1 at kT), a
     # start value
     y0 = jnp.array([[1.0, 0.5], [-0.5, 1.0]]).at[0, 0].set(p[2])
@@ -173,6 +173,7 @@ def _toy_loss(p, adjoint=None):
         reset=lambda t, y, a: jnp.array([y[0], 0.5 * y[1] + 1.0]),
         reset_ts=p[1] * jnp.arange(1, 6),
         adjoint=adjoint,
+        block_size=block_size,
     )
     return jnp.sum(sol.ys**2)
 
@@ -372,21 +373,7 @@ def test_gradients_through_blocks_match_central_differences():
     # the toy loss of the gradient test, its two members in blocks of one: reverse and forward mode
     # against central differences (the loop runs once per block inside jax.lax.map)
     def loss(p, adjoint=None, block_size=1):
-        y0 = jnp.array([[1.0, 0.5], [-0.5, 1.0]]).at[0, 0].set(p[2])
-        sol = adaptive_rk_solve(
-            _toy,
-            y0,
-            0.0,
-            1.0,
-            args=p[0],
-            ts=jnp.linspace(0.0, 1.0, 5),
-            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
-            reset=lambda t, y, a: jnp.array([y[0], 0.5 * y[1] + 1.0]),
-            reset_ts=p[1] * jnp.arange(1, 6),
-            adjoint=adjoint,
-            block_size=block_size,
-        )
-        return jnp.sum(sol.ys**2)
+        return _toy_loss(p, adjoint, block_size)
 
     p = jnp.array([1.3, 0.31, 1.0])
     rev = jax.jit(jax.grad(loss))(p)
