@@ -241,6 +241,50 @@ def test_jump_in_the_vector_field_against_the_closed_form():
     np.testing.assert_allclose(sol.ys, exact, rtol=0, atol=1e-8)
 
 
+@pytest.mark.parametrize(
+    "solver, rtol, tol",
+    [(diffrax.Tsit5(), 1e-11, 1e-8), (diffrax.Heun(), 1e-9, 1e-5)],
+    ids=["Tsit5 (FSAL)", "Heun (not FSAL)"],
+)
+def test_moving_reset_and_jump_times_against_closed_forms(solver, rtol, tol):
+    # The steps do not move with a reset or jump time; its derivative is the jump condition at
+    # arrival (y⁺ + δτ (∂R/∂t + ∂R/∂y f⁻ − f⁺)).  Two closed forms, both modes, three members:
+    # - reset: ẏ = −a y, y ← c y + d t at τ:  y(t) = c y0 e^{−a t} + d τ e^{−a (t − τ)} for t > τ, so
+    #   dy(t)/dτ = d e^{−a (t − τ)} (1 + a τ)  (∂R/∂t = d enters too);
+    # - jump: ẏ = −y + H(t − s):  y(t) = 1 + y0 e^{−t} − e^{−(t − s)} for t > s, dy(t)/ds = −e^{−(t − s)}.
+    a, c, d, y0 = 1.3, 0.5, 0.7, 2.0
+    ts = jnp.array([0.2, 0.9, 1.5])
+    pid = diffrax.PIDController(rtol=rtol, atol=1e-3 * rtol)
+
+    def reset_case(tau, adjoint):
+        return adaptive_rk_solve(
+            lambda t, y, _: -a * y, jnp.full((3,), y0), 0.0, 1.5, ts=ts, solver=solver,
+            stepsize_controller=pid, reset=lambda t, y, _: c * y + d * t, reset_ts=tau[:, None],
+            adjoint=adjoint, max_steps=100_000,
+        ).ys
+
+    def jump_case(s, adjoint):
+        f = lambda t, y, s_: -y + jnp.where(t >= s_, 1.0, 0.0)
+        return adaptive_rk_solve(
+            f, jnp.full((3,), y0), 0.0, 1.5, args=s, args_axes=0, ts=ts, solver=solver,
+            stepsize_controller=pid, jump_ts=s[:, None], adjoint=adjoint, max_steps=100_000,
+        ).ys
+
+    taus = jnp.array([0.3, 0.55, 0.8])
+    tt, tau_ = np.asarray(ts)[None, :], np.asarray(taus)[:, None]
+    after = tt > tau_
+    d_reset = np.where(after, d * np.exp(-a * (tt - tau_)) * (1 + a * tau_), 0.0)
+    d_jump = np.where(after, -np.exp(-(tt - tau_)), 0.0)
+    for case, exact in ((reset_case, d_reset), (jump_case, d_jump)):
+        # members are independent: the derivative of member b's saved values in τ_b is the diagonal
+        # block of the Jacobian; forward mode with one tangent along all τ gives it at once
+        one = jnp.ones(3)
+        _, fwd = jax.jit(lambda q: jax.jvp(lambda r: case(r, diffrax.ForwardMode()), (q,), (one,)))(taus)
+        rev = jax.jit(jax.grad(lambda q: jnp.sum(case(q, None))))(taus)
+        np.testing.assert_allclose(fwd, exact, rtol=0, atol=tol)
+        np.testing.assert_allclose(rev, exact.sum(axis=1), rtol=0, atol=tol)
+
+
 def test_per_member_horizons():
     t1 = jnp.array([1.0, 2.5, 4.0])
     f = lambda t, y, a: jnp.array([y[1], -y[0]])
