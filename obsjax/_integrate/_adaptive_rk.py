@@ -44,14 +44,14 @@ condition: the state leaving τ is y⁺ + δτ (∂reset/∂t + ∂reset/∂y f�
 ends the segment, f⁺ the one that starts the next (at a jump time, reset is the identity, and
 f⁻ − f⁺ is the jump of the vector field).  This is the first-order motion of the exact solution,
 evaluated on the computed one; it needs two evaluations of f at each arrival, and only where the
-derivative is taken (a custom JVP).  The segmented diffrax solve instead differentiates steps that
-move with τ: the two derivatives differ by the tolerance (on Chen & Yen's example, ∂J/∂T at rtol
-1e-6 is 1.1e-4 from the exact one here, 2.1e-4 there; at 1e-8, 7e-7 and 3e-6).  Where the vector
-field has kinks the solver steps over (band-limited noise), steps that move with τ are
-differentiated inaccurately and this form is not (27 % against 0.07 % at rtol 1e-6, see ``tune``).
-It is also cheaper: tuning (γ, p0, T) of Chen & Yen's observer in forward mode cost 4.3 forward
-passes with the times carrying T's derivative, 3.0 now.  t1, the save times and t0 keep their own
-derivatives.
+derivative is taken (a custom JVP).  The segmented diffrax solve of ``simulate`` does the same
+(``_segments.py``), so both take the same steps and agree to rounding.  Differentiating steps that
+move with τ instead (as this loop did before) gives a derivative that differs from the exact one by
+the tolerance, somewhat more than this form does (on Chen & Yen's example, ∂J/∂T at rtol 1e-6 is
+2.1e-4 from the exact one against 1.1e-4 here; at 1e-8, 3e-6 against 7e-7), and one that is far off where the vector field has kinks the solver
+steps over (band-limited noise: 27 % against 0.07 % at rtol 1e-6, see ``tune``).  It is also dearer:
+tuning (γ, p0, T) of Chen & Yen's observer in forward mode cost 4.3 forward passes with the times
+carrying T's derivative, 3.0 now.  t1, the save times and t0 keep their own derivatives.
 
 **Layout.**  The members' states are flattened into one (B, n) array for the loop (one operation
 per step of the bookkeeping instead of one per leaf); `vector_field` and `reset` still see the

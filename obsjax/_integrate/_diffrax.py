@@ -171,7 +171,10 @@ def integrate(args: _system.Args, state0, ts, sched: Schedule, opt: Options):
 
     act = functools.partial(_act, args, sched.has_reset, sched.has_event)
     row = jax.eval_shape(lambda s: s, state0)
-    saved, code, _ = _segments.integrate(solve, act, state0, ts, sched, row)
+    # an ODE: traced breakpoints (a tuned T) move by the jump condition, not by moving the solves' steps
+    f = _system.for_check_mode(_system.drift)
+    drift = None if opt.white_noise is not None else (lambda t, s: f(t, s, args))
+    saved, code, _ = _segments.integrate(solve, act, state0, ts, sched, row, drift=drift)
     return saved, code
 
 

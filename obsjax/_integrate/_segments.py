@@ -11,9 +11,17 @@ one (clipped into [s0, s1]; the ones beyond its own are discarded), so the cost 
 O(segments × window) rather than O(segments × len(ts)); the window is the largest number of save times that
 fall into one segment (len(ts) when the breakpoints are traced).
 
-The segment ends move with the reset period T (and with traced event times), so the derivative with respect
-to them flows into diffrax's derivative with respect to t0 and t1 of each solve; the save times are fixed and
-carry no T-derivative (their clip uses ``stop_gradient`` bounds).
+Derivative in the breakpoint times.  Without `drift`, the segment ends move with the reset period T (and with
+traced event times), so the derivative with respect to them flows into diffrax's derivative with respect to
+t0 and t1 of each solve.  Given `drift` (the ODE back-end, when the breakpoints are traced), the solves run
+on the breakpoints without their derivative (their steps do not move with T), and a breakpoint τ moves the
+state through the jump condition instead: the state that leaves it is act(τ + δτ, y⁻ + δτ f⁻) − δτ f⁺, with
+f⁻ = f(τ⁻, y⁻) (the end of the previous segment) and f⁺ = f(τ, y⁺), δτ of value 0 carrying τ's derivative.
+That is the first-order motion of the exact solution (as in ``_fixed_step.integrate_traced`` and the masked
+loop of ``_adaptive_rk.py``): it differs from the derivative of steps that move with τ by the tolerance, and
+does not suffer from steps that cross kinks of the vector field (band-limited noise), whose motion is
+differentiated inaccurately.  The save times are fixed and carry no T-derivative (their clip uses
+``stop_gradient`` bounds).
 """
 
 from __future__ import annotations
@@ -27,12 +35,14 @@ from ._status import SUCCESS, first_failure
 tmap = jax.tree_util.tree_map
 
 
-def segment_bounds(sched: Schedule):
-    """(starts, ends) of the Nb + 1 segments; ends before a jump are one float below it."""
+def segment_bounds(sched: Schedule, fixed: bool = False):
+    """(starts, ends) of the Nb + 1 segments; ends before a jump are one float below it.  `fixed`: the
+    breakpoints without their derivative (t0 and t1 keep theirs)."""
     t0 = jnp.reshape(sched.t0, (1,))
     t1 = jnp.reshape(sched.t1, (1,))
-    starts = jnp.concatenate([t0, sched.times])
-    nxt = jnp.concatenate([sched.times, t1])
+    times = jax.lax.stop_gradient(sched.times) if fixed else sched.times
+    starts = jnp.concatenate([t0, times])
+    nxt = jnp.concatenate([times, t1])
     before = jnp.nextafter(jax.lax.stop_gradient(nxt), jnp.asarray(-jnp.inf, nxt.dtype))
     ends = jnp.where(jnp.concatenate([sched.jump, jnp.zeros(1, bool)]), before, nxt)
     # ties (two breakpoints at one instant) give zero-length segments, never negative ones
@@ -40,7 +50,7 @@ def segment_bounds(sched: Schedule):
     return starts, ends
 
 
-def integrate(solve, act, carry0, ts, sched: Schedule, row):
+def integrate(solve, act, carry0, ts, sched: Schedule, row, drift=None):
     """Run every segment; returns (the solution at `ts` with leading axis len(ts), the first failure code,
     the carry at t1).
 
@@ -49,10 +59,13 @@ def integrate(solve, act, carry0, ts, sched: Schedule, row):
     - `solve(s0, s1, carry, save_ts) -> (saved, code, carry_end)`: `saved` a pytree with leading axis
       len(save_ts); `code` an int status (0 ok).
     - `act(t, carry, do_reset, do_event) -> carry`: the jump at a breakpoint.
+    - `drift(t, carry)`: the vector field of an ODE; given, traced breakpoints move by the jump condition
+      (module docstring) and the solves' times carry no derivative of them.
     """
     if sched.size == 0:
         return solve(sched.t0, sched.t1, carry0, ts)
-    starts, ends = segment_bounds(sched)
+    moving = drift is not None and sched.concrete is None
+    starts, ends = segment_bounds(sched, fixed=moving)
     W, N = sched.window, ts.shape[0]
     ts_pad = jnp.concatenate([ts, jnp.broadcast_to(ts[-1], (W,))])
     no = jnp.zeros(1, bool)
@@ -64,12 +77,19 @@ def integrate(solve, act, carry0, ts, sched: Schedule, row):
         sched.first_save[:-1],
         jnp.diff(sched.first_save),
     )
+    if moving:
+        times = sched.times
+        motion = jnp.concatenate([jnp.zeros(1, times.dtype), times - jax.lax.stop_gradient(times)])
+        xs = xs + (motion, jnp.concatenate([starts[:1], ends[:-1]]))
     buf0 = tmap(lambda s: jnp.zeros((N + W,) + tuple(s.shape), s.dtype), row)
 
     def body(carry, x):
         state, buf, code = carry
-        s0, s1, do_reset, do_event, i0, count = x
-        state = act(s0, state, do_reset, do_event)
+        s0, s1, do_reset, do_event, i0, count = x[:6]
+        if moving:
+            state = moving_act(act, drift, s0, x[6], x[7], state, do_reset, do_event)
+        else:
+            state = act(s0, state, do_reset, do_event)
         lo, hi = jax.lax.stop_gradient(s0), jax.lax.stop_gradient(s1)
         save_ts = jnp.clip(jax.lax.dynamic_slice_in_dim(ts_pad, i0, W), lo, hi)
         saved, c, state = solve(s0, s1, state, save_ts)
@@ -85,3 +105,15 @@ def integrate(solve, act, carry0, ts, sched: Schedule, row):
     init = (carry0, buf0, jnp.asarray(SUCCESS, jnp.int32))
     (end, buf, code), _ = jax.lax.scan(body, init, xs)
     return tmap(lambda b: b[:N], buf), code, end
+
+
+def moving_act(act, drift, t, d, t_left, state, do_reset, do_event):
+    """The jump at breakpoint `t`, plus its first-order motion when t moves by δt = `d` (value 0):
+    act(t + δt, y⁻ + δt f⁻) − δt f⁺, f⁻ = drift(t_left, y⁻) the vector field at the end of the previous
+    segment (one float below t at a plant jump), f⁺ = drift(t, y⁺).  Non-finite values of the drift count
+    as 0 (the zero motion must not turn into NaN; the next solve reports the failure itself)."""
+    finite = lambda tree: tmap(lambda v: jnp.where(jnp.isfinite(v), v, 0.0), tree)  # noqa: E731
+    f_minus = finite(drift(t_left, state))
+    out = act(t + d, tmap(lambda v, g: v + d * g, state, f_minus), do_reset, do_event)
+    f_plus = finite(drift(t, out))
+    return tmap(lambda v, g: v - d * g, out, f_plus)

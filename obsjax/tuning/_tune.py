@@ -21,7 +21,6 @@ from .._config import require_x64
 from .._integrate import _masked, _validate
 from .._simulate import SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch, simulate_plants
-from ..systems._noise import BandLimitedNoise
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
 BACKTRACK = 0.5
@@ -584,32 +583,21 @@ def tune(
     :func:`reset_coincidences`.
 
     **Band-limited noise and a tuned T.**  The noise path is piecewise linear, with a kink every
-    ``noise.dt``.  Adaptive steps cross those kinks.  Where the steps move with T (the ``"vmap"``
-    kernel: each segment between resets is its own solve from t0 + kT), a step that crosses a kink
-    is not differentiated accurately with respect to its position, and the derivative in T
-    converges slowly with the tolerance.  The masked Runge–Kutta loop (the ``"masked"`` kernel, the
-    default for explicit Runge–Kutta pairs) keeps its steps where they are and moves each reset by
-    the jump condition, so it has no such error.  Chen & Yen's example (γ = 20, p0 = 0.1, T = 0.33,
-    σ = 0.05, ``dt`` = 0.05, three scenarios, ISE over [0, 2.9]; the masked loop at rtol 1e-12
-    −28.48, central differences of tight solves −28.5):
+    ``noise.dt``, and adaptive steps cross those kinks.  A step that crosses one is not
+    differentiated accurately with respect to its own position, so the steps must not move with T:
+    both kernels keep their steps where they are and move each reset instant by the jump condition
+    (the state leaving t0 + kT gains δT·k·(∂reset/∂y f⁻ − f⁺), f∓ the vector field on either side),
+    as the fixed-step path does.  Chen & Yen's example (γ = 20, p0 = 0.1, T = 0.33, σ = 0.05,
+    ``dt`` = 0.05, three scenarios, ISE over [0, 2.9]; central differences of tight solves −28.5):
 
-    | solve (atol = rtol / 100) | ∂J/∂T, vmap kernel | ∂J/∂T, masked kernel |
+    | solve (atol = rtol / 100) | ∂J/∂T | before (steps moving with T) |
     |---|---|---|
-    | adaptive, rtol 1e-6 (the default) | −36.3 | −28.50 |
-    | adaptive, rtol 1e-8 | −32.3 | −28.48 |
-    | adaptive, rtol 1e-12 | −28.6 | −28.48 |
-    | fixed steps, h = dt/4 | −28.5 | |
-    | fixed steps, h = dt/64 | −28.5 | |
+    | adaptive, rtol 1e-6 (the default) | −28.50 | −36.3 |
+    | adaptive, rtol 1e-8 | −28.48 | −32.3 |
+    | adaptive, rtol 1e-12 | −28.48 | −28.6 |
+    | fixed steps, h = dt/4 | −28.5 | −30.0 |
 
-    (With fixed steps the reset instants move through the jump condition at each reset, on a grid
-    that does not move with T; before, when the grid's steps beside each reset moved with T, h = dt/4
-    gave −30.0.)
-
-    tune therefore warns (:class:`obsjax.TuneWarning`) when the reset period depends on the tuned
-    leaves, the noise is band-limited and the steps are adaptive on the vmap kernel.  Fixed steps
-    (``simulate_kwargs=dict(adaptive=False, dt0=h)``, as in the README's example), an explicit
-    Runge–Kutta pair, or a much tighter ``rtol`` avoid it.
-    The derivatives in the other gains (γ, p0, …) are not affected: they agreed to 5 digits between
+    The derivatives in the other gains (γ, p0, …) were never affected: they agreed to 5 digits between
     rtol 1e-6 and 1e-12.
 
     Observers with a reset period T are simulated with a number of segments recomputed from the
@@ -715,24 +703,6 @@ def tune(
         return obs, val, grads, None
 
     depends = _period_depends_on(build, theta0, build(theta0).reset_period)
-    if (
-        depends
-        and isinstance(noise, BandLimitedNoise)
-        and simulate_kwargs.get("adaptive", True)
-        and kernel == "vmap"
-    ):
-        warnings.warn(
-            "tune: the reset period T is tuned under band-limited noise with adaptive steps that "
-            "move with T (jax.vmap(simulate): the masked Runge-Kutta loop does not take this "
-            f"problem). The solver steps across the noise path's kinks (every dt = "
-            f"{float(noise.dt):g}), and the derivative in T is then accurate only far below the "
-            "solver's tolerance (Chen & Yen's example: 27 % off at rtol 1e-6, 0.3 % at rtol "
-            "1e-12; see tune's docstring). Use fixed steps, simulate_kwargs=dict(adaptive=False, "
-            "dt0=h) with h a fraction of dt, an explicit Runge-Kutta pair (the masked loop), or a "
-            "much tighter rtol.",
-            TuneWarning,
-            stacklevel=2,
-        )
     result = _descend(
         evaluate, depends, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
         progress,
