@@ -300,19 +300,25 @@ Gradient checks (the timed kernels):
 (t = 10 = 40T is both a save time and a reset instant, a kink of the sampled loss in T, where central
 differences average two one-sided slopes and autodiff returns one of them: {kink})
 
+In every row with T tuned the steps do not move with T: the reset instants enter the derivative through
+the jump condition at each reset, y⁺ + δτ (∂reset/∂y f⁻ − f⁺) (two evaluations of the vector field per
+reset, and in the masked loop only where the derivative is taken), not through the times and sizes of every
+step.  Before, the times of every step carried T's derivative: forward mode (γ, p0, T) cost 4.26× on the
+masked loop, 7.04× on the vmap kernel and 5.9× with fixed steps, reverse mode 5.26× and 5.20× with adaptive
+steps.  The derivative is then that of the exact loss to the solver's tolerance or the method's order,
+not the derivative of the discrete scheme: central differences of the loss at the same tolerance differ
+from it by about the tolerance as well as by the kink at t = 10 (d J/d log T above; against tight solves,
+see `tests/test_tune_forward.py`, d J/dT at rtol 1e-6 is 1.1e-4 from the exact one).  The two adaptive
+kernels take the same steps and agree to rounding.
+
 With the vmap kernel and T tuned, the reset instants are traced, so the schedule of the solve is not known
 before tracing and every one of the 41 segment solves carries a save window of all 80 save times
 (`_integrate/_schedule.py`: the window is len(ts) when the breakpoints are traced), most of them clipped
-onto the segment's end and interpolated there; in forward mode each of those interpolations carries the
-three tangents.  With T fixed the window is 2 save times.  The masked loop has no segment solves: each
-member crosses its resets inside one loop and interpolates each save time once, so tuning T costs little
-more than tuning (γ, p0).  With fixed steps and T tuned, one `lax.scan` walks a step grid built inside the
-trace (`_integrate/_fixed_step.py`, `integrate_traced`); the grid does not move with T, and the reset
-instants enter the derivative through the jump condition at each reset (two evaluations of the vector field
-per reset), not through the times and sizes of every step (which made forward mode 5.9× the forward pass
-here before).  Central differences of the fixed-step loss then differ from that derivative by the
-method's error as well as by the kink at t = 10: the derivative is that of the exact loss to the method's
-order (see `integrate_traced`'s docstring).
+onto the segment's end and interpolated there: its forward pass with T tuned costs about 2.5 times the
+forward pass with T fixed (window of 2 save times).  The masked loop has no segment solves: each member
+crosses its resets inside one loop and interpolates each save time once.  With fixed steps and T tuned,
+one `lax.scan` walks a step grid built inside the trace (`_integrate/_fixed_step.py`,
+`integrate_traced`).
 
 ## Where the modes cross
 

@@ -551,8 +551,8 @@ def tune(
     :func:`obsjax.simulate`.  Both solve each scenario as :func:`obsjax.simulate` does (the same
     tableau and step-size control, to rounding; the masked loop's step budget is ``max_steps`` per
     segment, shared by a scenario's segments), and both are differentiated in either mode.  On
-    Chen & Yen's example with (γ, p0, T) tuned, a step of tune took 0.064 s on the masked kernel
-    against 0.40 s on the vmap kernel (forward mode; 0.079 s against 0.29 s in reverse mode); on a
+    Chen & Yen's example with (γ, p0, T) tuned, a step of tune took 0.049 s on the masked kernel
+    against 0.19 s on the vmap kernel (forward mode; 0.062 s against 0.24 s in reverse mode); on a
     linear plant without resets the masked kernel's reverse mode was the cheaper too, but its
     forward mode at 6 scalars was 1.2× dearer (``benchmarks/results/j_forward_gradient.md``).
     ``history["kernel"]`` says which one ran.
