@@ -83,7 +83,7 @@ def main(batch=64, repeat=3):
     body = f"""
 Loss: mean over a batch of {batch} initial conditions (x(0) ~ N(0, I), x̂(0) = [5, -5]) of the ISE
 ∫‖x̃‖² dt on [0, 10] (80 save points, spacing 10/79: no save time other than t = 10 is a reset instant), Chen & Yen example at γ = {C.GAMMA}, p0 = {C.P0}, T = {C.T_RESET}
-(40 reset segments, max_segments = 41 so that T − δ fits; T is a traced leaf, so the reset instants move with it).  Both calls are one `jax.jit`,
+(40 reset segments, max_segments = 41 so that T − δ fits; T is a traced leaf, so the reset instants move with it, by the jump condition).  Both calls are one `jax.jit`,
 warmed up, `block_until_ready`, best / median of ≥ {repeat}; float64.  Reverse mode through diffrax's
 default `RecursiveCheckpointAdjoint`.
 
@@ -91,15 +91,18 @@ default `RecursiveCheckpointAdjoint`.
 |---|---|---|---|---|---|
 {table}
 
-`max_steps` is per reset segment (the adaptive solve takes about 5 steps per segment, the fixed one 20); a
-bound close to the need makes diffrax's checkpointed reverse pass cheaper.  Storing every step
-(`adjoint=RecursiveCheckpointAdjoint(checkpoints=32)`, no recomputation) changes nothing measurable, so the
-reverse pass is the cost of the step's own vector-Jacobian products (six stages of the plant, the gain
-L = Φ Qinv⁻¹ w and Φ's and Qinv's equations), not of recomputation.  T is tuned, so these fixed-step solves
-go through diffrax (the direct fixed-step scan needs a concrete reset grid); the forward got about 1.5×
-faster this session (the unrolled SPD solve), the reverse pass less, which put the fixed-step ratio at the
-target: the margin is thin, and ratios vary by about ±10 % between runs on this machine (5.47 and 5.29
-for the first fixed-step row in two earlier quiet runs today with best of 3 calls; this table is best of 7).
+`max_steps` is per reset segment.  With adaptive steps (one diffrax solve per segment, about 5 steps each)
+a bound close to the need makes diffrax's checkpointed reverse pass cheaper.  With T tuned, the fixed-step
+rows go through the direct fixed-step scan on a grid built inside the trace (`_integrate/_fixed_step.py`,
+`integrate_traced`), where neither `max_steps` nor the adjoint's checkpoints apply: the three fixed-step
+rows time the same kernel, and differ by the machine's noise (about ±10 % between runs).  In every row
+the reset instants enter the derivative through the jump condition at each reset, on steps that do not
+move with T.  The adaptive rows' dT is then that of the exact loss to the tolerance (−21.2725 at rtol 1e-6
+against −21.2692 from solves at rtol 1e-10, where it agrees with central differences of tight solves to
+7e-6); central differences of the loss at rtol 1e-6 (below) differ from both by about as much, since they
+difference a loss that is itself only accurate to the tolerance.  (On 2026-11-22, when the steps moved with T
+and the fixed-step rows went through diffrax, this table's ratios were 4.86 / 4.18 adaptive and 4.84–4.99
+fixed.)
 
 Gradients that were timed, against central finite differences of the same forward function:
 
