@@ -285,6 +285,28 @@ def test_moving_reset_and_jump_times_against_closed_forms(solver, rtol, tol):
         np.testing.assert_allclose(rev, exact.sum(axis=1), rtol=0, atol=tol)
 
 
+def test_reset_time_gradient_where_a_mid_segment_reset_leaves_the_domain():
+    # ẏ = √y, y(0) = 1, reset y ← y − 3 at τ: y(τ⁻) = (1 + τ/2)², y(3) = (g + (3 − τ)/2)² with
+    # g = √((1 + τ/2)² − 3), so at τ = 2 (g = 1, g' = 1) y(3) = 2.25 and dy(3)/dτ = 2 · 1.5 · (1 − 1/2) = 1.5.
+    # The jump condition's coefficients are evaluated
+    # for every member at every iteration; a member in mid-segment, reset there, lies outside the domain
+    # of √ (y − 3 < 0): that NaN must not reach reverse mode's cotangent of τ.
+    f = lambda t, y, a: jnp.sqrt(y)
+    pid = diffrax.PIDController(rtol=1e-10, atol=1e-12)
+
+    def run(tau, adjoint):
+        sol = adaptive_rk_solve(f, jnp.ones(1), 0.0, 3.0, stepsize_controller=pid, ts=jnp.array([3.0]),
+                                reset=lambda t, y, a: y - 3.0, reset_ts=tau, adjoint=adjoint)  # fmt: skip
+        return sol.ys[0, 0]
+
+    tau = jnp.array([2.0])
+    assert float(jax.jit(lambda t: run(t, None))(tau)) == pytest.approx(2.25, rel=1e-9)
+    rev = jax.jit(jax.grad(lambda t: run(t, None)))(tau)
+    fwd = jax.jit(jax.jacfwd(lambda t: run(t, diffrax.ForwardMode())))(tau)
+    np.testing.assert_allclose(rev, [1.5], rtol=1e-7)
+    np.testing.assert_allclose(fwd, [1.5], rtol=1e-7)
+
+
 def test_per_member_horizons():
     t1 = jnp.array([1.0, 2.5, 4.0])
     f = lambda t, y, a: jnp.array([y[1], -y[0]])

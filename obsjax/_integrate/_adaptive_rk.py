@@ -694,8 +694,8 @@ def _make_body(F, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, ki
         limit = jnp.where(arrive, value - 1e-9 * jnp.maximum(1.0, jnp.abs(value)), tnext)
         ys, save_idx = _save(cr, acc, limit, tprev, tnext, y, y1, ks, ts, rows, S, solver, kind)
         y_arr = _arrival(
-            _pick(targets.motion, cr.seg), value, do_reset, y1, fs[-1] if fsal else None, args,
-            F=F, R=R,
+            _pick(targets.motion, cr.seg), value, do_reset, arrive, y1, fs[-1] if fsal else None,
+            args, F=F, R=R,
         )
         y_new = _where(arrive, y_arr, _where(acc, y1, y))
         f0_new = fs[-1] if fsal else cr.f0
@@ -736,7 +736,7 @@ def _make_body(F, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, ki
 
 
 @eqx.filter_custom_jvp
-def _arrival(d, tau, do_reset, y1, f_minus, args, *, F, R):
+def _arrival(d, tau, do_reset, arrive, y1, f_minus, args, *, F, R):
     """The state with which a member leaves a segment end τ: ``reset(τ, y⁻)`` where τ is a reset
     time, y⁻ itself at a jump time of the vector field.
 
@@ -744,8 +744,12 @@ def _arrival(d, tau, do_reset, y1, f_minus, args, *, F, R):
     the jump condition y⁺ + δτ·(∂reset/∂t + ∂reset/∂y f⁻ − f⁺), with f⁻ = f(τ⁻, y⁻) the vector
     field that ends the segment and f⁺ = f(τ, y⁺) the one that starts the next; `d` (value 0)
     carries δτ.  The two evaluations of f run only where the derivative is taken (a custom JVP:
-    the forward pass does not pay for them), and only when τ has a derivative."""
-    del d, f_minus, F
+    the forward pass does not pay for them), and only when τ has a derivative.  The loop calls it
+    for every member at every iteration; the coefficients f⁻, f⁺ and ∂reset/∂t are used where
+    `arrive` only, and set to 0 elsewhere and where they are not finite (a member in mid-segment,
+    reset there, may leave the domain of f: its 0 · NaN would turn reverse mode's cotangent of τ
+    into NaN)."""
+    del d, f_minus, F, arrive
     return _act(tau, do_reset, y1, args, R)
 
 
@@ -755,21 +759,27 @@ def _act(tau, do_reset, y1, args, R):
 
 @_arrival.def_jvp
 def _arrival_jvp(primals, tangents, *, F, R):
-    _, tau, do_reset, y1, f_minus, args = primals
-    t_d, _, _, t_y1, _, t_args = tangents
+    _, tau, do_reset, arrive, y1, f_minus, args = primals
+    t_d, _, _, _, t_y1, _, t_args = tangents
     act = lambda y_, a_: _act(tau, do_reset, y_, a_, R)
     if t_y1 is None:
         t_y1 = tmap(jnp.zeros_like, y1)
     if t_d is None:
         return eqx.filter_jvp(act, (y1, args), (t_y1, t_args))
+
+    def coefficient(pred, v):  # a primal coefficient of δτ: used where `pred`, finite, else 0
+        return tmap(lambda u: _where(pred, jnp.where(jnp.isfinite(u), u, 0.0), jnp.zeros_like(u)), v)
+
     if f_minus is None:
         f_minus = F(_prevbefore(tau), y1, args)
+    f_minus = coefficient(arrive, f_minus)
     moved = tmap(lambda t_, g: t_ + _scale_member(t_d, g), t_y1, f_minus)
     out, t_out = eqx.filter_jvp(act, (y1, args), (moved, t_args))
     if R is not None:  # ∂reset/∂t
-        _, t_time = jax.jvp(lambda s: R(s, y1, args), (tau,), (t_d,))
-        t_out = _where(do_reset, tmap(jnp.add, t_out, t_time), t_out)
-    f_plus = F(tau, out, args)
+        _, r_t = jax.jvp(lambda s: R(s, y1, args), (tau,), (jnp.ones_like(tau),))
+        r_t = coefficient(arrive & do_reset, r_t)
+        t_out = tmap(lambda t_, g: t_ + _scale_member(t_d, g), t_out, r_t)
+    f_plus = coefficient(arrive, F(tau, out, args))
     return out, tmap(lambda t_, g: t_ - _scale_member(t_d, g), t_out, f_plus)
 
 
