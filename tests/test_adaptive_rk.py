@@ -183,15 +183,22 @@ def test_gradients_match_central_differences():
     # reverse mode (checkpointed loop) and forward mode against central differences, with respect to
     # a gain, the reset period (the reset instants move) and an initial state; T = 0.31 keeps the
     # reset instants off the save times (where the loss has a kink)
+    _, fd = _check_toy_gradients(block_size=None)
+    assert np.all(np.abs(fd) > 1e-2)  # every direction matters
+
+
+def _check_toy_gradients(block_size):
+    """Reverse and forward mode of `_toy_loss` against central differences (rtol 1e-6); returns
+    (reverse mode, central differences)."""
     p = jnp.array([1.3, 0.31, 1.0])
-    rev = jax.jit(jax.grad(_toy_loss))(p)
-    fwd = jax.jit(jax.jacfwd(lambda q: _toy_loss(q, diffrax.ForwardMode())))(p)
-    f = jax.jit(_toy_loss)
+    rev = jax.jit(jax.grad(lambda q: _toy_loss(q, None, block_size)))(p)
+    fwd = jax.jit(jax.jacfwd(lambda q: _toy_loss(q, diffrax.ForwardMode(), block_size)))(p)
+    f = jax.jit(lambda q: _toy_loss(q, None, block_size))
     eps = 1e-6
     fd = np.array([(f(p + eps * e) - f(p - eps * e)) / (2 * eps) for e in np.eye(3)])
     np.testing.assert_allclose(rev, fd, rtol=1e-6)
     np.testing.assert_allclose(fwd, fd, rtol=1e-6)
-    assert np.all(np.abs(fd) > 1e-2)  # every direction matters
+    return rev, fd
 
 
 @pytest.mark.slow
@@ -438,18 +445,9 @@ def test_blocks_give_the_solution_of_one_loop():
 def test_gradients_through_blocks_match_central_differences():
     # the toy loss of the gradient test, its two members in blocks of one: reverse and forward mode
     # against central differences (the loop runs once per block inside jax.lax.map)
-    def loss(p, adjoint=None, block_size=1):
-        return _toy_loss(p, adjoint, block_size)
-
+    rev, _ = _check_toy_gradients(block_size=1)
     p = jnp.array([1.3, 0.31, 1.0])
-    rev = jax.jit(jax.grad(loss))(p)
-    fwd = jax.jit(jax.jacfwd(lambda q: loss(q, diffrax.ForwardMode())))(p)
-    f = jax.jit(loss)
-    eps = 1e-6
-    fd = np.array([(f(p + eps * e) - f(p - eps * e)) / (2 * eps) for e in np.eye(3)])
-    np.testing.assert_allclose(rev, fd, rtol=1e-6)
-    np.testing.assert_allclose(fwd, fd, rtol=1e-6)
-    np.testing.assert_allclose(rev, jax.jit(jax.grad(lambda q: loss(q, block_size=2)))(p), rtol=1e-10)
+    np.testing.assert_allclose(rev, jax.jit(jax.grad(lambda q: _toy_loss(q, None, 2)))(p), rtol=1e-10)
 
 
 def test_default_block_size(monkeypatch):

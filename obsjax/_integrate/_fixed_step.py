@@ -45,7 +45,7 @@ import numpy as np
 
 from .._checks import concrete_value
 from . import _system
-from ._status import SOLVER_FAILED, SUCCESS
+from ._status import SOLVER_FAILED, SUCCESS, finite_or_zero
 
 _EULER = (np.zeros((0, 0)), np.ones(1), np.zeros(1))
 
@@ -218,13 +218,6 @@ def _scan(drift, args, state0, g, tableau, act):
     return tmap(lambda v: v[idx], bps)
 
 
-def _finite(tree):
-    """`tree` with non-finite values set to 0: a vector field that is not finite at a breakpoint must not
-    turn the zero motion of :func:`integrate_traced`'s jump into NaN (the solve reports the failure itself
-    at its next step)."""
-    return jax.tree_util.tree_map(lambda v: jnp.where(jnp.isfinite(v), v, 0.0), tree)
-
-
 def traced_steps(ts_np, dt0, n_nodes) -> int:
     """The step budget of :func:`integrate_traced`: ⌈(t1 − t0)/dt0⌉ + (number of intervals).
 
@@ -317,10 +310,10 @@ def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol
         d = motion[k]
         t_k = start[k]
         t_left = jnp.nextafter(t_k, jnp.asarray(-jnp.inf, dtype))
-        f_minus = _finite(f(t_left, y, args))
+        f_minus = finite_or_zero(f(t_left, y, args))
         y_moved = tmap(lambda v, g: v + d * g, y, f_minus)
         y_jump = _system.act(args, t_k + d, y_moved, reset[k], event[k], has_reset, has_event)
-        f_plus = _finite(f(t_left, y_jump, args))
+        f_plus = finite_or_zero(f(t_left, y_jump, args))
         out = tmap(lambda v, g: v - d * g, y_jump, f_plus)
         if args.controller is None:
             # open loop: the jump leaves the plant's state and its vector field alone, so f_x⁺ = f_x⁻ and its

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from ._schedule import Schedule
-from ._status import SUCCESS, first_failure
+from ._status import SUCCESS, finite_or_zero, first_failure
 
 tmap = jax.tree_util.tree_map
 
@@ -112,8 +112,7 @@ def moving_act(act, drift, t, d, t_left, state, do_reset, do_event):
     act(t + δt, y⁻ + δt f⁻) − δt f⁺, f⁻ = drift(t_left, y⁻) the vector field at the end of the previous
     segment (one float below t at a plant jump), f⁺ = drift(t, y⁺).  Non-finite values of the drift count
     as 0 (the zero motion must not turn into NaN; the next solve reports the failure itself)."""
-    finite = lambda tree: tmap(lambda v: jnp.where(jnp.isfinite(v), v, 0.0), tree)  # noqa: E731
-    f_minus = finite(drift(t_left, state))
+    f_minus = finite_or_zero(drift(t_left, state))
     out = act(t + d, tmap(lambda v, g: v + d * g, state, f_minus), do_reset, do_event)
-    f_plus = finite(drift(t, out))
+    f_plus = finite_or_zero(drift(t, out))
     return tmap(lambda v, g: v - d * g, out, f_plus)

@@ -62,6 +62,12 @@ def is_finite(tree):
     return jnp.isfinite(sum_of_squares(tree))
 
 
+def finite_or_zero(tree):
+    """`tree` with non-finite values set to 0: the coefficient of a zero-valued motion (a jump condition's
+    δτ f) must not turn it into NaN; the solve reports a non-finite state itself."""
+    return jax.tree_util.tree_map(lambda v: jnp.where(jnp.isfinite(v), v, 0.0), tree)
+
+
 def code_of(result):
     """diffrax ``RESULTS`` → SUCCESS / SOLVER_FAILED / NONFINITE (``dt_min_reached`` is the stop of
     :class:`GuardedController` on a non-finite state; its inner PID controller has no ``dtmin``)."""
