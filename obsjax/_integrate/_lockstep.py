@@ -208,8 +208,13 @@ def integrate(args_b: _system.Args, state0, ts, sched: Schedule, opt: _diffrax.O
 
     carry0 = (state0, jnp.zeros((B,), bool))
     row = jax.eval_shape(lambda s: s, state0)
-    solve = _Solve(args_b, opt, ctrl, _system.for_check_mode(_drift))
-    saved, code, (_, evicted) = _segments.integrate(solve, act, carry0, ts, sched, row)
+    f = _system.for_check_mode(_drift)
+    solve = _Solve(args_b, opt, ctrl, f)
+
+    def drift(t, carry):  # the batch's vector field; the eviction mask does not move
+        return f(t, carry[0], (args_b, carry[1])), carry[1]
+
+    saved, code, (_, evicted) = _segments.integrate(solve, act, carry0, ts, sched, row, drift=drift)
     return _isolate(args_b, state0, ts, sched, opt, saved, code, evicted)
 
 

@@ -13,7 +13,8 @@ fall into one segment (len(ts) when the breakpoints are traced).
 
 Derivative in the breakpoint times.  Without `drift`, the segment ends move with the reset period T (and with
 traced event times), so the derivative with respect to them flows into diffrax's derivative with respect to
-t0 and t1 of each solve.  Given `drift` (the ODE back-end, when the breakpoints are traced), the solves run
+t0 and t1 of each solve.  Given `drift` (an ODE, when the breakpoints are traced: both the single solve of
+``_diffrax.py`` and the lock-step batch of ``_lockstep.py`` give it), the solves run
 on the breakpoints without their derivative (their steps do not move with T), and a breakpoint τ moves the
 state through the jump condition instead: the state that leaves it is act(τ + δτ, y⁻ + δτ f⁻) − δτ f⁺, with
 f⁻ = f(τ⁻, y⁻) (the end of the previous segment) and f⁺ = f(τ, y⁺), δτ of value 0 carrying τ's derivative.
@@ -110,9 +111,14 @@ def integrate(solve, act, carry0, ts, sched: Schedule, row, drift=None):
 def moving_act(act, drift, t, d, t_left, state, do_reset, do_event):
     """The jump at breakpoint `t`, plus its first-order motion when t moves by δt = `d` (value 0):
     act(t + δt, y⁻ + δt f⁻) − δt f⁺, f⁻ = drift(t_left, y⁻) the vector field at the end of the previous
-    segment (one float below t at a plant jump), f⁺ = drift(t, y⁺).  Non-finite values of the drift count
-    as 0 (the zero motion must not turn into NaN; the next solve reports the failure itself)."""
+    segment (one float below t at a plant jump), f⁺ = drift(t, y⁺), on the floating leaves of the carry
+    (others, such as an eviction mask, pass through).  Non-finite values of the drift count as 0 (the zero motion must not turn into NaN; the next solve reports the failure itself)."""
     f_minus = finite_or_zero(drift(t_left, state))
-    out = act(t + d, tmap(lambda v, g: v + d * g, state, f_minus), do_reset, do_event)
+    out = act(t + d, tmap(lambda v, g: _moved(v, d, g), state, f_minus), do_reset, do_event)
     f_plus = finite_or_zero(drift(t, out))
-    return tmap(lambda v, g: v - d * g, out, f_plus)
+    return tmap(lambda v, g: _moved(v, -d, g), out, f_plus)
+
+
+def _moved(v, d, g):
+    """v + d g for a floating leaf; other leaves (the lock-step back-end's eviction mask) do not move."""
+    return v + d * g if jnp.issubdtype(jnp.result_type(v), jnp.inexact) else v

@@ -65,7 +65,12 @@ def is_finite(tree):
 def finite_or_zero(tree):
     """`tree` with non-finite values set to 0: the coefficient of a zero-valued motion (a jump condition's
     δτ f) must not turn it into NaN; the solve reports a non-finite state itself."""
-    return jax.tree_util.tree_map(lambda v: jnp.where(jnp.isfinite(v), v, 0.0), tree)
+    def one(v):
+        if not jnp.issubdtype(jnp.result_type(v), jnp.inexact):
+            return v
+        return jnp.where(jnp.isfinite(v), v, jnp.zeros((), jnp.result_type(v)))
+
+    return jax.tree_util.tree_map(one, tree)
 
 
 def code_of(result):
