@@ -117,7 +117,9 @@ def simulate(
     - `u`: open-loop input, a callable t -> (p,), zero when ``None``.
     - `controller`: output feedback ``controller(t, x̂) -> (p,)`` (closes the loop through the estimate).
     - `noise`: :class:`obsjax.noise.WhiteNoise` (an SDE; fixed steps, Euler–Maruyama by default, ``dt0``
-      defaulting to span/2000) or :class:`obsjax.noise.BandLimitedNoise`; needs ``key``.
+      defaulting to span/2000) or :class:`obsjax.noise.BandLimitedNoise`; needs ``key``.  Under white
+      noise the reset instants and event times of the observer cannot be differentiated (the pathwise
+      solution is not differentiable in them); a derivative in them raises ``ValueError``.
     - `solver`: a diffrax solver.  Default: the observer's ``recommended_solver(ts)`` when it has one (the
       high-gain :class:`obsjax.TrajectoryLinearization` returns the implicit ``Kvaerno5`` when
       max|ρ̄|·ω/ε makes the problem stiff), else ``Tsit5``.

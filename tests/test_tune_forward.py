@@ -331,3 +331,28 @@ def test_lockstep_batch_derivative_in_T_under_band_limited_noise(mode):
     d = jax.jacfwd(J) if mode == "forward" else jax.grad(J)
     g = float(jax.jit(d)(jnp.asarray(0.33)))
     assert g == pytest.approx(_noisy_dJ_dT_central_difference(), rel=1e-3)
+
+
+def test_reset_period_under_white_noise_is_refused_clearly():
+    """Under white measurement noise the pathwise loss has no derivative in T: moving a reset by δT changes
+    the estimate by O(√δT) through the Brownian increment (per path, central differences of Chen & Yen's ISE
+    at h = 1e-2, 3e-3, 1e-3, 3e-4 spread over 8 paths with std 18, 12, 39, 37: they do not converge).  Both
+    simulate under jax.grad and tune say so with a ValueError instead of diffrax's error about t0; the other
+    gains stay differentiable."""
+    noise = obsjax.noise.WhiteNoise(0.05)
+    ts = jnp.linspace(0.0, 1.0, 6)
+    x0, xh0 = jnp.asarray([0.5, -1.0]), jnp.asarray([5.0, -5.0])
+
+    def J(gamma, T):
+        o = obsjax.LeastSquaresReset(CY, gamma, 0.1, T)
+        tr = obsjax.simulate(CY, o, x0, xh0, ts, noise=noise, key=jr.PRNGKey(0), dt0=0.01, max_segments=8)
+        return obsjax.losses.ise(tr)
+
+    for d in (jax.grad(J, argnums=1), jax.jacfwd(J, argnums=1)):
+        with pytest.raises(ValueError, match="cannot be differentiated under white measurement noise"):
+            d(20.0, 0.33)
+    g, fd = jax.grad(J)(20.0, 0.33), (J(20.0 + 1e-4, 0.33) - J(20.0 - 1e-4, 0.33)) / 2e-4
+    assert np.isfinite(float(g)) and float(g) == pytest.approx(float(fd), rel=1e-4, abs=1e-8)
+    with pytest.raises(ValueError, match="cannot be differentiated under white measurement noise"):
+        obsjax.tune(obsjax.LeastSquaresReset(CY, 20.0, 0.1, 0.33), CY, where=lambda o: o.T, loss=obsjax.losses.ise,
+                    x0s=x0[None], xhat0s=xh0[None], ts=ts, noise=noise, key=jr.PRNGKey(0), steps=1)  # fmt: skip

@@ -171,11 +171,34 @@ def integrate(args: _system.Args, state0, ts, sched: Schedule, opt: Options):
 
     act = functools.partial(_act, args, sched.has_reset, sched.has_event)
     row = jax.eval_shape(lambda s: s, state0)
+    if opt.white_noise is not None and sched.concrete is None:
+        sched = dataclasses.replace(sched, times=no_derivative_under_white_noise(sched.times))
     # an ODE: traced breakpoints (a tuned T) move by the jump condition, not by moving the solves' steps
     f = _system.for_check_mode(_system.drift)
     drift = None if opt.white_noise is not None else (lambda t, s: f(t, s, args))
     saved, code, _ = _segments.integrate(solve, act, state0, ts, sched, row, drift=drift)
     return saved, code
+
+
+WHITE_NOISE_TIMES = (
+    "the reset instants or event times of the observer (a reset period T, an event time) cannot be "
+    "differentiated under white measurement noise: the measurement enters the estimate as a Brownian "
+    "increment, and moving a reset or an event by δT changes the estimate by O(√δT) on each path, so the "
+    "pathwise loss has no derivative in them. Use BandLimitedNoise (a piecewise-linear noise path, through "
+    "which dJ/dT is exact to the tolerance), or hold T fixed (jax.lax.stop_gradient, or tune the other gains)."
+)
+
+
+@jax.custom_jvp
+def no_derivative_under_white_noise(times):
+    """The breakpoint times, unchanged; differentiating them raises ``ValueError(WHITE_NOISE_TIMES)``
+    at trace time (without this, diffrax raises an opaque error about t0)."""
+    return times
+
+
+@no_derivative_under_white_noise.defjvp
+def _no_derivative_jvp(primals, tangents):
+    raise ValueError(WHITE_NOISE_TIMES)
 
 
 def _act(args, has_reset, has_event, t, state, do_reset, do_event):

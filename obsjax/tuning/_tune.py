@@ -18,9 +18,10 @@ import optax
 from .. import _trace_cache
 from .._checks import as_float_array, runtime_checks_as_nan
 from .._config import require_x64
-from .._integrate import _masked, _validate
+from .._integrate import _diffrax, _masked, _validate
 from .._simulate import SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch, simulate_plants
+from ..systems._noise import WhiteNoise
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
 BACKTRACK = 0.5
@@ -600,6 +601,12 @@ def tune(
     The derivatives in the other gains (γ, p0, …) were never affected: they agreed to 5 digits between
     rtol 1e-6 and 1e-12.
 
+    **White noise and a tuned T.**  Under :class:`obsjax.noise.WhiteNoise` the measurement enters the
+    estimate as a Brownian increment, and moving a reset by δT changes the estimate by O(√δT) on each
+    path: the pathwise loss has no derivative in T (Chen & Yen's example, per path central differences at
+    h = 1e-2 … 3e-4 do not converge).  tune refuses such a problem with a ``ValueError`` before
+    compiling; use band-limited noise, or tune the other gains with T fixed.
+
     Observers with a reset period T are simulated with a number of segments recomputed from the
     current T (a retrace happens only when it grows past a power-of-two bucket).
 
@@ -655,6 +662,13 @@ def tune(
         new = to_leaves(theta)
         return eqx.tree_at(where, observer, new[0] if single else new)
 
+    depends = _period_depends_on(build, theta0, build(theta0).reset_period)
+    if depends and isinstance(noise, WhiteNoise):
+        raise ValueError(
+            "tune: `where` selects the observer's reset period (directly or through a leaf it depends on), "
+            f"and {_diffrax.WHITE_NOISE_TIMES}"
+        )
+
     span = float(ts_np[-1] - ts_np[0])
     spec_kwargs = tuple(sorted(simulate_kwargs.items()))
     ts_key = tuple(float(v) for v in ts_np)
@@ -702,7 +716,6 @@ def tune(
             return None, val, None, "the gradient is not finite"
         return obs, val, grads, None
 
-    depends = _period_depends_on(build, theta0, build(theta0).reset_period)
     result = _descend(
         evaluate, depends, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
         progress,
