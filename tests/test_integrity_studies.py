@@ -137,6 +137,46 @@ def test_globals_read_by_a_sampler_enter_the_fingerprint(tmp_path):
     study(PLANT_A, NOISE_A, x0_global_scale, ck, max_chunks=0)  # the same study again: accepted
 
 
+def _settings_module(scale):
+    """A user's settings module (``cfg.SCALE``), as a sampler reads it."""
+    import types
+
+    cfg = types.ModuleType("user_settings")
+    cfg.SCALE = scale
+    return cfg
+
+
+def test_settings_module_attributes_read_by_a_sampler_enter_the_fingerprint(tmp_path):
+    # a module was hashed by its name only: a changed setting reused the old study's chunks without a word
+    cfg = _settings_module(1.0)
+
+    def x0_settings(k):
+        return cfg.SCALE * jr.normal(k, (2,))
+
+    ck = tmp_path / "ck"
+    first = study(PLANT_A, None, x0_settings, ck)
+    cfg.SCALE = 100.0
+    with pytest.raises(ValueError, match="holds a different study"):
+        study(PLANT_A, None, x0_settings, ck)
+    fresh = study(PLANT_A, None, x0_settings, None)  # the changed study, computed anew in this process
+    np.testing.assert_allclose(fresh.error_norm[:, 0], 100.0 * first.error_norm[:, 0], rtol=1e-12)
+    cfg.SCALE = 1.0
+    assert study(PLANT_A, None, x0_settings, ck).n_computed == 0  # the first study again: resumed
+
+
+def test_a_changed_global_is_not_served_from_the_kernel_compiled_before(tmp_path):
+    # same sampler object, a global it reads changed between two calls in one process (a notebook re-run):
+    # the kernel must be traced again, not reused with the value baked in at the first trace
+    global SCALE
+    first = study(PLANT_A, None, x0_global_scale, None)
+    try:
+        SCALE = 100.0
+        second = study(PLANT_A, None, x0_global_scale, None)
+    finally:
+        SCALE = 1.0
+    np.testing.assert_allclose(second.error_norm[:, 0], 100.0 * first.error_norm[:, 0], rtol=1e-12)
+
+
 class _Drift:
     """A plain (non-dataclass) callable object: hashed by class code and instance attributes."""
 

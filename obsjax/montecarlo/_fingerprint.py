@@ -9,7 +9,9 @@ or two noise models that differ by a static grid spacing give different results.
 - dataclasses (every ``eqx.Module``: plants, observers, noise models, diffrax solvers) field by
   field, static fields included, plus the code of the methods of user-defined classes;
 - user functions by their bytecode (constants, names, nested functions), their closure values, their
-  default arguments and the values of the globals they read, recursively;
+  default arguments and the values of the globals they read, recursively, including the attributes
+  they may read from a user's module (a settings module read as ``cfg.SCALE``: those named in the
+  function's code);
 - functions, classes and modules of the numerical libraries (jax, numpy, scipy, diffrax, equinox,
   optax, lineax, obsjax, ...) by qualified name (their versions enter the header), but their
   closures by value, so ``jax.jit(f)`` and closures made by library factories are still hashed by
@@ -327,10 +329,13 @@ class _Hasher:
             if fn.__dict__:  # attributes set on the function (f.scale = ...)
                 self._dict(dict(fn.__dict__), f"{path}.__dict__")
             glb = fn.__globals__
-            for name in sorted(_global_names(fn.__code__)):
+            names = _global_names(fn.__code__)
+            for name in sorted(names):
                 if name in glb:
                     self.put("global", name)
                     self.visit(glb[name], f"{path}.<global {name}>")
+                    if isinstance(glb[name], types.ModuleType):
+                        self._module_attributes(glb[name], names, f"{path}.<global {name}>", set())
         self.visit(fn.__defaults__, f"{path}.__defaults__")
         self.visit(fn.__kwdefaults__, f"{path}.__kwdefaults__")
         for name, cell in zip(fn.__code__.co_freevars, fn.__closure__ or ()):
@@ -341,6 +346,25 @@ class _Hasher:
                 self.put("empty-cell")
                 continue
             self.visit(value, f"{path}.<closure {name}>")
+            if isinstance(value, types.ModuleType):
+                self._module_attributes(value, _global_names(fn.__code__), f"{path}.<closure {name}>", set())
+
+    def _module_attributes(self, mod: types.ModuleType, names: set, path: str, seen: set) -> None:
+        """The attributes of a user's module (a settings module, ``cfg.SCALE``) that a function may read:
+        those named in its code (``co_names`` holds both global and attribute names), by content.  A
+        module is otherwise hashed by its name only, and a changed setting would go unnoticed."""
+        if _is_library(mod.__name__) or id(mod) in seen:
+            return
+        seen.add(id(mod))
+        space = vars(mod)
+        for attr in sorted(names):
+            if attr.startswith("__") or attr not in space:
+                continue
+            value = space[attr]
+            self.put("module-attr", f"{mod.__name__}.{attr}")
+            self.visit(value, f"{path}.{attr}")
+            if isinstance(value, types.ModuleType):
+                self._module_attributes(value, names, f"{path}.{attr}", seen)
 
     def _builtin(self, fn, path: str) -> None:
         mod = getattr(fn, "__module__", None)

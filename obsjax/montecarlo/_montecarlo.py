@@ -564,6 +564,10 @@ class _Config(eqx.Module):
     mesh: object
     lockstep: bool
     masked: bool  # independent steps on the masked adaptive Runge–Kutta loop (simulate_batch(lockstep=False))
+    # content fingerprint of the samplers and the static part: the compiled kernels are keyed on this
+    # config, and a sampler that reads a global (or a settings module) changed since the last call must
+    # be traced again, not served from the kernel compiled with the old value
+    content: str = ""
 
 
 def _draw(dyn, cfg: _Config, key, i):
@@ -960,6 +964,10 @@ def monte_carlo(
         mesh=mesh,
         lockstep=bool(lockstep),
         masked=masked,
+        content=fingerprint(
+            dict(static=static, x0_sampler=x0_sampler, xhat0_sampler=xhat0_sampler, param_sampler=param_sampler,
+                 sim_kwargs=sim_kw)  # fmt: skip
+        )[0],
     )
     try:
         hash(cfg)
