@@ -12,6 +12,8 @@ pass is the same loss by plain ``simulate`` (default adjoint) in one ``jax.jit``
 2. Where forward and reverse mode cross: a Luenberger observer on an n-state chain (ẋ_i = −x_i + x_{i+1},
    y = x_1), its gain L (n × 1) tuned, n = 1 … 16, 1024 initial conditions on [0, 10], adaptive Tsit5
    (rtol 1e-6) and fixed Tsit5 (h = 0.05).
+3. Fixed steps as the number of scenarios grows (64, 256, 1024): Chen & Yen's (γ, p0, T) and chains of
+   n = 2, 3, 4 states, with the mode ``tune(mode="auto")`` picks.
 
 Usage: ``python benchmarks/j_forward_gradient.py [--repeat 7] [--quick]``.
 """
@@ -202,14 +204,55 @@ def crossover_rows(repeat, ns, batch=1024):
     return rows
 
 
+def fixed_batch_rows(repeat, batches=(64, 256, 1024)):
+    """Fixed steps: reverse against forward mode as the number of scenarios grows (Chen & Yen's (γ, p0, T),
+    h = 0.0125; chains of n = 2, 3, 4 states, L tuned, h = 0.05), with the mode tune(mode="auto") picks."""
+    import numpy as np
+
+    from obsjax.tuning import _tune
+
+    rows = []
+    rng = np.random.default_rng(1)
+    cy_plant, cy_obs = C.chen_yen()
+    for batch in batches:
+        cases = [("Chen & Yen, (γ, p0, T)", cy_obs, cy_plant, lambda o: (o.gamma, o.p0, o.T),
+                  *C.chen_yen_batch(batch), np.linspace(0.0, C.T1, 80), {"adaptive": False, "dt0": 0.0125}, 41)]  # fmt: skip
+        for n in (2, 3, 4):
+            plant, obs = chain(n)
+            cases.append((f"chain n = {n}, L", obs, plant, lambda o: o.L, rng.normal(size=(batch, n)),
+                          np.zeros((batch, n)), np.linspace(0.0, 10.0, 51), {"adaptive": False, "dt0": 0.05}, None))  # fmt: skip
+        for label, obs, plant, where, x0s, xh0s, ts, kw, ms in cases:
+            m = _measure(obs, plant, where, x0s, xh0s, ts, kw, ms, repeat, kernel="vmap")
+            leaves0, _ = _tune._selected_leaves(obs, where)
+            m["auto"] = _tune._resolve_mode("auto", leaves0, kw, batch)
+            m["k"] = _tune.n_real_scalars(leaves0)
+            rows.append((batch, label, m))
+            c = m["cpu"]
+            print(f"fixed steps, {label}, {batch} scenarios: reverse {c['rev'] / c['fwd']:.2f}x, forward mode "
+                  f"{c['fmd'] / c['fwd']:.2f}x (CPU time); auto: {m['auto']}", flush=True)  # fmt: skip
+    return rows
+
+
 def main(repeat=7, quick=False):
     load = C.Load()
-    from obsjax.tuning._tune import FORWARD_MODE_MAX_SCALARS
+    from obsjax.tuning._tune import FIXED_STEP_FORWARD_MAX_WORK, FORWARD_MODE_MAX_SCALARS
 
     batch = 64
     cy = chen_yen_rows(repeat, batch)
     ns = (1, 2, 4, 8) if quick else (1, 2, 3, 4, 6, 8, 12, 16)
     cross = crossover_rows(repeat, ns)
+    fixed = fixed_batch_rows(repeat, (64, 1024) if quick else (64, 256, 1024))
+    fixed_table = "\n".join(
+        f"| {b_} | {label} | {m['k']} | {m['best']['fwd']:.4f} s | {m['best']['rev'] / m['best']['fwd']:.2f}× | "
+        f"{m['best']['fmd'] / m['best']['fwd']:.2f}× | {m['cpu']['rev'] / m['cpu']['fwd']:.2f}× | "
+        f"{m['cpu']['fmd'] / m['cpu']['fwd']:.2f}× | "
+        f"{'forward' if m['cpu']['fmd'] < m['cpu']['rev'] else 'reverse'} | {m['auto']} |"
+        for b_, label, m in fixed
+    )
+    worst = max(
+        (m["cpu"]["fmd" if m["auto"] == "forward" else "rev"] / min(m["cpu"]["fmd"], m["cpu"]["rev"]), b_, label)
+        for b_, label, m in fixed
+    )
 
     def fmt_row(label, kernel, tuned, m):
         b, md, fi, c = m["best"], m["med"], m["first"], m["cpu"]
@@ -342,14 +385,32 @@ settled: the compiled loop's matrix products on the tangents come with transpose
 does not have).  The cheapest of the four per step in this run, by the number of scalars: {cheapest}.  With
 resets (Chen & Yen above) the masked kernel is the cheaper in both modes by a wide margin.
 
-Forward mode is cheaper per step (CPU time) for {faster_text}.  `tune(mode="auto")` uses forward mode up
-to `FORWARD_MODE_MAX_SCALARS` = {FORWARD_MODE_MAX_SCALARS} scalars: its first call (trace and compile) is
-about half that of reverse mode, which outweighs a per-step difference of a few tens of percent over a
-run of tune's default 100 steps; pass `mode="reverse"` for long runs where reverse mode is the cheaper per
-step.
+Forward mode is cheaper per step (CPU time) for {faster_text}.  With adaptive steps `tune(mode="auto")`
+uses forward mode up to `FORWARD_MODE_MAX_SCALARS` = {FORWARD_MODE_MAX_SCALARS} scalars: its first call
+(trace and compile) is about half that of reverse mode, which outweighs a per-step difference of a few
+tens of percent over a run of tune's default 100 steps; pass `mode="reverse"` for long runs where reverse
+mode is the cheaper per step.
+
+## Fixed steps: where the modes cross with the number of scenarios
+
+With fixed steps the solve is one `lax.scan` whose reverse pass costs about three forward passes at any
+batch size, while a tangent of forward mode costs little where the batch is small (the scan's fixed
+costs per step set the pace) and more than a forward pass where it is large (the arrays do).  Fixed Tsit5,
+`jax.vmap(simulate)` kernel; Chen & Yen's example as above with (γ, p0, T) tuned (h = 0.0125), and the
+chains above with L tuned (h = 0.05).  Ratios against the same kernel's forward pass; the last column is
+the mode `tune(mode="auto")` picks: with fixed steps forward mode only for one scalar or while
+scalars × scenarios ≤ `FIXED_STEP_FORWARD_MAX_WORK` = {FIXED_STEP_FORWARD_MAX_WORK} (before, forward mode
+up to {FORWARD_MODE_MAX_SCALARS} scalars at any batch).
+
+| scenarios | problem | scalars | forward pass | reverse mode | forward mode | reverse (CPU time) | forward mode (CPU time) | cheaper (CPU time) | auto |
+|---|---|---|---|---|---|---|---|---|---|
+{fixed_table}
+
+Where auto's pick is not the cheaper one in this run, it costs at most {worst[0]:.2f}× the cheaper mode
+per step ({worst[2]}, {worst[1]} scenarios).
 """
     C.write_result("j_forward_gradient", "Benchmark (j): forward-mode gradients in tune", body, load)
-    return cy, cross
+    return cy, cross, fixed
 
 
 if __name__ == "__main__":

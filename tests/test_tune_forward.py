@@ -165,6 +165,13 @@ def test_auto_mode_counts_real_scalars():
     assert _tune._resolve_mode("auto", (jnp.ones((k, k)),), {}) == "reverse"
     assert _tune._resolve_mode("forward", (jnp.ones(50),), {}) == "forward"
     assert _tune._resolve_mode("reverse", (three,), {}) == "reverse"
+    # fixed steps: forward mode for one scalar, or while scalars x scenarios stays small
+    fixed, w = {"adaptive": False, "dt0": 0.01}, _tune.FIXED_STEP_FORWARD_MAX_WORK
+    assert _tune._resolve_mode("auto", (three,), fixed, batch=w // 3) == "forward"
+    assert _tune._resolve_mode("auto", (three,), fixed, batch=w // 3 + 1) == "reverse"
+    assert _tune._resolve_mode("auto", (one,), fixed, batch=100_000) == "forward"
+    assert _tune._resolve_mode("auto", (three,), {}, batch=100_000) == "forward"  # adaptive steps
+    assert _tune._resolve_mode("forward", (three,), fixed, batch=100_000) == "forward"
     # a given adjoint decides under "auto"
     rc = {"adjoint": diffrax.RecursiveCheckpointAdjoint()}
     assert _tune._resolve_mode("auto", (three,), rc) == "reverse"

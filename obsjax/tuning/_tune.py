@@ -30,6 +30,13 @@ BACKTRACK = 0.5
 #: scalars (a complex entry counts twice), in reverse mode otherwise
 #: (``benchmarks/results/j_forward_gradient.md`` measures where the two cross).
 FORWARD_MODE_MAX_SCALARS = 4
+#: With fixed steps (``adaptive=False``), whose reverse pass through one ``lax.scan`` costs about 3 forward
+#: passes whatever the batch, each tangent of forward mode costs 1–2.5 forward passes once the batch is
+#: large enough for the scan's arrays to set the pace (chain plants and Chen & Yen's example,
+#: 1024 scenarios: 3 scalars 7.3× and 6.1× in forward mode against 3.0× and 3.4× in reverse mode), and
+#: 0.5–0.8 for small batches (64 scenarios: 2.5–3.4× against 3.2–3.7×).  ``mode="auto"`` therefore uses
+#: forward mode with fixed steps only for one scalar, or when scalars × scenarios is at most this.
+FIXED_STEP_FORWARD_MAX_WORK = 192
 
 _MODES = ("auto", "forward", "reverse")
 
@@ -233,8 +240,9 @@ def n_real_scalars(leaves) -> int:
     return int(sum(np.size(x) * (2 if np.iscomplexobj(x) else 1) for x in leaves))
 
 
-def _resolve_mode(mode, leaves0, simulate_kwargs) -> str:
-    """``"forward"`` or ``"reverse"`` from tune's `mode`, the tuned leaves and a given adjoint."""
+def _resolve_mode(mode, leaves0, simulate_kwargs, batch: int = 1) -> str:
+    """``"forward"`` or ``"reverse"`` from tune's `mode`, the tuned leaves, a given adjoint, whether the
+    steps are fixed and the number of scenarios `batch`."""
     if mode not in _MODES:
         raise ValueError(f"`mode` must be 'auto', 'forward' or 'reverse', got {mode!r}.")
     adjoint = simulate_kwargs.get("adjoint")
@@ -260,7 +268,12 @@ def _resolve_mode(mode, leaves0, simulate_kwargs) -> str:
         return "reverse"
     if not reverse_ok:
         return "forward"
-    return "forward" if n_real_scalars(leaves0) <= FORWARD_MODE_MAX_SCALARS else "reverse"
+    k = n_real_scalars(leaves0)
+    if k > FORWARD_MODE_MAX_SCALARS:
+        return "reverse"
+    if simulate_kwargs.get("adaptive", True) is False and k > 1 and k * batch > FIXED_STEP_FORWARD_MAX_WORK:
+        return "reverse"
+    return "forward"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -533,13 +546,15 @@ def tune(
       per tuned real scalar, carried through the solves with ``diffrax.ForwardMode()``) or
       ``"auto"`` (the default): forward mode when the tuned leaves hold at most four real scalars
       (``FORWARD_MODE_MAX_SCALARS``; a complex entry counts twice; e.g. (γ, p0, T) or ε), reverse
-      mode otherwise (a gain matrix, many poles).  The cost of forward mode grows with the number
-      of scalars, that of reverse mode does not; which one is cheaper per step also depends on the
-      solve (``benchmarks/results/j_forward_gradient.md``): on the masked kernel (below) the two
-      were within a few tens of percent of each other at 3–4 scalars, with forward mode compiling
-      in about half the time; fixed steps on a grid known before tracing run as one ``lax.scan``
-      whose reverse pass is cheap, and for a cheap linear plant reverse mode was the cheaper from 2
-      scalars on: pass ``mode="reverse"`` there.  Both differentiate the same
+      mode otherwise (a gain matrix, many poles); with fixed steps (``adaptive=False``) forward mode
+      only for one scalar or when scalars × scenarios ≤ 192 (``FIXED_STEP_FORWARD_MAX_WORK``).  The
+      cost of forward mode grows with the number of scalars, that of reverse mode does not; which
+      one is cheaper per step also depends on the solve (``benchmarks/results/j_forward_gradient.md``):
+      with adaptive steps forward mode was the cheaper up to 3–4 scalars (Chen & Yen's example,
+      (γ, p0, T), masked kernel: 3.3× against 4.2× with 64 scenarios, 3.5× against 5.4× with 1024),
+      and compiles in about half the time; fixed steps run as one ``lax.scan`` whose reverse pass
+      costs about 3 forward passes, while each tangent costs more as the batch grows (3 scalars,
+      1024 scenarios: 6.1× against 3.4× on Chen & Yen's example).  Both differentiate the same
       computation, so they agree to round-off.  An ``adjoint`` in ``simulate_kwargs``
       decides under ``"auto"`` (``diffrax.ForwardMode()`` forward, ``RecursiveCheckpointAdjoint``
       or ``BacksolveAdjoint`` reverse); one that cannot do the requested mode is refused.
@@ -639,7 +654,7 @@ def tune(
     batch = x0s.shape[0]
     weights = jnp.asarray(risk_weights(risk, batch))
     leaves0, single = _selected_leaves(observer, where)
-    mode = _resolve_mode(mode, leaves0, simulate_kwargs)
+    mode = _resolve_mode(mode, leaves0, simulate_kwargs, batch)
     kernel = batch_kernel(
         observer, ts_np, plant_batched=plant_batched, noise=noise, mode=mode,
         simulate_kwargs=simulate_kwargs,
