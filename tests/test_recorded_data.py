@@ -178,6 +178,9 @@ def test_lengths_holds_and_shapes_are_checked():
         obsjax.Measurements(ts, y, u, hold="foh")
     with pytest.raises(ValueError, match=r"`x_index` \(which states `x_ref` holds"):
         obsjax.Measurements(ts, y, u, x_ref=y)
+    with pytest.raises(ValueError, match=r"`x_index` must list integer state indices"):  # not truncated to 1
+        obsjax.Measurements(ts, y, u, x_ref=y, x_index=1.9)
+    assert obsjax.Measurements(ts, y, u, x_ref=y, x_index=np.array([1])).x_index == (1,)
     d = obsjax.Measurements(ts, y)  # no input, but the observer's model has one
     with pytest.raises(ValueError, match=r"`data` has p = 0 inputs but the observer's model has p = 1"):
         obsjax.estimate(OBS, d, XH0)

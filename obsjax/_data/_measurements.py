@@ -220,7 +220,12 @@ class Measurements(eqx.Module):
         x_ref = _samples(x_ref, "x_ref", K, "q")
         if x_index is None:
             raise ValueError("`x_index` (which states `x_ref` holds, e.g. (1,)) is required with `x_ref`.")
-        idx = tuple(int(i) for i in np.atleast_1d(x_index))
+        raw = np.atleast_1d(np.asarray(x_index, dtype=object)).ravel()
+        if not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) for i in raw):
+            raise ValueError(
+                f"`x_index` must list integer state indices (one per column of `x_ref`), got {x_index!r}."
+            )
+        idx = tuple(int(i) for i in raw)
         if len(idx) != x_ref.shape[1] or any(i < 0 for i in idx):
             raise ValueError(
                 f"`x_index` must list {x_ref.shape[1]} non-negative state indices (one per column of `x_ref`), "
