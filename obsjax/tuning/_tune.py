@@ -32,10 +32,11 @@ BACKTRACK = 0.5
 FORWARD_MODE_MAX_SCALARS = 4
 #: With fixed steps (``adaptive=False``), whose reverse pass through one ``lax.scan`` costs about 3 forward
 #: passes whatever the batch, each tangent of forward mode costs 1–2.5 forward passes once the batch is
-#: large enough for the scan's arrays to set the pace (chain plants and Chen & Yen's example,
-#: 1024 scenarios: 3 scalars 7.3× and 6.1× in forward mode against 3.0× and 3.4× in reverse mode), and
-#: 0.5–0.8 for small batches (64 scenarios: 2.5–3.4× against 3.2–3.7×).  ``mode="auto"`` therefore uses
-#: forward mode with fixed steps only for one scalar, or when scalars × scenarios is at most this.
+#: large enough for the scan's arrays to set the pace (1024 scenarios, 3 scalars, CPU time: a 3-state
+#: chain 7.0× in forward mode against 2.9× in reverse mode, Chen & Yen's example 6.5× against 3.9×), and
+#: about 0.5–0.8 for small batches (64 scenarios: Chen & Yen 2.6× against 3.4×, the chain 3.5× against
+#: 3.4×; a 4-state chain, 4 scalars, 4.8× against 3.3×).  ``mode="auto"`` therefore uses forward mode with
+#: fixed steps only for one scalar, or when scalars × scenarios is at most this.
 FIXED_STEP_FORWARD_MAX_WORK = 192
 
 _MODES = ("auto", "forward", "reverse")
@@ -554,7 +555,7 @@ def tune(
       (γ, p0, T), masked kernel: 3.3× against 4.2× with 64 scenarios, 3.5× against 5.4× with 1024),
       and compiles in about half the time; fixed steps run as one ``lax.scan`` whose reverse pass
       costs about 3 forward passes, while each tangent costs more as the batch grows (3 scalars,
-      1024 scenarios: 6.1× against 3.4× on Chen & Yen's example).  Both differentiate the same
+      1024 scenarios: 6.5× against 3.9× on Chen & Yen's example).  Both differentiate the same
       computation, so they agree to round-off.  An ``adjoint`` in ``simulate_kwargs``
       decides under ``"auto"`` (``diffrax.ForwardMode()`` forward, ``RecursiveCheckpointAdjoint``
       or ``BacksolveAdjoint`` reverse); one that cannot do the requested mode is refused.
