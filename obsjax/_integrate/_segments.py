@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from ._schedule import Schedule
-from ._status import SUCCESS, finite_or_zero, first_failure
+from ._status import SUCCESS, finite_or_zero, first_failure, is_floating
 
 tmap = jax.tree_util.tree_map
 
@@ -112,7 +112,8 @@ def moving_act(act, drift, t, d, t_left, state, do_reset, do_event):
     """The jump at breakpoint `t`, plus its first-order motion when t moves by δt = `d` (value 0):
     act(t + δt, y⁻ + δt f⁻) − δt f⁺, f⁻ = drift(t_left, y⁻) the vector field at the end of the previous
     segment (one float below t at a plant jump), f⁺ = drift(t, y⁺), on the floating leaves of the carry
-    (others, such as an eviction mask, pass through).  Non-finite values of the drift count as 0 (the zero motion must not turn into NaN; the next solve reports the failure itself)."""
+    (others, such as an eviction mask, pass through).  Non-finite values of the drift count as 0 (the zero
+    motion must not turn into NaN; the next solve reports the failure itself)."""
     f_minus = finite_or_zero(drift(t_left, state))
     out = act(t + d, tmap(lambda v, g: _moved(v, d, g), state, f_minus), do_reset, do_event)
     f_plus = finite_or_zero(drift(t, out))
@@ -121,4 +122,4 @@ def moving_act(act, drift, t, d, t_left, state, do_reset, do_event):
 
 def _moved(v, d, g):
     """v + d g for a floating leaf; other leaves (the lock-step back-end's eviction mask) do not move."""
-    return v + d * g if jnp.issubdtype(jnp.result_type(v), jnp.inexact) else v
+    return v + d * g if is_floating(v) else v

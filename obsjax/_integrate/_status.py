@@ -62,13 +62,18 @@ def is_finite(tree):
     return jnp.isfinite(sum_of_squares(tree))
 
 
+def is_floating(v) -> bool:
+    """Whether an array leaf is floating (real or complex): what a jump condition's motion may move."""
+    return jnp.issubdtype(jnp.result_type(v), jnp.inexact)
+
+
 def finite_or_zero(tree):
-    """`tree` with non-finite values set to 0: the coefficient of a zero-valued motion (a jump condition's
-    δτ f) must not turn it into NaN; the solve reports a non-finite state itself."""
+    """`tree` with non-finite values of its floating leaves set to 0 (other leaves unchanged): the
+    coefficient of a zero-valued motion (a jump condition's δτ f) must not turn it into NaN; the solve
+    reports a non-finite state itself."""
+
     def one(v):
-        if not jnp.issubdtype(jnp.result_type(v), jnp.inexact):
-            return v
-        return jnp.where(jnp.isfinite(v), v, jnp.zeros((), jnp.result_type(v)))
+        return jnp.where(jnp.isfinite(v), v, jnp.zeros((), jnp.result_type(v))) if is_floating(v) else v
 
     return jax.tree_util.tree_map(one, tree)
 

@@ -324,18 +324,16 @@ class _Hasher:
 
     def _function(self, fn: types.FunctionType, path: str) -> None:
         self.put("function", f"{fn.__module__}.{fn.__qualname__}")
+        names = _global_names(fn.__code__)
         if not _is_library(fn.__module__):
             self._code(fn.__code__, path)
             if fn.__dict__:  # attributes set on the function (f.scale = ...)
                 self._dict(dict(fn.__dict__), f"{path}.__dict__")
             glb = fn.__globals__
-            names = _global_names(fn.__code__)
             for name in sorted(names):
                 if name in glb:
                     self.put("global", name)
-                    self.visit(glb[name], f"{path}.<global {name}>")
-                    if isinstance(glb[name], types.ModuleType):
-                        self._module_attributes(glb[name], names, f"{path}.<global {name}>", set())
+                    self._read(glb[name], names, f"{path}.<global {name}>")
         self.visit(fn.__defaults__, f"{path}.__defaults__")
         self.visit(fn.__kwdefaults__, f"{path}.__kwdefaults__")
         for name, cell in zip(fn.__code__.co_freevars, fn.__closure__ or ()):
@@ -345,9 +343,14 @@ class _Hasher:
             except ValueError:  # an empty cell
                 self.put("empty-cell")
                 continue
-            self.visit(value, f"{path}.<closure {name}>")
-            if isinstance(value, types.ModuleType):
-                self._module_attributes(value, _global_names(fn.__code__), f"{path}.<closure {name}>", set())
+            self._read(value, names, f"{path}.<closure {name}>")
+
+    def _read(self, value, names: set, path: str) -> None:
+        """A value a function reads (a global or a closure cell), and, for a module, the attributes of
+        it that the function's code names."""
+        self.visit(value, path)
+        if isinstance(value, types.ModuleType):
+            self._module_attributes(value, names, path, set())
 
     def _module_attributes(self, mod: types.ModuleType, names: set, path: str, seen: set) -> None:
         """The attributes of a user's module (a settings module, ``cfg.SCALE``) that a function may read:

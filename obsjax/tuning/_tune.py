@@ -272,7 +272,7 @@ def _resolve_mode(mode, leaves0, simulate_kwargs, batch: int = 1) -> str:
     k = n_real_scalars(leaves0)
     if k > FORWARD_MODE_MAX_SCALARS:
         return "reverse"
-    if simulate_kwargs.get("adaptive", True) is False and k > 1 and k * batch > FIXED_STEP_FORWARD_MAX_WORK:
+    if not simulate_kwargs.get("adaptive", True) and k > 1 and k * batch > FIXED_STEP_FORWARD_MAX_WORK:
         return "reverse"
     return "forward"
 
