@@ -218,6 +218,102 @@ def test_state_units_do_not_change_decisions():
     assert (st.blocks, st.indices, st.observable) == (ref.blocks, ref.indices, True)
 
 
+# mass-spring-damper with a constant input-bias state (its row of A is zero), position measured
+MSD_BIAS_A = np.array([[0.0, 1.0, 0.0], [-4.0, -0.4, 1.0], [0.0, 0.0, 0.0]])
+MSD_BIAS_C = np.array([[1.0, 0.0, 0.0]])
+
+
+@pytest.mark.parametrize("k", [0, 3, 6, 9, 12])
+def test_a_bias_state_in_any_unit_is_observable(k):
+    """The bias state in units 10^k apart: x3 → 10^k x3 gives the similar pair (S A S⁻¹, C S⁻¹), so
+    observability, the indices and the PBH margin must not move (the rank of obsv of the unscaled,
+    well-scaled pair is 3; python-control is the oracle).  A norm balancing cannot rescale a state whose
+    row of A is zero: the margin fell as 10^-k and `is_observable` said False at 10^9."""
+    assert np.linalg.matrix_rank(control.obsv(MSD_BIAS_A, MSD_BIAS_C)) == 3
+    S = np.diag([1.0, 1.0, 10.0**k])
+    A, C = S @ MSD_BIAS_A @ np.linalg.inv(S), MSD_BIAS_C @ np.linalg.inv(S)
+    ref = observability_staircase(MSD_BIAS_A, MSD_BIAS_C)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # 10^12: the balancing's range is named
+        st = observability_staircase(A, C)
+        for c in (1e-3, 1e3):  # and in another time unit
+            assert abs(pbh_margin(c * A, C) - ref.margin) <= 1e-9 * ref.margin
+    assert ref.observable and ref.margin > 0.1
+    assert (st.observable, st.rank, st.indices) == (True, 3, (3,))
+    assert abs(st.margin - ref.margin) <= 1e-9 * ref.margin
+    if k <= 9:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert is_observable(A, C)
+            poles = [-2.0, -3.0, -4.0]
+            obs = obsjax.Luenberger.from_poles(obsjax.LTI(A=A, B=[[0.0], [1.0], [0.0]], C=C), poles)
+        eig = np.sort(np.linalg.eigvals(np.asarray(obs.observer_matrix)).real)
+        np.testing.assert_allclose(eig, np.sort(poles), rtol=1e-8)
+
+
+def test_state_units_never_flip_a_decision():
+    """Random pairs with exact zeros (chains, integrators, an unobservable block) and per-state units
+    10^±6 apart, in three time units: the staircase's decisions (observable, rank, indices) and the PBH
+    margin are those of the unscaled pair, and observability agrees with the rank of python-control's
+    obsv of the unscaled, well-scaled pair.  Before the log-magnitude balancing, 7 of 60 such pairs
+    flipped a decision."""
+    rng = np.random.default_rng(2026)
+    for trial in range(24):
+        n = int(rng.integers(2, 6))
+        m = int(rng.integers(1, 3))
+        kind = trial % 3
+        if kind == 0:  # a chain with random diagonal: x_i' = a_i x_i + x_{i+1}
+            A = np.diag(np.ones(n - 1), 1) + np.diag(rng.standard_normal(n))
+        elif kind == 1:  # integrators: zero rows
+            A = np.round(rng.standard_normal((n, n)), 1) * (rng.random((n, n)) < 0.5)
+            A[-1] = 0.0
+        else:  # an unobservable block
+            A = rng.standard_normal((n, n))
+            A[: n // 2, n // 2 :] = 0.0
+        C = np.zeros((m, n))
+        C[0, 0] = 1.0
+        if m > 1:
+            C[1, -1] = 1.0 if kind != 2 else 0.0
+        ref = observability_staircase(A, C)
+        truth = np.linalg.matrix_rank(control.obsv(A, C)) == n
+        assert ref.observable == truth, (trial, A, C)
+        for c in (1e-3, 1.0, 1e3):
+            s = 10.0 ** rng.uniform(-6, 6, n) * rng.choice([-1.0, 1.0], n)
+            As, Cs = c * (s[:, None] * A / s[None, :]), C / s[None, :]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                st = observability_staircase(As, Cs)
+            assert (st.observable, st.rank, st.indices) == (ref.observable, ref.rank, ref.indices), trial
+            assert abs(st.margin - ref.margin) <= 1e-8 * ref.margin + 1e-14, trial
+
+
+def test_balanced_pair_does_not_depend_on_units():
+    """balance_pair(c S A S⁻¹, Λ C S⁻¹) equals balance_pair(A, C) up to the signs of S and Λ, for a
+    dense pair and for one with zero rows and columns."""
+    from obsjax.analysis._lti import balance_pair
+
+    rng = np.random.default_rng(5)
+    dense = (rng.standard_normal((5, 5)), rng.standard_normal((2, 5)))
+    sparse = (MSD_BIAS_A, np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 2.0]]))
+    for A, C in (dense, sparse):
+        n, m = A.shape[0], C.shape[0]
+        s = 10.0 ** rng.uniform(-8, 8, n) * rng.choice([-1.0, 1.0], n)
+        lam = 10.0 ** rng.uniform(-8, 8, m) * rng.choice([-1.0, 1.0], m)
+        Ab, Cb, _ = balance_pair(A, C)
+        Ab2, Cb2, _ = balance_pair(7e4 * s[:, None] * A / s[None, :], lam[:, None] * C / s[None, :])
+        np.testing.assert_allclose(np.abs(Ab2), np.abs(Ab), rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(np.abs(Cb2), np.abs(Cb), rtol=1e-12, atol=1e-15)
+
+
+def test_a_coupling_at_round_off_level_is_named_in_a_warning():
+    """An entry 1e-17 of the others counts as a coupling (the decisions do not depend on state units),
+    so the pair is observable; a warning names the range so that round-off can be zeroed."""
+    A = np.array([[-1.0, 1e-17], [0.0, -2.0]])
+    with pytest.warns(UserWarning, match="rescales the states over a range"):
+        assert is_observable(A, [[1.0, 0.0]])
+    assert not is_observable(np.array([[-1.0, 0.0], [0.0, -2.0]]), [[1.0, 0.0]])
+
+
 def test_scaled_chain_is_observable_for_every_design():
     """An observable 6-state chain with A → 100 A: indices, placement, observers all accept it."""
     A = 100.0 * CHAIN6

@@ -200,6 +200,38 @@ def test_scaled_A(c):
         np.testing.assert_allclose(Lc, (c / d) * L0, rtol=1e-8, atol=1e-12 * abs(c / d) * np.abs(L0).max())
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_gain_follows_a_change_of_state_and_output_units(seed):
+    """x → S x, y → Λ y (S, Λ diagonal, units up to 10^±6 apart): the pair (S A S⁻¹, Λ C S⁻¹) is placed,
+    to 1e-10 in 40-digit eigenvalues of the exact A − LC, by S L Λ⁻¹ (L the gain of the unscaled pair).
+    Before the design ran in balanced units, such pairs were refused (a double pair with m = 2: error
+    6.7e-3 against its own gain's 1e-13) or returned a NaN error that no rtol accepted (n = 6, m = 4)."""
+    rng = np.random.default_rng(seed)
+    cases = [
+        (
+            np.array([[-3.0, -3, 2, 0], [1, 1, 1, -3], [0, -2, -1, 3], [0, -3, 0, -3]]),
+            np.array([[1.0, 2, 2, 1], [2, -1, -2, 0]]),
+            np.array([-1 + 1j, -1 - 1j, -1 + 1j, -1 - 1j]),
+        ),
+        (
+            rng.standard_normal((6, 6)),
+            rng.standard_normal((4, 6)),
+            np.array([-1 + 1j, -1 - 1j, -1 + 1j, -1 - 1j, -3.0, -3.0]),
+        ),
+        (rng.standard_normal((7, 7)), rng.standard_normal((3, 7)), random_poles(rng, 7)),
+    ]
+    for A, C, poles in cases:
+        n, m = C.shape[1], C.shape[0]
+        s = 10.0 ** rng.uniform(-6, 6, n)  # units (positive: a sign flip may pick another minimiser)
+        lam = 10.0 ** rng.uniform(-6, 6, m)
+        As, Cs = s[:, None] * A / s[None, :], lam[:, None] * C / s[None, :]
+        L0 = np.asarray(quiet(place, A, C, poles))
+        L = np.asarray(quiet(place, As, Cs, poles))
+        assert mp_placement_error(As, Cs, L, poles) < 1e-10
+        back = L / s[:, None] * lam[None, :]  # S⁻¹ L Λ, which must be L0
+        np.testing.assert_allclose(back, L0, rtol=1e-6, atol=1e-9 * np.abs(L0).max())  # the minimiser's stop
+
+
 @pytest.mark.extended
 def test_python_control_test_systems():
     """The systems and spectra of python-control's placement tests (statefbk tests), dual pairs."""

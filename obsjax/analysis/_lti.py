@@ -6,7 +6,10 @@ mechanism, :func:`observability_staircase`: an orthogonal staircase (observabili
 the *balanced* pair, computed by a block Arnoldi sweep in the lexicographic order of thesis §3.2, steps
 (a)-(e).  Its decisions compare a new direction with the direction it came from (relative thresholds), on
 the pair scaled to unit norm, so they do not change when A → cA (a change of time unit) or C → dC (a
-change of output unit), nor under a diagonal change of state units (balancing).
+change of output unit), nor under a diagonal change of state units: the balancing (:func:`log_scaling`)
+brings every nonzero entry as close to magnitude 1 as diagonal scalings allow, which is defined for
+integrators and constant biases too (states whose row of A is zero, which a norm balancing leaves in the
+unit they were given).
 
 The independence test itself is :func:`lexicographic_step` (a residual outside the directions kept,
 against a relative threshold); the LTV side (the indices and strong observability of Huang & Zhu's
@@ -86,27 +89,79 @@ def _unit(M: np.ndarray) -> np.ndarray:
     return M / s if s > 0 else M
 
 
-def balance_pair(A, C) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The balanced pair (A_b, C_b) = (D⁻¹ Â D / ‖·‖, Ĉ D / ‖·‖) and the diagonal D (as a vector).
+def log_scaling(A, C):
+    """The diagonal scalings that bring every nonzero entry of (A, C) as close to magnitude 1 as possible.
 
-    Â = A/‖A‖₂ and Ĉ = C with each row scaled to unit norm, then to unit 2-norm (the unit of each output
-    is arbitrary: a rank decision must not depend on it); D (powers of two, exact) equalises the row norms
-    of Â with the column norms of [Â; Ĉ] (LAPACK's balancing of [[Â, 0], [Ĉ, 0]]); both results are scaled
-    to unit 2-norm, so the balanced pair of (cA, S C), S diagonal and invertible, is that of (A, C).
+    Curtis & Reid's log-magnitude scaling (A. R. Curtis and J. K. Reid, "On the automatic scaling of
+    matrices for Gaussian elimination", J. Inst. Maths Applics 10, 1972), for a state-space pair: the
+    state scaling d (n,), the output scaling e (m,) and the time scaling c minimise
+
+        Σ_{A_ij ≠ 0} (log|c A_ij d_j / d_i|)² + Σ_{C_kj ≠ 0} (log|e_k C_kj d_j|)²,
+
+    a linear least-squares problem in (log d, log e, log c), solved to its minimum-norm solution.  Its
+    residual -- the log-magnitudes of the scaled entries c D⁻¹ A D and E C D -- is unique, so the scaled
+    pair of (c' S A S⁻¹, Λ C S⁻¹) (S, Λ diagonal and invertible, c' > 0) is that of (A, C) up to the signs
+    of S and Λ, to rounding: a change of time, output or state units does not change it.  Unlike a norm
+    balancing (LAPACK's gebal, Osborne's iteration), it is defined for a state whose row or column of A is
+    zero (an integrator, a constant bias), which a norm balancing leaves in whatever unit it was given.
+
+    Works on concrete and traced arrays alike (jnp), differentiable where the zero pattern is fixed.
+    Returns (d, e, c) with d normalised to geometric mean 1.
+
+    **Example:** the bias state of ẋ = [[0, 1, 0], [−4, −0.4, 10⁻⁹], [0, 0, 0]] x, y = x_1 gets d_3 ≈ 10⁹
+    (its coupling 10⁻⁹ is brought to about 1).
+    """
+    A = jnp.asarray(A)
+    C = jnp.atleast_2d(jnp.asarray(C))
+    n, m = A.shape[0], C.shape[0]
+    dtype = jnp.result_type(A.dtype, C.dtype, jnp.float32)
+    eye_n, eye_m = jnp.eye(n, dtype=dtype), jnp.eye(m, dtype=dtype)
+    # design rows: A_ij -> (−e_i + e_j over δ, 0 over ε, 1 over τ); C_kj -> (e_j, e_k, 0)
+    Ga = jnp.concatenate(
+        [
+            (eye_n[None, :, :] - eye_n[:, None, :]).reshape(n * n, n),
+            jnp.zeros((n * n, m), dtype),
+            jnp.ones((n * n, 1), dtype),
+        ],
+        axis=1,
+    )
+    Gc = jnp.concatenate(
+        [
+            jnp.broadcast_to(eye_n[None, :, :], (m, n, n)).reshape(m * n, n),
+            jnp.broadcast_to(eye_m[:, None, :], (m, n, m)).reshape(m * n, m),
+            jnp.zeros((m * n, 1), dtype),
+        ],
+        axis=1,
+    )
+    G = jnp.concatenate([Ga, Gc], axis=0)
+    v = jnp.concatenate([A.reshape(-1), C.reshape(-1)]).astype(dtype)
+    w = (v != 0).astype(dtype)
+    b = jnp.log(jnp.abs(jnp.where(v != 0, v, 1.0)))
+    x = -jnp.linalg.pinv(w[:, None] * G) @ (w * b)
+    delta, eps, tau = x[:n], x[n : n + m], x[n + m]
+    delta = delta - jnp.mean(delta) if n else delta
+    return jnp.exp(delta), jnp.exp(eps), jnp.exp(tau)
+
+
+#: A balancing that scales entries by more than this (max d / min d) is named in a warning: entries
+#: that small relative to the others count as couplings (see :func:`observability_staircase`).
+BALANCE_SPREAD_WARN = 1e10
+
+
+def balance_pair(A, C) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The balanced pair (A_b, C_b) = (D⁻¹ A D / ‖·‖, E C D / ‖·‖) and the diagonal D (as a vector).
+
+    D and E are the log-magnitude scalings of :func:`log_scaling`: every nonzero entry is brought as close
+    to magnitude 1 as a diagonal change of state and output units allows.  Both results are scaled to
+    unit 2-norm, so the balanced pair of (c S A S⁻¹, Λ C S⁻¹), with c > 0 (time unit), S and Λ diagonal
+    and invertible (state and output units), is that of (A, C), up to the signs of S and Λ (an orthogonal
+    similarity), to rounding.
     """
     A = np.asarray(A, dtype=float)
     C = np.atleast_2d(np.asarray(C, dtype=float))
-    n, m = A.shape[0], C.shape[0]
-    rows = np.linalg.norm(C, axis=1, keepdims=True) if C.size else np.ones((m, 1))
-    An, Cn = _unit(A), _unit(C / np.where(rows > 0, rows, 1.0))
-    M = np.zeros((n + m, n + m))
-    M[:n, :n], M[n:, :n] = An, Cn
-    import scipy.linalg  # imported on first use: importing obsjax stays free of SciPy's 0.4 s
-
-    _, (scale, _) = scipy.linalg.matrix_balance(M, permute=False, separate=True)
-    d = scale[:n]
-    Ab = _unit(An * (d[None, :] / d[:, None]))
-    Cb = _unit(Cn * d[None, :])
+    d, e, _ = (np.asarray(z, dtype=float) for z in log_scaling(A, C))
+    Ab = _unit(A * (d[None, :] / d[:, None]))
+    Cb = _unit(C * e[:, None] * d[None, :])
     return Ab, Cb, d
 
 
@@ -271,6 +326,14 @@ def observability_staircase(A, C, *, tol: float | None = None) -> ObservabilityS
             stacklevel=2,
         )
     Ab, Cb, d = balance_pair(A, C)
+    if d.size and d.max() > BALANCE_SPREAD_WARN * d.min():
+        warnings.warn(
+            f"observability_staircase: balancing (A, C) rescales the states over a range of "
+            f"{d.max() / d.min():.1e}.  The decisions do not depend on state units, so an entry of A or C "
+            "that small relative to the others counts as a coupling like any other; if it is round-off, "
+            "set it to zero.",
+            stacklevel=2,
+        )
     nA = np.linalg.norm(Ab, 2)
     basis: list = []
     alive = [True] * m

@@ -13,7 +13,7 @@ import numpy as np
 
 from .._checks import as_float_array, concrete_value
 from .._config import require_x64
-from ..analysis._lti import _pair, observability_staircase, require_observable
+from ..analysis._lti import _pair, log_scaling, observability_staircase, require_observable
 from ._poles import (
     CLUSTER_RTOL,
     REAL_RTOL,
@@ -194,11 +194,22 @@ def warn_jordan(structure, blocks, pr, pi, m, kron, who, stacklevel=4):
 
 @functools.partial(jax.jit, static_argnames=("m", "depth", "maxiter"))
 def _robust_core(lay, pat, A, C, pr, pi, *, m, depth, maxiter):
-    """Checks, placement and a-posteriori error in one program (one compilation per (n, m, depth))."""
+    """Checks, placement and a-posteriori error in one program (one compilation per (n, m, depth)).
+
+    The placement runs on the pair in balanced units, (D⁻¹ A D, E C D) with the log-magnitude scalings of
+    :func:`obsjax.analysis._lti.log_scaling`, and L = D L_b E: A − LC = D (A_b − L_b C_b) D⁻¹ has the
+    same eigenvalues, and the gain does not depend on the units of the states or outputs (the design of
+    (S A S⁻¹, Λ C S⁻¹) is S L Λ⁻¹).  Without it the eigenvector criterion would be measured in whatever
+    units the states were given in: a state in µ-units and another in M-units made a well-posed MIMO
+    placement fail its a-posteriori check.  D and E are differentiable functions of A and C (for a fixed
+    zero pattern), so the derivative of L is that of the whole design."""
     pr, pi = _check_pattern(pr, pi, pat, "place")
-    L, T, F = robust_gain(m, depth, maxiter, lay, A, C, pr, pi)
-    err, kappa = _error_estimate(A, C, L, T, F, pat.rc, pat.rdef, cluster_values(pat, pr, pi))
-    return L, err, kappa
+    d, e, _ = log_scaling(A, C)
+    Ab = A * (d[None, :] / d[:, None])
+    Cb = C * e[:, None] * d[None, :]
+    Lb, T, F = robust_gain(m, depth, maxiter, lay, Ab, Cb, pr, pi)
+    err, kappa = _error_estimate(Ab, Cb, Lb, T, F, pat.rc, pat.rdef, cluster_values(pat, pr, pi))
+    return d[:, None] * Lb * e[None, :], err, kappa
 
 
 def _real_form(structure: PoleStructure, pr, pi):
@@ -316,6 +327,13 @@ def _finish(L, err, kappa, rtol: float, who: str, finite=None):
         L, ok = jnp.where(finite, L, jnp.nan), ok | ~finite
     e, k, okv = concrete_value(err), concrete_value(kappa), concrete_value(ok)
     if okv is not None:
+        if not bool(okv) and not np.all(np.isfinite(np.asarray(concrete_value(L)))):
+            raise ValueError(
+                f"{who}: the computed gain is not finite (the eigenvector computation broke down; "
+                f"a-posteriori error {float(e):.2e}, eigenvector condition number {float(k):.2e}).  No "
+                "`rtol` accepts it: (A, C) is nearly unobservable, or the poles ask for an eigenstructure "
+                "that cannot be computed in float64 (try distinct poles, or `method='canonical'`)."
+            )
         if not bool(okv):
             raise ValueError(
                 f"{who}: the computed gain does not place the poles to rtol = {rtol:.1e} (a-posteriori "
@@ -434,6 +452,12 @@ def place(
     eigenvalue's condition number): it measures how far the eigenvalues move when A, C or L change at
     float64's rounding level, so a refusal may come where the exact eigenvalues of A − LC are closer
     (:func:`obsjax.analysis.placement_error` measures those); ``rtol=numpy.inf`` accepts such a gain.
+
+    **Units.**  For m < n the design runs in balanced units (the log-magnitude scalings D, E of
+    :func:`obsjax.analysis.observability_staircase`'s balancing) and returns L = D L_b E, so the gain
+    follows a change of units: the pair (S A S⁻¹, Λ C S⁻¹), S and Λ positive diagonal, gets S L Λ⁻¹
+    (to the minimiser's tolerance), and a state in micro-units beside one in mega-units is placed as
+    well as in its natural units.
 
     **Rank decisions** (observability, indices, the Jordan structure) use
     :func:`obsjax.analysis.observability_staircase` with ``tol``; a nearly unobservable pair raises
