@@ -15,6 +15,7 @@ from ._integrate import _validate
 from ._integrate._schedule import MAX_RESET_SEGMENTS, num_segments
 from ._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, is_finite
 from ._integrate._system import Args as _Args
+from ._integrate._system import with_content as _with_content
 from ._integrate._system import drift as _drift
 from ._integrate._system import initial_state, signals
 from ._integrate._validate import check_ts as _check_ts
@@ -167,7 +168,7 @@ def simulate(
     if isinstance(noise, BandLimitedNoise):
         t0c, t1c = _validate.concrete_span(ts_np)
         path = realise_band_limited(noise, key, t0c, t1c, plant.m)
-    args = _Args(plant, observer, u, controller, path)
+    args = _with_content(plant, observer, u, controller, path)
     state0 = initial_state(args, ts[0], x0, xhat0)
     (xs, zs), code = _integrate.integrate(args, state0, plan)
     # a non-finite initial state is NONFINITE whatever the solver made of it (an implicit solver or a

@@ -15,6 +15,7 @@ from ._integrate import _masked, _validate
 from ._integrate._lockstep import lockstep_norm, per_member
 from ._integrate._status import NONFINITE, is_finite
 from ._integrate._system import initial_state
+from ._integrate._system import with_content as _with_content
 from ._simulate import Trajectory, _Args, _raise_if, simulate, trajectory
 
 __all__ = ["lockstep_norm", "simulate_batch"]
@@ -182,7 +183,7 @@ def _simulate_members(plant, observer, x0s, xhat0s, ts, keys, *, lockstep, plant
     if isinstance(noise, BandLimitedNoise):
         t0c, t1c = _validate.concrete_span(ts_np)
         paths = eqx.filter_vmap(lambda k: realise_band_limited(noise, k, t0c, t1c, plant0.m))(keys)
-    args_b = _Args(plant, observer, u, controller, paths)
+    args_b = _with_content(plant, observer, u, controller, paths)
     each = lambda fn: per_member(args_b, fn, plant_batched)
     state0 = each(lambda a, x, xh: initial_state(a, ts[0], x, xh))(x0s, xhat0s)
     if lockstep:

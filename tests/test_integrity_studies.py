@@ -177,6 +177,88 @@ def test_a_changed_global_is_not_served_from_the_kernel_compiled_before(tmp_path
     np.testing.assert_allclose(second.error_norm[:, 0], 100.0 * first.error_norm[:, 0], rtol=1e-12)
 
 
+AMP = 1.0
+W = 1.0
+
+
+def u_global_amp(t):
+    return AMP * jnp.array([jnp.sin(3.0 * t)])
+
+
+def ltv_A_global(t):
+    return jnp.array([[-1.0, W], [0.0, -2.0]])
+
+
+def loss_global_scale(traj):
+    return SCALE * obsjax.losses.ise(traj)
+
+
+@pytest.mark.parametrize("how", ["adaptive", "fixed", "lockstep", "own-steps", "ltv"])
+def test_simulate_traces_again_after_a_changed_global(how):
+    """The same input function (or LTV plant function), a global it reads changed between two calls:
+    simulate and simulate_batch must give the trajectory of the new value -- that of a new function
+    object with the value written in -- not the one compiled before (diffrax's and equinox's jit key a
+    function by identity; these calls returned the old trajectory)."""
+    global AMP, W
+    model = obsjax.LTI([[-2.0, 1.0], [0.0, -1.5]], [[0.0], [1.0]], [[1.0, 0.0]])  # a model mismatch
+    obs = obsjax.Luenberger(model, L=[[3.0], [4.0]])
+    x0, xh0 = jnp.array([1.0, 0.0]), jnp.zeros(2)
+
+    def run(u):
+        if how == "adaptive":
+            return obsjax.simulate(MODEL, obs, x0, xh0, TS, u=u).xhat
+        if how == "fixed":
+            return obsjax.simulate(MODEL, obs, x0, xh0, TS, u=u, adaptive=False, dt0=0.01).xhat
+        if how == "ltv":
+            plant = obsjax.LTV(A=ltv_A_global, B=lambda t: jnp.zeros((2, 1)), C=lambda t: jnp.array([[1.0, 0.0]]))
+            return obsjax.simulate(plant, obs, jnp.ones(2), xh0, TS).xhat
+        batch = obsjax.simulate_batch(
+            MODEL, obs, jnp.stack([x0, 2 * x0]), jnp.zeros((2, 2)), TS, u=u, lockstep=how == "lockstep"
+        )
+        return batch.xhat
+
+    first = run(u_global_amp)
+    try:
+        AMP, W = 100.0, 5.0
+        second = run(u_global_amp)
+        if how == "ltv":
+            ltv_fresh = obsjax.LTV(
+                A=lambda t: jnp.array([[-1.0, 5.0], [0.0, -2.0]]),
+                B=lambda t: jnp.zeros((2, 1)),
+                C=lambda t: jnp.array([[1.0, 0.0]]),
+            )
+            fresh = obsjax.simulate(ltv_fresh, obs, jnp.ones(2), xh0, TS).xhat
+        else:
+            fresh = run(lambda t: 100.0 * jnp.array([jnp.sin(3.0 * t)]))
+    finally:
+        AMP, W = 1.0, 1.0
+    assert np.max(np.abs(np.asarray(second) - np.asarray(first))) > 1e-3
+    np.testing.assert_allclose(np.asarray(second), np.asarray(fresh), rtol=1e-12, atol=1e-14)
+
+
+def test_tune_traces_again_after_a_changed_global():
+    """tune's kernel is keyed on its functions' content: a loss and an input that read a changed global
+    give the loss of the new value (the first step's J), not the kernel compiled before."""
+    global SCALE, AMP
+    model = obsjax.LTI([[-2.0, 1.0], [0.0, -1.5]], [[0.0], [1.0]], [[1.0, 0.0]])
+    obs = obsjax.Luenberger(model, L=[[3.0], [4.0]])
+    kw = dict(where=lambda o: o.L, x0s=jnp.array([[1.0, 0.0]]), xhat0s=jnp.zeros((1, 2)), ts=TS, steps=1,
+              progress=False)  # fmt: skip
+
+    def J(**more):
+        return float(obsjax.tune(obs, MODEL, **kw, **more).history["loss"][0])
+
+    j1 = J(loss=loss_global_scale, u=u_global_amp)
+    try:
+        SCALE, AMP = 10.0, 100.0
+        j2 = J(loss=loss_global_scale, u=u_global_amp)
+        fresh = J(loss=lambda tr: 10.0 * obsjax.losses.ise(tr), u=lambda t: 100.0 * jnp.array([jnp.sin(3.0 * t)]))
+    finally:
+        SCALE, AMP = 1.0, 1.0
+    assert abs(j2 / j1 - 1.0) > 1.0
+    np.testing.assert_allclose(j2, fresh, rtol=1e-12)
+
+
 class _Drift:
     """A plain (non-dataclass) callable object: hashed by class code and instance attributes."""
 

@@ -135,7 +135,7 @@ def per_member(args_b: _system.Args, fn, plant_batched: bool = False):
         return jax.vmap(lambda *a: fn(args_b, *a))
 
     def one(plant, path, *a):
-        return fn(_system.Args(plant, args_b.observer, args_b.u, args_b.controller, path), *a)
+        return fn(_system.Args(plant, args_b.observer, args_b.u, args_b.controller, path, args_b.content), *a)
 
     plant_axis = eqx.if_array(0) if plant_batched else None
 
@@ -151,7 +151,7 @@ def member_args(args_b: _system.Args, i) -> _system.Args:
     if args_b.noise_path is None:
         return args_b
     path = tmap(lambda a: a[i], args_b.noise_path)
-    return _system.Args(args_b.plant, args_b.observer, args_b.u, args_b.controller, path)
+    return _system.Args(args_b.plant, args_b.observer, args_b.u, args_b.controller, path, args_b.content)
 
 
 def _drift(t, y, a):

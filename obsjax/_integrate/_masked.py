@@ -98,7 +98,7 @@ def integrate(args_b: _system.Args, state0_b, plan: Plan, plant_batched: bool = 
     def args_of(a):
         (plant, observer, u, controller), (member_plant, path) = a
         plant = member_plant if plant_batched else plant
-        return eqx.combine(_system.Args(plant, observer, u, controller, path), static)
+        return eqx.combine(_system.Args(plant, observer, u, controller, path, static.content), static)
 
     def vector_field(t, y, a):
         return _system.drift(t, y, args_of(a))

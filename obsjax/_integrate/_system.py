@@ -21,13 +21,27 @@ from ..systems._plants import AbstractSystem
 
 
 class Args(eqx.Module):
-    """Everything the vector field reads besides (t, x, z)."""
+    """Everything the vector field reads besides (t, x, z).
+
+    ``content`` (static) is a digest of the non-array part -- the plant's and observer's static fields,
+    the input and controller functions with the globals they read (:func:`with_content`) -- so that every
+    compiled solve keyed on these arguments (diffrax's ``diffeqsolve``, the fixed-step drift) is traced
+    again when a function reads a global that changed since the last call, instead of being served the
+    program traced with the old value (functions are otherwise keyed by identity)."""
 
     plant: AbstractSystem
     observer: AbstractObserver
     u: Callable | None
     controller: Callable | None
     noise_path: Callable | None
+    content: str = eqx.field(static=True, default="")
+
+
+def with_content(plant, observer, u, controller, noise_path) -> Args:
+    """:class:`Args` with its content digest (see there)."""
+    from ..montecarlo._fingerprint import content_key
+
+    return Args(plant, observer, u, controller, noise_path, content_key((plant, observer, u, controller)))
 
 
 def open_loop_input(args: Args, t):

@@ -434,3 +434,26 @@ def fingerprint(parts: dict, *, strict_modules: bool = False) -> tuple[str, list
         h.put("part", name)
         h.visit(parts[name], name)
     return h.h.hexdigest(), h.opaque
+
+
+def content_key(tree) -> str:
+    """A digest of what tracing ``tree`` reads besides its arrays, for an in-process compilation key.
+
+    The non-array part of ``tree`` (the static fields of plants and observers, user functions with their
+    bytecode, closures, defaults and the globals and settings-module attributes they read, arrays among
+    those included) hashed as :func:`fingerprint` does, without the version header (one process has one
+    set of versions).  ``jax.jit`` and ``eqx.filter_jit`` key a function argument by its identity, so a
+    function that reads a global changed since the last call was served the program traced with the old
+    value; a key that holds this digest is traced again instead.  What cannot be hashed by content
+    (a traced array, an object of a compiled extension) is left out; a failure gives ``""`` (the identity
+    key alone, as before)."""
+    import equinox as eqx
+
+    try:
+        _, static = eqx.partition(tree, eqx.is_array)
+        h = _Hasher(False)
+        h.visit(static, "static")
+        return h.h.hexdigest()
+    except Exception:  # noqa: BLE001 - an object the hasher cannot walk: keyed by identity as before
+        return ""
+

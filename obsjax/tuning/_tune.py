@@ -21,6 +21,7 @@ from .._config import require_x64
 from .._integrate import _diffrax, _masked, _validate
 from .._simulate import SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch, simulate_plants
+from ..montecarlo._fingerprint import content_key
 from ..systems._noise import WhiteNoise
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
@@ -142,8 +143,8 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
     simulate_kwargs, ts as a tuple of floats: simulate needs concrete save times, the mode of
     differentiation, ``"forward"`` or ``"reverse"``, and the batch kernel, ``"masked"`` for
     ``simulate_batch(lockstep=False)`` on the masked adaptive Runge–Kutta loop or ``"vmap"`` for
-    ``jax.vmap(simulate)``)."""
-    where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts, mode, kernel = spec
+    ``jax.vmap(simulate)``), and a digest of the functions' content (globals they read included)."""
+    where, loss, single, plant_batched, noise, u, max_segments, simulate_kwargs, ts, mode, kernel, _ = spec
     ts = np.asarray(ts, dtype=float)  # concrete inside the trace
     plant_axis = eqx.if_array(0) if plant_batched else None
     sim_kwargs = _solve_kwargs(simulate_kwargs, mode)
@@ -690,6 +691,9 @@ def tune(
     ts_key = tuple(float(v) for v in ts_np)
     seg_bucket = [None]  # only ever grows: a shrinking T would otherwise trigger a recompilation
     first_call = [True]
+    # the kernel is keyed on its static arguments, functions by identity: a loss, input or plant function
+    # that reads a global changed since the last call must be traced again (see `content_key`)
+    content = content_key((where, loss, u, noise, observer, plant, spec_kwargs))
 
     def evaluate(theta):
         """(observer, J, ∇J, None) at an acceptable point, or (None, J or NaN, None, reason)."""
@@ -707,7 +711,7 @@ def tune(
             seg_bucket[0] = need if seg_bucket[0] is None else max(seg_bucket[0], need)
         spec = (
             where, loss, single, plant_batched, noise, u, seg_bucket[0], spec_kwargs, ts_key, mode,
-            kernel,
+            kernel, content,
         )  # fmt: skip
         try:
             # the kernel's runtime checks as NaN (a firing check rejects the step): no host

@@ -15,6 +15,7 @@ from .._config import require_x64
 from .._data._estimate import estimate
 from .._data._measurements import Measurements
 from .._simulate import num_segments
+from ..montecarlo._fingerprint import content_key
 from ..observers._base import AbstractObserver
 from ..systems._plants import LTI
 from ._losses import output_error
@@ -32,7 +33,7 @@ from ._tune import (
 @eqx.filter_jit
 def _value_and_grad(theta, signs, observer, data, xhat0s, weights, spec):
     """J(θ) and ∇J for :func:`tune_on_data` (one compilation per problem structure)."""
-    where, loss, single, max_segments, kwargs = spec
+    where, loss, single, max_segments, kwargs, _ = spec  # _: the content digest (a key, see content_key)
 
     def J(th):
         new = tuple(th) if signs is None else tuple(s * jnp.exp(t) for s, t in zip(signs, th))
@@ -177,6 +178,7 @@ def tune_on_data(
     kw = tuple(sorted(estimate_kwargs.items()))
     bucket = [None]
     first = [True]
+    content = content_key((where, loss, observer, kw))  # functions keyed by content, not identity
 
     def evaluate(theta):
         try:
@@ -189,7 +191,7 @@ def tune_on_data(
             bucket[0] = need if bucket[0] is None else max(bucket[0], need)
         try:
             val, grads = _value_and_grad(theta, signs, observer, data, xhat0s, weights,
-                                         (where, loss, single, bucket[0], kw))
+                                         (where, loss, single, bucket[0], kw, content))
             val = float(val)
         except (ValueError, RuntimeError) as e:
             if first[0]:
