@@ -261,3 +261,35 @@ def test_holds_evaluate_through_diffrax_interpolation():
     dq = obsjax.Measurements(ts, q, hold="cubic")
     tt = np.linspace(0.0, 0.8, 17)
     np.testing.assert_allclose(np.asarray(dq.evaluate(tt)[0][:, 0]), 1.0 + 2.0 * tt - 3.0 * tt**2, atol=1e-13)
+
+
+W_MODEL = 1.0
+
+
+def _A_global(t):
+    return jnp.array([[-2.0, W_MODEL], [0.0, -1.0]])
+
+
+def test_estimate_traces_again_after_a_changed_global():
+    """An observer whose LTV model reads a global: after the global changes, estimate gives the estimate
+    of the new model (that of a new function object with the value written in), not the program compiled
+    before (the driver was keyed on the function's identity)."""
+    global W_MODEL
+    ts = np.linspace(0.0, 2.0, 21)
+    data = obsjax.Measurements(ts, np.sin(ts)[:, None], np.zeros((21, 1)))
+    B, C = (lambda t: jnp.array([[0.0], [1.0]])), (lambda t: jnp.array([[1.0, 0.0]]))
+
+    def run(A):
+        model = obsjax.LTV(A=A, B=B, C=C)
+        obs = obsjax.KalmanBucy(model, Qw=jnp.eye(2), Rv=jnp.eye(1), P0=jnp.eye(2))
+        return np.asarray(obsjax.estimate(obs, data, jnp.ones(2)).xhat)
+
+    first = run(_A_global)
+    try:
+        W_MODEL = 5.0
+        second = run(_A_global)
+    finally:
+        W_MODEL = 1.0
+    fresh = run(lambda t: jnp.array([[-2.0, 5.0], [0.0, -1.0]]))
+    assert np.max(np.abs(second - first)) > 1e-2
+    np.testing.assert_allclose(second, fresh, rtol=1e-12, atol=1e-14)

@@ -15,6 +15,7 @@ from .._config import require_x64
 from .._integrate import _diffrax, _schedule, _segments
 from .._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, code_of, is_finite
 from .._integrate._validate import check_options, concrete_times
+from ..montecarlo._fingerprint import content_key
 from ..observers._base import AbstractObserver
 from ._measurements import Measurements, hermite_coefficients
 
@@ -219,7 +220,10 @@ def _estimate_one(observer, data, xhat0, *, ts, solver, rtol, atol, dt0, adaptiv
     T = observer.reset_period
     n_reset = 1 if T is None else _schedule.reset_segments(T, save_ts, ts_np, max_segments)
     window = 1 if at_samples else _window(observer, data, save_ts, ts_np, n_reset)
-    static = (solver, bool(adaptive), max_steps, adjoint, n_reset, window, at_samples, bool(throw))
+    # the observer's content (functions with the globals they read) keys the compiled driver, which would
+    # otherwise find the program traced before by the identity of the observer's functions
+    static = (solver, bool(adaptive), max_steps, adjoint, n_reset, window, at_samples, bool(throw),
+              content_key(observer))  # fmt: skip
     return _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static)
 
 
@@ -234,7 +238,7 @@ def _window(observer, data, save_ts, ts_np, n_reset):
 @eqx.filter_jit
 def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
     """The driver: breakpoints at every sample (and reset), one solve per segment, the outputs."""
-    solver, adaptive, max_steps, adjoint, n_reset, window, at_samples, throw = static
+    solver, adaptive, max_steps, adjoint, n_reset, window, at_samples, throw, content = static
     opt = _diffrax.Options(solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive, max_steps=max_steps,
                            adjoint=adjoint)
     # every sample is an event breakpoint; the observer's resets are merged in; the save window is known
@@ -248,7 +252,7 @@ def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
     y0u0 = hold(t0, jnp.maximum(k0, 0))
     z0 = observer.init(t0, xhat0, y0u0[: data.m])
     saved, code, _ = _segments.integrate(
-        _solver_fn(observer, hold, opt, sched, data.m), _act_fn(observer, data, sched), (z0, k0, z0), save_ts,
+        _solver_fn(observer, hold, opt, sched, data.m, content), _act_fn(observer, data, sched), (z0, k0, z0), save_ts,
         sched, jax.eval_shape(lambda: (z0, z0, k0)),
     )
     est = _assemble(observer, data, hold, save_ts, saved, code, at_samples)
@@ -258,12 +262,12 @@ def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
 def _vector_field(t, z, args):
     # everything the field reads comes in through `args` (a closure over the observer's gains would hide
     # them from the custom derivative of the solver's steps)
-    observer, hold, k, m = args
+    observer, hold, k, m, _ = args  # _: the content digest, a key of diffeqsolve's compilation
     v = hold(t, k)
     return observer.vector_field(t, z, v[:m], v[m:])
 
 
-def _solver_fn(observer, hold, opt, sched, m):
+def _solver_fn(observer, hold, opt, sched, m, content):
     solver = _diffrax.solver_of(opt)
     # the guarded controller ends a diverging solve early (status NONFINITE), as in simulate
     ctrl = _diffrax.controller_of(opt, sched.t0, sched.t1)
@@ -274,7 +278,7 @@ def _solver_fn(observer, hold, opt, sched, m):
     def solve(s0, s1, carry, save_ts):
         z, k, zm = carry
         sol = diffrax.diffeqsolve(
-            term, solver, s0, s1, opt.dt0, z, args=(observer, hold, k, m), saveat=diffrax.SaveAt(ts=save_ts, t1=True),
+            term, solver, s0, s1, opt.dt0, z, args=(observer, hold, k, m, content), saveat=diffrax.SaveAt(ts=save_ts, t1=True),
             stepsize_controller=ctrl, max_steps=opt.max_steps, throw=False, **adjoint,
         )
         zs = tmap(lambda a: a[:-1], sol.ys)
