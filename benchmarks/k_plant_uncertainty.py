@@ -122,7 +122,7 @@ def main(repeat=5):
     grads = {}
     for mode in ("reverse", "forward"):
         for kernel in ("masked", "vmap"):
-            spec = (where, obsjax.losses.ise, single, True, None, None, 41, sim, ts_t, mode, kernel)
+            spec = (where, obsjax.losses.ise, single, True, None, None, 41, sim, ts_t, mode, kernel, "")
 
             def step(th, spec=spec):
                 return _tune._value_and_grad(th, signs, obs, tp, tx0, txh0, keys, w, spec)

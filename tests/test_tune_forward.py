@@ -40,7 +40,7 @@ def _tune_gradient(mode, p=(20.0, 0.1, 0.3), kernel="vmap"):
     leaves0, single = _tune._selected_leaves(LSR, WHERE_CY)
     theta = tuple(jnp.asarray(v, dtype=leaf.dtype) for v, leaf in zip(p, leaves0))
     spec = (WHERE_CY, obsjax.losses.ise, single, False, None, None, 16, (), tuple(float(t) for t in TS_CY),
-            mode, kernel)  # fmt: skip
+            mode, kernel, "")  # fmt: skip
     val, grads = _tune._value_and_grad(
         theta, None, LSR, CY, jnp.asarray(X0_CY), jnp.asarray(XH_CY), jr.split(jr.PRNGKey(0), 2),
         jnp.asarray(_tune.risk_weights("mean", 2)), spec,
@@ -109,7 +109,7 @@ def test_masked_kernel_equals_the_vmap_kernel_with_noise():
     out = {}
     for kernel in ("masked", "vmap"):
         spec = (where, obsjax.losses.ise, single, False, noise, None, 16, tight, tuple(float(t) for t in TS_CY),
-                "forward", kernel)  # fmt: skip
+                "forward", kernel, "")  # fmt: skip
         out[kernel] = _tune._value_and_grad(
             leaves0, None, lsr, CY, x0s, jnp.tile(jnp.asarray([5.0, -5.0]), (3, 1)),
             jr.split(jr.PRNGKey(3), 3), jnp.asarray(_tune.risk_weights("mean", 3)), spec,
@@ -261,7 +261,7 @@ def test_fixed_step_derivative_in_T_under_band_limited_noise_is_the_exact_one():
     where = lambda o: o.T
     leaves0, single = _tune._selected_leaves(lsr, where)
     spec = (where, obsjax.losses.ise, single, False, noise, None, 16, (("adaptive", False), ("dt0", 0.0125)),
-            tuple(float(t) for t in TS_CY), "reverse", "vmap")  # fmt: skip
+            tuple(float(t) for t in TS_CY), "reverse", "vmap", "")  # fmt: skip
     _, g = _tune._value_and_grad(leaves0, None, lsr, CY, x0s, xh0s, keys,
                                  jnp.asarray(_tune.risk_weights("mean", 3)), spec)  # fmt: skip
     g = float(np.ravel(np.asarray(g[0] if isinstance(g, tuple) else g))[0])
@@ -309,7 +309,7 @@ def test_derivative_in_T_under_band_limited_noise_at_the_default_tolerance(mode,
     leaves0, single = _tune._selected_leaves(lsr, where)
     assert _tune.batch_kernel(lsr, TS_CY, noise=noise, mode=mode) == "masked"
     spec = (where, obsjax.losses.ise, single, False, noise, None, 16, (), tuple(float(t) for t in TS_CY),
-            mode, kernel)  # fmt: skip
+            mode, kernel, "")  # fmt: skip
     _, g = _tune._value_and_grad(
         leaves0, None, lsr, CY, jnp.asarray([[0.5, -1.0], [1.5, 0.3], [0.2, 0.1]]),
         jnp.tile(jnp.asarray([5.0, -5.0]), (3, 1)), jr.split(jr.PRNGKey(3), 3),

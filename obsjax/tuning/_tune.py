@@ -34,9 +34,9 @@ FORWARD_MODE_MAX_SCALARS = 4
 #: With fixed steps (``adaptive=False``), whose reverse pass through one ``lax.scan`` costs about 3 forward
 #: passes whatever the batch, each tangent of forward mode costs 1–2.5 forward passes once the batch is
 #: large enough for the scan's arrays to set the pace (1024 scenarios, 3 scalars, CPU time: a 3-state
-#: chain 7.0× in forward mode against 2.9× in reverse mode, Chen & Yen's example 6.5× against 3.9×), and
-#: about 0.5–0.8 for small batches (64 scenarios: Chen & Yen 2.6× against 3.4×, the chain 3.5× against
-#: 3.4×; a 4-state chain, 4 scalars, 4.8× against 3.3×).  ``mode="auto"`` therefore uses forward mode with
+#: chain 8.7× in forward mode against 3.1× in reverse mode, Chen & Yen's example 5.6× against 3.7×), and
+#: about 0.5–1 for small batches (64 scenarios: Chen & Yen 2.6× against 3.5×, the chain 4.7× against
+#: 4.1×; a 4-state chain, 4 scalars, 4.9× against 3.6×).  ``mode="auto"`` therefore uses forward mode with
 #: fixed steps only for one scalar, or when scalars × scenarios is at most this.
 FIXED_STEP_FORWARD_MAX_WORK = 192
 
@@ -553,10 +553,11 @@ def tune(
       cost of forward mode grows with the number of scalars, that of reverse mode does not; which
       one is cheaper per step also depends on the solve (``benchmarks/results/j_forward_gradient.md``):
       with adaptive steps forward mode was the cheaper up to 3–4 scalars (Chen & Yen's example,
-      (γ, p0, T), masked kernel: 3.3× against 4.2× with 64 scenarios, 3.5× against 5.4× with 1024),
+      (γ, p0, T), masked kernel: 3.4× against 4.1× with 64 scenarios, 3.5× against 5.4× with 1024 on
+      a loaded machine),
       and compiles in about half the time; fixed steps run as one ``lax.scan`` whose reverse pass
       costs about 3 forward passes, while each tangent costs more as the batch grows (3 scalars,
-      1024 scenarios: 6.5× against 3.9× on Chen & Yen's example).  Both differentiate the same
+      1024 scenarios: 5.6× against 3.7× on Chen & Yen's example).  Both differentiate the same
       computation, so they agree to round-off.  An ``adjoint`` in ``simulate_kwargs``
       decides under ``"auto"`` (``diffrax.ForwardMode()`` forward, ``RecursiveCheckpointAdjoint``
       or ``BacksolveAdjoint`` reverse); one that cannot do the requested mode is refused.
@@ -569,8 +570,8 @@ def tune(
     :func:`obsjax.simulate`.  Both solve each scenario as :func:`obsjax.simulate` does (the same
     tableau and step-size control, to rounding; the masked loop's step budget is ``max_steps`` per
     segment, shared by a scenario's segments), and both are differentiated in either mode.  On
-    Chen & Yen's example with (γ, p0, T) tuned, a step of tune took 0.049 s on the masked kernel
-    against 0.19 s on the vmap kernel (forward mode; 0.062 s against 0.24 s in reverse mode); on a
+    Chen & Yen's example with (γ, p0, T) tuned, a step of tune took 0.047 s on the masked kernel
+    against 0.19 s on the vmap kernel (forward mode; 0.057 s against 0.23 s in reverse mode); on a
     linear plant without resets the masked kernel's reverse mode was the cheaper too, but its
     forward mode at 6 scalars was 1.2× dearer (``benchmarks/results/j_forward_gradient.md``).
     ``history["kernel"]`` says which one ran.
