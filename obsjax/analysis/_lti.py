@@ -89,6 +89,11 @@ def _unit(M: np.ndarray) -> np.ndarray:
     return M / s if s > 0 else M
 
 
+def _xp(*arrays):
+    """numpy for concrete NumPy inputs, jax.numpy otherwise."""
+    return np if all(isinstance(a, (np.ndarray, np.generic, float, int, list, tuple)) for a in arrays) else jnp
+
+
 def log_scaling(A, C):
     """The diagonal scalings that bring every nonzero entry of (A, C) as close to magnitude 1 as possible.
 
@@ -105,42 +110,101 @@ def log_scaling(A, C):
     balancing (LAPACK's gebal, Osborne's iteration), it is defined for a state whose row or column of A is
     zero (an integrator, a constant bias), which a norm balancing leaves in whatever unit it was given.
 
-    Works on concrete and traced arrays alike (jnp), differentiable where the zero pattern is fixed.
-    Returns (d, e, c) with d normalised to geometric mean 1.
+    NumPy arrays give NumPy results (no compilation: the rank decisions run on concrete values); JAX
+    arrays or tracers give a traced computation, differentiable where the zero pattern is fixed (the
+    same operations).  Returns (d, e, c) with d normalised to geometric mean 1 (e compensating).
 
     **Example:** the bias state of ẋ = [[0, 1, 0], [−4, −0.4, 10⁻⁹], [0, 0, 0]] x, y = x_1 gets d_3 ≈ 10⁹
     (its coupling 10⁻⁹ is brought to about 1).
     """
-    A = jnp.asarray(A)
-    C = jnp.atleast_2d(jnp.asarray(C))
+    xp = _xp(A, C)
+    A = xp.asarray(A)
+    C = xp.atleast_2d(xp.asarray(C))
     n, m = A.shape[0], C.shape[0]
-    dtype = jnp.result_type(A.dtype, C.dtype, jnp.float32)
-    eye_n, eye_m = jnp.eye(n, dtype=dtype), jnp.eye(m, dtype=dtype)
+    dtype = xp.result_type(A.dtype, C.dtype, xp.float32)
+    eye_n, eye_m = xp.eye(n, dtype=dtype), xp.eye(m, dtype=dtype)
     # design rows: A_ij -> (−e_i + e_j over δ, 0 over ε, 1 over τ); C_kj -> (e_j, e_k, 0)
-    Ga = jnp.concatenate(
+    Ga = xp.concatenate(
         [
             (eye_n[None, :, :] - eye_n[:, None, :]).reshape(n * n, n),
-            jnp.zeros((n * n, m), dtype),
-            jnp.ones((n * n, 1), dtype),
+            xp.zeros((n * n, m), dtype),
+            xp.ones((n * n, 1), dtype),
         ],
         axis=1,
     )
-    Gc = jnp.concatenate(
+    Gc = xp.concatenate(
         [
-            jnp.broadcast_to(eye_n[None, :, :], (m, n, n)).reshape(m * n, n),
-            jnp.broadcast_to(eye_m[:, None, :], (m, n, m)).reshape(m * n, m),
-            jnp.zeros((m * n, 1), dtype),
+            xp.broadcast_to(eye_n[None, :, :], (m, n, n)).reshape(m * n, n),
+            xp.broadcast_to(eye_m[:, None, :], (m, n, m)).reshape(m * n, m),
+            xp.zeros((m * n, 1), dtype),
         ],
         axis=1,
     )
-    G = jnp.concatenate([Ga, Gc], axis=0)
-    v = jnp.concatenate([A.reshape(-1), C.reshape(-1)]).astype(dtype)
+    G = xp.concatenate([Ga, Gc], axis=0)
+    v = xp.concatenate([A.reshape(-1), C.reshape(-1)]).astype(dtype)
     w = (v != 0).astype(dtype)
-    b = jnp.log(jnp.abs(jnp.where(v != 0, v, 1.0)))
-    x = -jnp.linalg.pinv(w[:, None] * G) @ (w * b)
+    b = xp.log(xp.abs(xp.where(v != 0, v, 1.0)))
+    WG = w[:, None] * G
+    x = -xp.linalg.pinv(WG, rcond=_PINV_RCOND * max(WG.shape)) @ (w * b) if WG.size else xp.zeros(n + m + 1)
     delta, eps, tau = x[:n], x[n : n + m], x[n + m]
-    delta = delta - jnp.mean(delta) if n else delta
-    return jnp.exp(delta), jnp.exp(eps), jnp.exp(tau)
+    if n:  # d to geometric mean 1, e compensating: e_k C_kj d_j is unchanged
+        mu = xp.mean(delta)
+        delta, eps = delta - mu, eps + mu
+    return xp.exp(delta), xp.exp(eps), xp.exp(tau)
+
+
+#: relative cut-off (times the larger dimension) of the pseudo-inverse in :func:`log_scaling`
+_PINV_RCOND = 10.0 * float(np.finfo(float).eps)
+
+#: Sweeps of Osborne's iteration after the log-magnitude scaling (:func:`balancing`).
+OSBORNE_SWEEPS = 24
+
+
+def balancing(A, C):
+    """The diagonal state and output scalings (d, e) of the balanced pair: the log-magnitude scaling of
+    :func:`log_scaling`, then Osborne's norm balancing of the states from there.
+
+    Osborne's iteration (E. E. Osborne, "On pre-conditioning of matrices", J. ACM 7, 1960; LAPACK's
+    gebal) rescales each state so that the 2-norm of its row of D⁻¹AD (off the diagonal) equals that of
+    its column of [D⁻¹AD; ECD], which is what keeps round-off in an eigenvector computation small.  For
+    an irreducible pair its fixed point is unique up to a common factor, so it is that of a norm
+    balancing from any start; a state whose row or column is zero (an integrator, a bias) has no such
+    fixed point, and keeps the log-magnitude scale, which makes its couplings of order 1.  The result is
+    a function of the log-magnitude-balanced pair, which does not depend on the units of time, states or
+    outputs, so neither does this one.  A fixed number of sweeps (``OSBORNE_SWEEPS``); NumPy in, NumPy
+    out (a Python loop), otherwise traced (``lax.fori_loop``: differentiable, reverse mode too).
+    """
+    xp = _xp(A, C)
+    A = xp.asarray(A)
+    C = xp.atleast_2d(xp.asarray(C))
+    n = A.shape[0]
+    d, e, c = log_scaling(A, C)
+    if n == 0:
+        return d, e
+    off = c * A * (1.0 - xp.eye(n, dtype=A.dtype))  # in the time unit of the log-magnitude scaling
+    Ce = C * e[:, None]
+    idx = xp.arange(n)
+
+    def norm(v):  # a 2-norm whose derivative is finite at 0 (the state is then skipped)
+        ss = xp.sum(v * v)
+        pos = ss > 0
+        return xp.where(pos, xp.sqrt(xp.where(pos, ss, 1.0)), 0.0), pos
+
+    def one(k, d):
+        i = k % n
+        di = xp.sum(xp.where(idx == i, d, 0.0))
+        row, okr = norm(off[i] * d / di)
+        col, okc = norm(xp.concatenate([off[:, i] * di / d, Ce[:, i] * di]))
+        ok = okr & okc
+        f = xp.sqrt(xp.where(ok, row, 1.0) / xp.where(ok, col, 1.0))
+        return d * xp.where((idx == i) & ok, f, 1.0)
+
+    if xp is np:
+        for k in range(OSBORNE_SWEEPS * n):
+            d = one(k, d)
+    else:
+        d = jax.lax.fori_loop(0, OSBORNE_SWEEPS * n, one, d)
+    return d / xp.exp(xp.mean(xp.log(d))), e
 
 
 #: A balancing that scales entries by more than this (max d / min d) is named in a warning: entries
@@ -151,15 +215,16 @@ BALANCE_SPREAD_WARN = 1e10
 def balance_pair(A, C) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The balanced pair (A_b, C_b) = (D⁻¹ A D / ‖·‖, E C D / ‖·‖) and the diagonal D (as a vector).
 
-    D and E are the log-magnitude scalings of :func:`log_scaling`: every nonzero entry is brought as close
-    to magnitude 1 as a diagonal change of state and output units allows.  Both results are scaled to
+    D and E are those of :func:`balancing`: the log-magnitude scaling of :func:`log_scaling` (every nonzero
+    entry as close to magnitude 1 as a diagonal change of state and output units allows), then Osborne's
+    norm balancing of the states where it has a fixed point.  Both results are scaled to
     unit 2-norm, so the balanced pair of (c S A S⁻¹, Λ C S⁻¹), with c > 0 (time unit), S and Λ diagonal
     and invertible (state and output units), is that of (A, C), up to the signs of S and Λ (an orthogonal
     similarity), to rounding.
     """
     A = np.asarray(A, dtype=float)
     C = np.atleast_2d(np.asarray(C, dtype=float))
-    d, e, _ = (np.asarray(z, dtype=float) for z in log_scaling(A, C))
+    d, e = (np.asarray(z, dtype=float) for z in balancing(A, C))
     Ab = _unit(A * (d[None, :] / d[:, None]))
     Cb = _unit(C * e[:, None] * d[None, :])
     return Ab, Cb, d

@@ -13,7 +13,7 @@ import numpy as np
 
 from .._checks import as_float_array, concrete_value
 from .._config import require_x64
-from ..analysis._lti import _pair, log_scaling, observability_staircase, require_observable
+from ..analysis._lti import _pair, balancing, observability_staircase, require_observable
 from ._poles import (
     CLUSTER_RTOL,
     REAL_RTOL,
@@ -193,23 +193,33 @@ def warn_jordan(structure, blocks, pr, pi, m, kron, who, stacklevel=4):
 
 
 @functools.partial(jax.jit, static_argnames=("m", "depth", "maxiter"))
-def _robust_core(lay, pat, A, C, pr, pi, *, m, depth, maxiter):
+def _robust_core(lay, pat, A, C, pr, pi, d, e, *, m, depth, maxiter):
     """Checks, placement and a-posteriori error in one program (one compilation per (n, m, depth)).
 
-    The placement runs on the pair in balanced units, (D⁻¹ A D, E C D) with the log-magnitude scalings of
-    :func:`obsjax.analysis._lti.log_scaling`, and L = D L_b E: A − LC = D (A_b − L_b C_b) D⁻¹ has the
+    The placement runs on the pair in balanced units, (D⁻¹ A D, E C D) with the scalings of
+    :func:`obsjax.analysis._lti.balancing`, and L = D L_b E: A − LC = D (A_b − L_b C_b) D⁻¹ has the
     same eigenvalues, and the gain does not depend on the units of the states or outputs (the design of
     (S A S⁻¹, Λ C S⁻¹) is S L Λ⁻¹).  Without it the eigenvector criterion would be measured in whatever
     units the states were given in: a state in µ-units and another in M-units made a well-posed MIMO
-    placement fail its a-posteriori check.  D and E are differentiable functions of A and C (for a fixed
-    zero pattern), so the derivative of L is that of the whole design."""
+    placement fail its a-posteriori check.  ``d``, ``e`` come from :func:`_scalings`: computed in NumPy
+    for concrete A and C, traced (a differentiable function of A and C for a fixed zero pattern, so the
+    derivative of L is that of the whole design) when they are traced."""
     pr, pi = _check_pattern(pr, pi, pat, "place")
-    d, e, _ = log_scaling(A, C)
     Ab = A * (d[None, :] / d[:, None])
     Cb = C * e[:, None] * d[None, :]
     Lb, T, F = robust_gain(m, depth, maxiter, lay, Ab, Cb, pr, pi)
     err, kappa = _error_estimate(Ab, Cb, Lb, T, F, pat.rc, pat.rdef, cluster_values(pat, pr, pi))
     return d[:, None] * Lb * e[None, :], err, kappa
+
+
+def _scalings(A, C):
+    """The balancing (d, e) of the pair (:func:`obsjax.analysis._lti.balancing`): in NumPy when A and C
+    are concrete (no compilation), traced otherwise (the same operations, so the same gain)."""
+    Av, Cv = concrete_value(A), concrete_value(C)
+    if Av is not None and Cv is not None:
+        d, e = balancing(np.asarray(Av, dtype=float), np.asarray(Cv, dtype=float))
+        return jnp.asarray(d), jnp.asarray(e)
+    return balancing(A, C)
 
 
 def _real_form(structure: PoleStructure, pr, pi):
@@ -403,8 +413,9 @@ def place_real(
     if warn:
         warn_jordan(structure, blocks, pr, pi, m, kron, who)
     lay, depth = make_layout(blocks, n)
+    d, e = _scalings(A, C)
     L, err, kappa = _robust_core(
-        lay, make_pattern(structure, blocks), A, C, pr, pi, m=m, depth=depth, maxiter=maxiter
+        lay, make_pattern(structure, blocks), A, C, pr, pi, d, e, m=m, depth=depth, maxiter=maxiter
     )
     return _finish(L, err, kappa, rtol, who, finite)
 
@@ -453,7 +464,7 @@ def place(
     float64's rounding level, so a refusal may come where the exact eigenvalues of A − LC are closer
     (:func:`obsjax.analysis.placement_error` measures those); ``rtol=numpy.inf`` accepts such a gain.
 
-    **Units.**  For m < n the design runs in balanced units (the log-magnitude scalings D, E of
+    **Units.**  For m < n the design runs in balanced units (the diagonal scalings D, E of
     :func:`obsjax.analysis.observability_staircase`'s balancing) and returns L = D L_b E, so the gain
     follows a change of units: the pair (S A S⁻¹, Λ C S⁻¹), S and Λ positive diagonal, gets S L Λ⁻¹
     (to the minimiser's tolerance), and a state in micro-units beside one in mega-units is placed as
