@@ -135,7 +135,9 @@ def simulate(
       step of a short fixed-step segment and skips recomputation in reverse mode.  Unused by the direct
       fixed-step path (a ``lax.scan``, differentiated by JAX).
     - `max_segments`: number of reset segments, needed only when the reset period is traced under ``jit``
-      (outside ``jit`` it is computed as ceil((t1 − t0) / T)); must satisfy max_segments·T ≥ t1 − t0.  At
+      (a T passed into the jitted function or computed from traced values; a constant T, also one written
+      as a literal inside the jitted function, is counted: ceil((t1 − t0) / T)); must satisfy
+      max_segments·T ≥ t1 − t0.  At
       most ``MAX_RESET_SEGMENTS`` (100 000) reset segments are integrated: a shorter period is refused.
     - `throw`: raise on solver failure or non-finite values (the check is attached to every array of the
       trajectory, so it fires under ``jit`` whichever field is read); ``False`` returns ``status`` instead, so

@@ -320,6 +320,27 @@ def test_error_traced_negative_T_under_jit():
     g(1.0)
 
 
+def test_observer_built_inside_jit_with_a_literal_period_counts_its_segments():
+    """Inside ``jax.jit`` every ``jnp`` operation is traced, a literal T included; the observer keeps a
+    constant T concrete, so ``simulate`` counts the reset segments itself (no ``max_segments``), with γ
+    traced.  Checked against the SciPy integration of (9), (11), (13), (15)."""
+    times = [0.96, 2.0, 4.96]
+
+    @jax.jit
+    def norms(gamma):
+        obs = obsjax.LeastSquaresReset(CY, gamma, 0.1, 0.25)
+        assert concrete_value(obs.T) is not None and isinstance(obs.gamma, jax.core.Tracer)
+        traj = obsjax.simulate(CY, obs, jnp.zeros(2), XHAT0, TS, rtol=1e-10, atol=1e-12)
+        return traj.error_norm
+
+    nrm = np.asarray(norms(20.0))
+    ref = _scipy_error_norms(20.0, 0.1, 0.25, times)
+    for t in times:
+        np.testing.assert_allclose(nrm[_idx(t)], ref[t], rtol=1e-7)
+    with pytest.raises(ValueError, match="`T` must be > 0"):
+        jax.jit(lambda g: obsjax.LeastSquaresReset(CY, g, 0.1, -0.25).gamma)(20.0)
+
+
 # ---------------------------------------------------------------- Kalman-Bucy baseline
 def test_kalman_bucy_lti_converges_to_are():
     A = np.array([[0.0, 1.0], [-2.0, 0.5]])

@@ -11,8 +11,9 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._checks import as_float_array
+from .._checks import as_float_array, static_value
 from .._linalg import spd_solve
 from ..systems._plants import LTV
 from ._base import AbstractObserver
@@ -130,7 +131,17 @@ class LeastSquaresState(NamedTuple):
     Qinv: jax.Array
 
 
-def _scalar_gain(x, name):
+def _scalar_gain(x, name, *, keep_constant=False):
+    """A positive finite scalar as a float array of the default precision.  With `keep_constant`, a
+    value that is a constant of the computation (not a tracer) is kept as a NumPy array: inside
+    ``jax.jit`` every ``jnp`` operation is traced, and a reset period T written as a literal there must
+    stay concrete for ``simulate`` to count its reset segments (without ``max_segments``)."""
+    if keep_constant and static_value(x) is not None:
+        v = np.asarray(static_value(x))
+        if v.size == 1 and np.issubdtype(v.dtype, np.number) and not np.iscomplexobj(v):
+            v = np.asarray(v.reshape(()), dtype=jnp.result_type(float))
+            positive_scalar(v, name)
+            return v
     arr = as_float_array(x, name)
     if arr.ndim != 0:
         if arr.size == 1:
@@ -220,7 +231,7 @@ class LeastSquaresReset(AbstractObserver):
         self.model = model
         self.gamma = _scalar_gain(gamma, "gamma")
         self.p0 = _scalar_gain(p0, "p0")
-        self.T = _scalar_gain(T, "T")
+        self.T = _scalar_gain(T, "T", keep_constant=True)
 
     @property
     def n(self) -> int:
