@@ -20,7 +20,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
-RESULTS = os.path.join(ROOT, "benchmarks", "results")
+#: where the tables go; ``OBSJAX_BENCH_RESULTS`` redirects them (the smoke tests write to a temporary folder)
+RESULTS = os.environ.get("OBSJAX_BENCH_RESULTS") or os.path.join(ROOT, "benchmarks", "results")
 
 
 def timeit(fn, *args, repeat=5, min_time=0.1, max_time=None, return_output=False):

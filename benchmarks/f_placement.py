@@ -88,7 +88,7 @@ def run(n, sets, m=2, seed=0):
     import scipy.signal
 
     import obsjax
-    from obsjax.design._place import _robust_core, make_pattern
+    from obsjax.design._place import _robust_core, _scalings, make_pattern
     from obsjax.design._poles import blocks_of
     from obsjax.design._robust import make_layout
 
@@ -106,8 +106,9 @@ def run(n, sets, m=2, seed=0):
     blocks = blocks_of(st, m, kron)
     lay, depth = make_layout(blocks, n)
     pat = make_pattern(st, blocks)
+    d, e = _scalings(A, Cm)  # the balancing place designs on (as place does)
     est = jax.jit(
-        jax.vmap(lambda pr, pi: _robust_core(lay, pat, A, Cm, pr, pi, m=m, depth=depth, maxiter=60)[1])
+        jax.vmap(lambda pr, pi: _robust_core(lay, pat, A, Cm, pr, pi, d, e, m=m, depth=depth, maxiter=60)[1])
     )(jnp.asarray(P.real), jnp.asarray(P.imag))
     refused = int(np.sum(~(np.asarray(est) <= 1e-6)))
 

@@ -30,7 +30,7 @@ def run(n, sets, m=2, seed=0):
     import numpy as np
 
     import obsjax
-    from obsjax.design._place import _robust_core, make_pattern
+    from obsjax.design._place import _robust_core, _scalings, make_pattern
     from obsjax.design._poles import blocks_of
     from obsjax.design._robust import make_layout
 
@@ -40,7 +40,8 @@ def run(n, sets, m=2, seed=0):
     blocks = blocks_of(st, m, kron)
     lay, depth = make_layout(blocks, n)
     pat = make_pattern(st, blocks)
-    core = jax.jit(jax.vmap(lambda pr, pi: _robust_core(lay, pat, A, Cm, pr, pi, m=m, depth=depth, maxiter=60)[:2]))
+    d, e = _scalings(A, Cm)  # the balancing place designs on (as place does)
+    core = jax.jit(jax.vmap(lambda pr, pi: _robust_core(lay, pat, A, Cm, pr, pi, d, e, m=m, depth=depth, maxiter=60)[:2]))
     L, est = core(jnp.asarray(P.real), jnp.asarray(P.imag))
     L, est = np.asarray(L), np.asarray(est)
     exact = np.array(
