@@ -140,13 +140,21 @@ class Load:
 
 
 def write_result(name: str, title: str, body: str, load: Load | None = None, script: str | None = None) -> str:
+    """Write ``results/<name>.md``.  Run on an accelerator (JAX's default back-end not the CPU), the
+    table goes beside the CPU one, to ``<name>_gpu.md``, its title naming the device."""
+    import jax
+
+    script = script or name
+    if jax.default_backend() != "cpu" and not name.endswith("_gpu"):
+        name += "_gpu"
+        title += f" — {jax.default_backend().upper()} ({jax.devices()[0].device_kind})"
     os.makedirs(RESULTS, exist_ok=True)
     path = os.path.join(RESULTS, f"{name}.md")
     m, v = machine(), versions()
     parts = [
         f"# {title}",
         "",
-        f"Run {datetime.datetime.now().strftime('%Y-%m-%d %H:%M:%S')} by `benchmarks/{script or name}.py`.",
+        f"Run {datetime.datetime.now().strftime('%Y-%m-%d %H:%M:%S')} by `benchmarks/{script}.py`.",
         "",
         body.strip(),
         "",

@@ -15,7 +15,7 @@ pass is the same loss by plain ``simulate`` (default adjoint) in one ``jax.jit``
 3. Fixed steps as the number of scenarios grows (64, 256, 1024): Chen & Yen's (γ, p0, T) and chains of
    n = 2, 3, 4 states, with the mode ``tune(mode="auto")`` picks.
 
-Usage: ``python benchmarks/j_forward_gradient.py [--repeat 7] [--quick]``.
+Usage: ``python benchmarks/j_forward_gradient.py [--repeat 7] [--quick] [--chen-yen-only]``.
 """
 
 from __future__ import annotations
@@ -144,7 +144,7 @@ SOLVES = (
 )
 
 
-def chen_yen_rows(repeat, batch):
+def chen_yen_rows(repeat, batch, on_row=None):
     import numpy as np
 
     plant, obs = C.chen_yen()
@@ -164,6 +164,8 @@ def chen_yen_rows(repeat, batch):
                 print(f"{label} [{kernel}] {tuned}: fwd {b['fwd']:.4f} (vmap {b['fwd_vmap']:.4f}), reverse "
                       f"{b['rev'] / b['fwd']:.2f}x, forward mode {b['fmd'] / b['fwd']:.2f}x; CPU time: reverse "
                       f"{c['rev'] / c['fwd']:.2f}x, forward mode {c['fmd'] / c['fwd']:.2f}x", flush=True)  # fmt: skip
+                if on_row is not None:
+                    on_row(rows)
     return rows
 
 
@@ -234,27 +236,8 @@ def fixed_batch_rows(repeat, batches=(64, 256, 1024)):
     return rows
 
 
-def main(repeat=7, quick=False):
-    load = C.Load()
-    from obsjax.tuning._tune import FIXED_STEP_FORWARD_MAX_WORK, FORWARD_MODE_MAX_SCALARS
-
-    batch = 64
-    cy = chen_yen_rows(repeat, batch)
-    ns = (1, 2, 4, 8) if quick else (1, 2, 3, 4, 6, 8, 12, 16)
-    cross = crossover_rows(repeat, ns)
-    fixed = fixed_batch_rows(repeat, (64, 1024) if quick else (64, 256, 1024))
-    fixed_table = "\n".join(
-        f"| {b_} | {label} | {m['k']} | {m['best']['fwd']:.4f} s | {m['best']['rev'] / m['best']['fwd']:.2f}× | "
-        f"{m['best']['fmd'] / m['best']['fwd']:.2f}× | {m['cpu']['rev'] / m['cpu']['fwd']:.2f}× | "
-        f"{m['cpu']['fmd'] / m['cpu']['fwd']:.2f}× | "
-        f"{'forward' if m['cpu']['fmd'] < m['cpu']['rev'] else 'reverse'} | {m['auto']} |"
-        for b_, label, m in fixed
-    )
-    worst = max(
-        (m["cpu"]["fmd" if m["auto"] == "forward" else "rev"] / min(m["cpu"]["fmd"], m["cpu"]["rev"]), b_, label)
-        for b_, label, m in fixed
-    )
-
+def _chen_yen_section(cy, batch, repeat):
+    """The introduction and the Chen & Yen table of the report (item 3's target)."""
     def fmt_row(label, kernel, tuned, m):
         b, md, fi, c = m["best"], m["med"], m["first"], m["cpu"]
         r_rev, r_fmd = b["rev"] / b["fwd"], b["fmd"] / b["fwd"]
@@ -279,34 +262,7 @@ def main(repeat=7, quick=False):
         if tuned.startswith("(γ, p0, T)")
     ]
     kink = "; ".join(kinks) + " in this run."
-    cross_table = "\n".join(
-        f"| {n} | {solve} | {kernel} | {m['best']['fwd']:.4f} s | {m['best']['rev'] / m['best']['fwd']:.2f}× | "
-        f"{m['best']['fmd'] / m['best']['fwd']:.2f}× | {m['cpu']['rev'] / m['cpu']['fwd']:.2f}× | "
-        f"{m['cpu']['fmd'] / m['cpu']['fwd']:.2f}× | "
-        f"{'forward' if m['cpu']['fmd'] < m['cpu']['rev'] else 'reverse'} | "
-        f"{m['first']['rev']:.1f} s / {m['first']['fmd']:.1f} s | {m['rel']:.0e} |"
-        for n, solve, kernel, m in cross
-    )
-    configs = [("adaptive", "masked"), ("adaptive", "vmap"), ("fixed", "vmap")]
-    faster = {
-        cfg: [n for n, s_, k_, m in cross if (s_, k_) == cfg and m["cpu"]["fmd"] < m["cpu"]["rev"]]
-        for cfg in configs
-    }
-    faster_text = "; ".join(f"{s_} steps, {k_} kernel: n ∈ {faster[(s_, k_)]}" for s_, k_ in configs)
-    by = {(n, s_, k_): m for n, s_, k_, m in cross}
-    columns = {"reverse, masked": ("adaptive", "masked", "rev"), "reverse, vmap": ("adaptive", "vmap", "rev"),
-               "forward mode, masked": ("adaptive", "masked", "fmd"),
-               "forward mode, vmap": ("adaptive", "vmap", "fmd")}  # fmt: skip
-    cheapest = "; ".join(
-        f"{n}: {min(columns, key=lambda c: by[(n, columns[c][0], columns[c][1])]['best'][columns[c][2]])}"
-        for n in ns
-    )
-    per_step = "\n".join(
-        f"| {n} | {by[(n, 'adaptive', 'masked')]['best']['rev']:.4f} s | {by[(n, 'adaptive', 'vmap')]['best']['rev']:.4f} s | "
-        f"{by[(n, 'adaptive', 'masked')]['best']['fmd']:.4f} s | {by[(n, 'adaptive', 'vmap')]['best']['fmd']:.4f} s |"
-        for n in ns
-    )  # fmt: skip
-    body = f"""
+    return f"""
 What one step of `tune` costs in each mode of differentiation, relative to the forward pass of the same
 batch kernel (the same loss, default adjoint, one `jax.jit`).  Both modes run tune's own compiled kernel
 (log-parametrised gains, `positive=True`); forward mode is `jax.jacfwd` (one tangent per tuned real scalar,
@@ -364,6 +320,65 @@ crosses its resets inside one loop and interpolates each save time once.  With f
 one `lax.scan` walks a step grid built inside the trace (`_integrate/_fixed_step.py`,
 `integrate_traced`).
 
+"""
+
+
+def main(repeat=7, quick=False, chen_yen_only=False):
+    load = C.Load()
+    from obsjax.tuning._tune import FIXED_STEP_FORWARD_MAX_WORK, FORWARD_MODE_MAX_SCALARS
+
+    batch = 64
+    title = "Benchmark (j): forward-mode gradients in tune"
+    if chen_yen_only:
+        # the table is written after every row: a run cut short keeps the rows it finished
+        def write(rows):
+            C.write_result("j_forward_gradient", title, _chen_yen_section(rows, batch, repeat), load)
+
+        return chen_yen_rows(repeat, batch, on_row=write), [], []
+    cy = chen_yen_rows(repeat, batch)
+    ns = (1, 2, 4, 8) if quick else (1, 2, 3, 4, 6, 8, 12, 16)
+    cross = crossover_rows(repeat, ns)
+    fixed = fixed_batch_rows(repeat, (64, 1024) if quick else (64, 256, 1024))
+    fixed_table = "\n".join(
+        f"| {b_} | {label} | {m['k']} | {m['best']['fwd']:.4f} s | {m['best']['rev'] / m['best']['fwd']:.2f}× | "
+        f"{m['best']['fmd'] / m['best']['fwd']:.2f}× | {m['cpu']['rev'] / m['cpu']['fwd']:.2f}× | "
+        f"{m['cpu']['fmd'] / m['cpu']['fwd']:.2f}× | "
+        f"{'forward' if m['cpu']['fmd'] < m['cpu']['rev'] else 'reverse'} | {m['auto']} |"
+        for b_, label, m in fixed
+    )
+    worst = max(
+        (m["cpu"]["fmd" if m["auto"] == "forward" else "rev"] / min(m["cpu"]["fmd"], m["cpu"]["rev"]), b_, label)
+        for b_, label, m in fixed
+    )
+
+    cross_table = "\n".join(
+        f"| {n} | {solve} | {kernel} | {m['best']['fwd']:.4f} s | {m['best']['rev'] / m['best']['fwd']:.2f}× | "
+        f"{m['best']['fmd'] / m['best']['fwd']:.2f}× | {m['cpu']['rev'] / m['cpu']['fwd']:.2f}× | "
+        f"{m['cpu']['fmd'] / m['cpu']['fwd']:.2f}× | "
+        f"{'forward' if m['cpu']['fmd'] < m['cpu']['rev'] else 'reverse'} | "
+        f"{m['first']['rev']:.1f} s / {m['first']['fmd']:.1f} s | {m['rel']:.0e} |"
+        for n, solve, kernel, m in cross
+    )
+    configs = [("adaptive", "masked"), ("adaptive", "vmap"), ("fixed", "vmap")]
+    faster = {
+        cfg: [n for n, s_, k_, m in cross if (s_, k_) == cfg and m["cpu"]["fmd"] < m["cpu"]["rev"]]
+        for cfg in configs
+    }
+    faster_text = "; ".join(f"{s_} steps, {k_} kernel: n ∈ {faster[(s_, k_)]}" for s_, k_ in configs)
+    by = {(n, s_, k_): m for n, s_, k_, m in cross}
+    columns = {"reverse, masked": ("adaptive", "masked", "rev"), "reverse, vmap": ("adaptive", "vmap", "rev"),
+               "forward mode, masked": ("adaptive", "masked", "fmd"),
+               "forward mode, vmap": ("adaptive", "vmap", "fmd")}  # fmt: skip
+    cheapest = "; ".join(
+        f"{n}: {min(columns, key=lambda c: by[(n, columns[c][0], columns[c][1])]['best'][columns[c][2]])}"
+        for n in ns
+    )
+    per_step = "\n".join(
+        f"| {n} | {by[(n, 'adaptive', 'masked')]['best']['rev']:.4f} s | {by[(n, 'adaptive', 'vmap')]['best']['rev']:.4f} s | "
+        f"{by[(n, 'adaptive', 'masked')]['best']['fmd']:.4f} s | {by[(n, 'adaptive', 'vmap')]['best']['fmd']:.4f} s |"
+        for n in ns
+    )  # fmt: skip
+    body = _chen_yen_section(cy, batch, repeat) + f"""
 ## Where the modes cross
 
 Luenberger observer on an n-state chain (ẋ_i = −x_i + x_(i+1), y = x_1), gain L (n × 1) tuned (n scalars),
@@ -410,7 +425,7 @@ up to {FORWARD_MODE_MAX_SCALARS} scalars at any batch).
 Where auto's pick is not the cheaper one in this run, it costs at most {worst[0]:.2f}× the cheaper mode
 per step ({worst[2]}, {worst[1]} scenarios).
 """
-    C.write_result("j_forward_gradient", "Benchmark (j): forward-mode gradients in tune", body, load)
+    C.write_result("j_forward_gradient", title, body, load)
     return cy, cross, fixed
 
 
@@ -418,5 +433,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument(
+        "--chen-yen-only", action="store_true", help="only the Chen & Yen table (item 3's target)"
+    )
     a = ap.parse_args()
-    main(a.repeat, a.quick)
+    main(a.repeat, a.quick, a.chen_yen_only)
