@@ -453,7 +453,8 @@ def test_gradients_through_blocks_match_central_differences():
 def test_default_block_size(monkeypatch):
     from obsjax._integrate import _adaptive_rk as AR
 
-    # the largest power of two with a (block, n) float64 array of at most 32 KiB, at least 64
+    # on the CPU: the largest power of two with a (block, n) float64 array of at most 32 KiB, at least 64
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")  # (the suite may run on a GPU)
     assert AR.default_block_size(12) == 256  # 32768 / 96 = 341
     assert AR.default_block_size(4) == 1024
     assert AR.default_block_size(1) == 4096

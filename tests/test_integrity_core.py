@@ -217,6 +217,39 @@ def test_a_nonfinite_observer_state_is_nonfinite_even_if_the_estimate_is_finite(
     assert int(sim(PLANT, _HiddenState(), X0, XH0, TS).status) == 2  # diffrax segments stop at once
 
 
+class _NaNAfter(_HiddenState):
+    """As _HiddenState, with the hidden leaf's vector field NaN after `tau`."""
+
+    tau: float = 0.5
+
+    def vector_field(self, t, z, y, u):
+        return (-z[0], jnp.where(t > self.tau, jnp.nan, 0.0))
+
+
+def test_a_floor_step_rounded_above_the_floor_still_ends_the_solve():
+    """The floor step t0 + dt_floor is rounded to a float, so the step taken can exceed dt_floor by an ulp of
+    t1.  From just below 0.5 (where the floats' spacing doubles) the guard must still take it as a floor step:
+    its non-finite candidate ends the solve (dt_min_reached, status 2), instead of being rejected and proposed
+    again until max_steps (status 1).  Found on a GPU, where rounding led the solve there at rtol 1e-6."""
+    import diffrax
+
+    from obsjax._integrate._status import GuardedController
+
+    ctrl = GuardedController(1e-8, 1e-8, 0.0, 2.0)
+    t0 = jnp.asarray(0.49999999999999883)
+    t1 = t0 + ctrl.dt_floor
+    assert float(t1 - t0) > float(ctrl.dt_floor)  # the rounding this test is about
+    y0 = (jnp.ones(2), jnp.zeros(()))
+    cand = (jnp.ones(2), jnp.asarray(jnp.nan))
+    err = (jnp.zeros(2), jnp.asarray(jnp.nan))
+    _, state = ctrl.init(None, 0.0, 2.0, y0, 0.01, None, lambda t, y, a: y, 5)
+    keep, *_, result = ctrl.adapt_step_size(t0, t1, y0, cand, None, err, 5, state)
+    assert bool(keep) and result == diffrax.RESULTS.dt_min_reached
+    # and through simulate: the case that ran to max_steps on the CPU (steps end 1.2e-15 below 0.5)
+    tr = sim(PLANT, _NaNAfter(), X0, XH0, TS, rtol=1e-8)
+    assert int(tr.status) == 2
+
+
 def test_traced_reset_period_must_be_covered_by_max_segments():
     """Under jit the bound max_segments·T ≥ t1 − t0 is checked (too small a bound would drop resets)."""
     lsr = obsjax.LeastSquaresReset(PLANT, gamma=1.0, p0=1.0, T=1.5)

@@ -33,7 +33,7 @@ import numpy as np
 
 from . import _diffrax, _segments, _system
 from ._schedule import Schedule
-from ._status import COLLAPSE_ULPS, SOLVER_FAILED, SUCCESS, frozen, is_finite
+from ._status import COLLAPSE_ULPS, SOLVER_FAILED, SUCCESS, ulp, frozen, is_finite
 
 tmap = jax.tree_util.tree_map
 
@@ -109,7 +109,9 @@ class LockstepController(diffrax.AbstractAdaptiveStepSizeController):
         )
         step = dt * jax.lax.stop_gradient(factor).astype(jnp.result_type(dt))
         # as GuardedController: never below the smallest step, and a step at it is accepted
-        at_floor = jax.lax.stop_gradient(dt) <= self.dt_min
+        # (t0 + dt_min is rounded: the step taken can exceed dt_min by an ulp of t1, see GuardedController)
+        slack = 2 * ulp(jnp.maximum(jnp.abs(t0), jnp.abs(t1)))
+        at_floor = jax.lax.stop_gradient(dt) <= self.dt_min + slack
         keep = keep | at_floor
         next_t0 = jnp.where(keep, t1, t0)
         next_t1 = jnp.where(at_floor | (step < self.dt_min), next_t0 + self.dt_min, next_t0 + step)

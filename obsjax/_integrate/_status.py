@@ -136,7 +136,12 @@ class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
         dt = jax.lax.stop_gradient(next_t1 - next_t0)
         # A step already at the floor is accepted whatever its error (diffrax's ``dtmin``): a finite one lets
         # the solve go on, a non-finite one (the state is kept, so later segments start from it) ends it.
-        at_floor = jax.lax.stop_gradient(t1 - t0) <= self.dt_floor
+        # t1 = t0 + dt_floor is rounded to a float: the step taken, t1 − t0, can exceed the floor by up to an
+        # ulp of t1 (a step from just below 0.5 ends in the binade above).  A strict comparison would then
+        # reject a non-finite floor step, propose the floor again, and repeat until max_steps (status 1
+        # instead of 2).
+        slack = 2 * ulp(jnp.maximum(jnp.abs(t0), jnp.abs(t1)))
+        at_floor = jax.lax.stop_gradient(t1 - t0) <= self.dt_floor + slack
         finite = is_finite(y1_candidate)
         keep = (keep & finite) | at_floor
         next_t0 = jnp.where(at_floor, t1, next_t0)
@@ -144,6 +149,12 @@ class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
         next_t1 = jnp.where(low, next_t0 + self.dt_floor, next_t1)
         result = diffrax.RESULTS.where(at_floor & ~finite, diffrax.RESULTS.dt_min_reached, result)
         return keep, next_t0, frozen(next_t1, next_t0), jump, state, result
+
+
+def ulp(x):
+    """The spacing of floats at |x| (no derivative)."""
+    x = jax.lax.stop_gradient(x)
+    return jnp.nextafter(x, jnp.array(jnp.inf, x.dtype)) - x
 
 
 def frozen(t_next, t_start):
