@@ -164,6 +164,69 @@ def test_settings_module_attributes_read_by_a_sampler_enter_the_fingerprint(tmp_
     assert study(PLANT_A, None, x0_settings, ck).n_computed == 0  # the first study again: resumed
 
 
+def _getattr_sampler(cfg):
+    def x0_getattr(k):
+        return getattr(cfg, "SCALE") * jr.normal(k, (2,))  # noqa: B009 - the access under test
+
+    return x0_getattr
+
+
+def x0_globals_dict(k):
+    return globals()["SCALE"] * jr.normal(k, (2,))
+
+
+@pytest.mark.parametrize("access", ["attribute", "getattr", "vars", "globals"])
+def test_a_setting_read_by_name_enters_the_fingerprint(access):
+    """``getattr(cfg, "SCALE")``, ``vars(cfg)["SCALE"]`` and ``globals()["SCALE"]`` name the setting by a
+    string constant: the fingerprint read only co_names, so a resumed study and the in-process kernel
+    cache served the old value (a fresh process resumed chunks drawn with SCALE = 1 for SCALE = 2)."""
+    global SCALE
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    cfg = _settings_module(1.0)
+    sampler = {
+        "attribute": lambda k: cfg.SCALE * jr.normal(k, (2,)),
+        "getattr": _getattr_sampler(cfg),
+        "vars": lambda k: vars(cfg)["SCALE"] * jr.normal(k, (2,)),
+        "globals": x0_globals_dict,
+    }[access]
+    before = fingerprint({"x0_sampler": sampler})[0]
+    try:
+        cfg.SCALE = SCALE = 2.0
+        assert fingerprint({"x0_sampler": sampler})[0] != before
+    finally:
+        cfg.SCALE = SCALE = 1.0
+    assert fingerprint({"x0_sampler": sampler})[0] == before
+
+
+def test_a_setting_read_by_getattr_is_not_served_from_the_kernel_compiled_before():
+    cfg = _settings_module(1.0)
+    sampler = _getattr_sampler(cfg)
+    first = study(PLANT_A, None, sampler, None)
+    cfg.SCALE = 5.0
+    second = study(PLANT_A, None, sampler, None)
+    np.testing.assert_allclose(second.error_norm[:, 0], 5.0 * first.error_norm[:, 0], rtol=1e-12)
+
+
+def test_the_random_stream_setting_enters_the_fingerprint():
+    """``jax_threefry_partitionable`` changes every draw of jax.random from the same key: a study resumed
+    under the other setting mixed chunks of two random streams (equal to neither uninterrupted study)."""
+    import jax
+
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    old = jax.config.jax_threefry_partitionable
+    before = fingerprint({"x0_sampler": X0_A})[0]
+    draw = np.asarray(jr.normal(jr.fold_in(KEY, 3), (2,)))
+    try:
+        jax.config.update("jax_threefry_partitionable", not old)
+        assert not np.allclose(np.asarray(jr.normal(jr.fold_in(KEY, 3), (2,))), draw)  # the premise
+        assert fingerprint({"x0_sampler": X0_A})[0] != before
+    finally:
+        jax.config.update("jax_threefry_partitionable", old)
+    assert fingerprint({"x0_sampler": X0_A})[0] == before
+
+
 def test_a_changed_global_is_not_served_from_the_kernel_compiled_before(tmp_path):
     # same sampler object, a global it reads changed between two calls in one process (a notebook re-run):
     # the kernel must be traced again, not reused with the value baked in at the first trace

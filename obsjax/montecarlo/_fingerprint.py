@@ -10,8 +10,10 @@ or two noise models that differ by a static grid spacing give different results.
   field, static fields included, plus the code of the methods of user-defined classes;
 - user functions by their bytecode (constants, names, nested functions), their closure values, their
   default arguments and the values of the globals they read, recursively, including the attributes
-  they may read from a user's module (a settings module read as ``cfg.SCALE``: those named in the
-  function's code);
+  they may read from a user's module (a settings module read as ``cfg.SCALE`` or
+  ``getattr(cfg, "SCALE")``: those named in the function's code, as names or string constants);
+- the JAX settings that change the random draws or the precision (``jax_threefry_partitionable``,
+  the PRNG implementation, ``jax_enable_x64``), in the header beside the versions;
 - functions, classes and modules of the numerical libraries (jax, numpy, scipy, diffrax, equinox,
   optax, lineax, obsjax, ...) by qualified name (their versions enter the header), but their
   closures by value, so ``jax.jit(f)`` and closures made by library factories are still hashed by
@@ -93,10 +95,18 @@ def _version(pkg: str) -> str:
         return str(getattr(mod, "__version__", "?"))
 
 
+#: JAX settings that change what a study computes from the same inputs: the random bits drawn from a key
+#: (``jax_threefry_partitionable`` changes every draw of ``jax.random``; the PRNG implementation) and the
+#: precision.
+_CONFIG_FLAGS = ("jax_threefry_partitionable", "jax_default_prng_impl", "jax_enable_x64")
+
+
 def header() -> str:
-    """Python and library versions: a result computed by other versions is another study."""
+    """Python and library versions, and the JAX settings of :data:`_CONFIG_FLAGS`: a result computed by
+    other versions or under other settings is another study."""
     py = f"python{sys.version_info.major}.{sys.version_info.minor}"
-    return ";".join([f"format{FORMAT}", py] + [f"{p}={_version(p)}" for p in _VERSIONED])
+    flags = [f"{f}={getattr(jax.config, f, '?')}" for f in _CONFIG_FLAGS]
+    return ";".join([f"format{FORMAT}", py] + [f"{p}={_version(p)}" for p in _VERSIONED] + flags)
 
 
 def _canonical_node_data(data):
@@ -414,10 +424,16 @@ class _Hasher:
 
 
 def _global_names(co: types.CodeType) -> set[str]:
+    """The names a function's code may read: its global and attribute names (``co_names``), and the
+    string constants that are identifiers, which is how ``getattr(cfg, "SCALE")``,
+    ``vars(cfg)["SCALE"]`` and ``globals()["SCALE"]`` name what they read (a name that is a constant
+    but no global or attribute is simply not found)."""
     names = set(co.co_names)
     for c in co.co_consts:
         if isinstance(c, types.CodeType):
             names |= _global_names(c)
+        elif isinstance(c, str) and c.isidentifier():
+            names.add(c)
     return names
 
 
