@@ -207,6 +207,33 @@ def test_traced_bad_times_fail_under_jit():
         jax.block_until_ready(g(np.where(np.arange(5)[:, None] == 2, np.nan, y)))
 
 
+def test_samples_closer_than_the_schedule_tolerance_are_refused():
+    """Two samples 1e-10 apart (a merged sensor stream) are one instant for estimate's update schedule: one
+    update was lost and a saved row came back as zeros with status 0.  Refused, eagerly and under jit; a
+    pair just outside the tolerance is kept, and gives the two updates."""
+    ts, y, u = _ok()
+    close = ts.copy()
+    close[3] = close[2] + 1e-10
+    with pytest.raises(ValueError, match=r"`ts` holds two samples closer than .* ts\[2\] = .* ts\[3\]"):
+        obsjax.Measurements(close, y, u)
+    f = jax.jit(lambda t: obsjax.Measurements(t, y, u).ts)
+    with pytest.raises(Exception, match="two samples closer than"):
+        jax.block_until_ready(f(close))
+    apart = ts.copy()
+    apart[3] = apart[2] + 1e-7  # 100 times the tolerance (the span is 1)
+    est = obsjax.estimate(OBS, obsjax.Measurements(apart, y, u), XH0)
+    assert int(est.status) == 0 and np.all(np.abs(np.asarray(est.xhat[2:4])) > 0)
+
+
+def test_nan_validation_states_fail_under_jit():
+    ts, y, u = _ok()
+    xr = np.asarray(y).copy()
+    xr[2, 0] = np.nan
+    f = jax.jit(lambda x: obsjax.estimate(OBS, obsjax.Measurements(ts, y, u, x_ref=x, x_index=(0,)), XH0).state_error)
+    with pytest.raises(Exception, match=r"`x_ref` must hold finite samples"):
+        jax.block_until_ready(f(xr))
+
+
 def _write_csv(path, header, rows):
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)

@@ -21,6 +21,35 @@ def _check_choice(value, name, choices):
     return value
 
 
+def _check_separated(ts):
+    """Sample times farther apart than the update schedule's tolerance, 1e-9·max(1, t_K − t_0).
+
+    ``estimate`` applies the updates of the samples at the breakpoints of its schedule, and breakpoints
+    closer than that tolerance are one instant: of two such samples one update was lost and a row of the
+    result never written (zeros, with status 0).  Such a pair is refused instead (eagerly a ``ValueError``
+    naming the two samples; traced, ``eqx.error_if``)."""
+    v = concrete_value(ts)
+    if v is None:
+        tol = 1e-9 * jnp.maximum(1.0, ts[-1] - ts[0])
+        return eqx.error_if(
+            ts, jnp.any(jnp.diff(ts) <= tol),
+            "`ts` holds two samples closer than 1e-9·max(1, t_K − t_0), which the observer's update "
+            "schedule takes as one instant: merge them (e.g. average the two samples) or drop one.",
+        )
+    v = np.asarray(v, dtype=np.float64)
+    tol = 1e-9 * max(1.0, float(v[-1] - v[0]))
+    close = np.flatnonzero(np.diff(v) <= tol)
+    if close.size:
+        i = int(close[0])
+        raise ValueError(
+            f"`ts` holds two samples closer than the update schedule's time tolerance 1e-9·max(1, t_K − t_0) "
+            f"= {tol:.3g}: ts[{i}] = {float(v[i])!r}, ts[{i + 1}] = {float(v[i + 1])!r} "
+            f"(Δ = {float(v[i + 1] - v[i]):.3g}). The observer would take them as one instant (one update lost); "
+            "merge them (e.g. average the two samples) or drop one."
+        )
+    return ts
+
+
 def check_times(ts, name="ts"):
     """Sample times: real, 1-D, at least 2, finite, strictly increasing (eagerly; ``eqx.error_if`` traced)."""
     v = concrete_value(ts)
@@ -134,7 +163,8 @@ class Measurements(eqx.Module):
 
     **Arguments:**
 
-    - `ts`: (K,) sample times, K ≥ 2, finite and strictly increasing (a duplicate time is refused).
+    - `ts`: (K,) sample times, K ≥ 2, finite and strictly increasing (a duplicate time is refused, and so
+      are two samples closer than 1e-9·max(1, t_K − t_0), which the update schedule would take as one).
     - `y`: (K, m) sampled outputs ((K,) for one output).
     - `u`: (K, p) sampled inputs, or ``None`` (p = 0).
     - `hold`: ``"zoh"`` (default), ``"linear"`` or ``"cubic"``.
@@ -197,10 +227,10 @@ class Measurements(eqx.Module):
             ts_arr, y, u = ts_arr[idx], y[idx], u[idx]
             x_ref = None if x_ref is None else x_ref[idx]
             mask = None if mask is None else mask[idx]
-        self.ts = check_times(ts_arr)
+        self.ts = _check_separated(check_times(ts_arr))
         self.y = _traced_finite(y, "y")
         self.u = _traced_finite(u, "u")
-        self.x_ref = x_ref
+        self.x_ref = None if x_ref is None else _traced_finite(x_ref, "x_ref")
         self.x_index = x_index
         self.mask = jnp.ones(self.ts.shape, bool) if mask is None else mask
         mv = concrete_value(self.mask)
