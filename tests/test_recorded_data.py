@@ -265,6 +265,10 @@ def test_from_csv_and_from_dataframe(tmp_path):
     _write_csv(p, ["time", "theta", "volts", "omega"], rows.tolist())
     with pytest.raises(ValueError, match=r"line 5, column 'volts' is not a number: 'n/a'"):
         obsjax.Measurements.from_csv(p, t="time", y=["theta"], u=["volts"])
+    # a column named twice: reading it by name would take one of the two silently
+    _write_csv(p, ["time", "theta", "theta", "omega"], [[0.0, 1.0, 10.0, 0.0], [0.1, 2.0, 20.0, 0.0]])
+    with pytest.raises(ValueError, match=r"names a column more than once: 'theta' \(columns \[1, 2\]\)"):
+        obsjax.Measurements.from_csv(p, t="time", y=["theta"])
     # any mapping of columns works as a data frame (pandas itself is optional)
     frame = {"t": ts, "y": y[:, 0], "u": u[:, 0]}
     d2 = obsjax.Measurements.from_dataframe(frame, t="t", y=["y"], u=["u"])

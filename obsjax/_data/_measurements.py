@@ -363,6 +363,10 @@ class Measurements(eqx.Module):
         if not rows:
             raise ValueError(f"`path` {path!r} is empty: expected a header row and samples.")
         header = [h.strip() for h in rows[0]]
+        dup = sorted({h for h in header if header.count(h) > 1})
+        if dup:  # a column read by name would be one of them, and which one the user cannot tell
+            where = ", ".join(f"{h!r} (columns {[j for j, g in enumerate(header) if g == h]})" for h in dup)
+            raise ValueError(f"`path` {path!r}: the header names a column more than once: {where}; rename them.")
         body = [r for r in rows[1:] if any(f.strip() for f in r)]
         for i, r in enumerate(body):
             if len(r) != len(header):
