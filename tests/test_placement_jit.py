@@ -31,6 +31,25 @@ def eig_error(A, C, L, poles) -> float:
 
 
 # ---------------------------------------------------------------- derivatives, jit, vmap
+def test_eager_derivative_in_the_model_includes_the_balancing():
+    """jax.jvp/grad of place in A or C run eagerly (no jit), m = 2 < n = 4: the balancing (d, e) of the pair
+    was computed in NumPy from the tracers' primal values, so its derivative was dropped (relative error
+    0.44 in dL/dA against central differences; under jit it was right).  Eager, jitted and central
+    differences must agree."""
+    rng = np.random.default_rng(11)
+    A, C = rng.standard_normal((4, 4)), rng.standard_normal((2, 4))
+    poles = np.array([-1.0, -2.0, -3.0, -4.0])
+    h = 1e-5
+    for which, E in (("A", np.eye(4, k=-1)), ("C", np.eye(2, 4))):
+        f = (lambda a: place(a, C, poles)) if which == "A" else (lambda c: place(A, c, poles))
+        x = jnp.asarray(A if which == "A" else C)
+        eager = np.asarray(jax.jvp(f, (x,), (jnp.asarray(E),))[1])
+        jitted = np.asarray(jax.jit(lambda x_, t_: jax.jvp(f, (x_,), (t_,))[1])(x, jnp.asarray(E)))
+        fd = (np.asarray(f(x + h * E)) - np.asarray(f(x - h * E))) / (2 * h)
+        np.testing.assert_allclose(eager, jitted, rtol=1e-8, atol=1e-10 * np.abs(fd).max())
+        np.testing.assert_allclose(eager, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
 @pytest.mark.extended
 def test_gradient_mimo_against_central_differences():
     """d‖L‖²/d(A, C, poles) for n = 6, m = 2 (real poles and a conjugate pair, the pair through its

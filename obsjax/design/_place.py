@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, concrete_value
+from .._checks import as_float_array, concrete_value, static_value
 from .._config import require_x64
 from ..analysis._lti import _pair, balancing, observability_staircase, require_observable
 from ._poles import (
@@ -215,7 +215,7 @@ def _robust_core(lay, pat, A, C, pr, pi, d, e, *, m, depth, maxiter):
 def _scalings(A, C):
     """The balancing (d, e) of the pair (:func:`obsjax.analysis._lti.balancing`): in NumPy when A and C
     are concrete (no compilation), traced otherwise (the same operations, so the same gain)."""
-    Av, Cv = concrete_value(A), concrete_value(C)
+    Av, Cv = static_value(A), static_value(C)
     if Av is not None and Cv is not None:
         d, e = balancing(np.asarray(Av, dtype=float), np.asarray(Cv, dtype=float))
         return jnp.asarray(d), jnp.asarray(e)
