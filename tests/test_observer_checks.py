@@ -313,3 +313,18 @@ def test_minmax_luenberger_nonfinite_eps():
     for bad in (NAN, INF, -1.0):
         with pytest.raises(ValueError, match=r"`eps` must be >= 0 and finite"):
             obsjax.MinMaxLuenberger(A, None, np.eye(2), F=0.1 * np.eye(2), window=2, eps=bad)
+
+
+@pytest.mark.parametrize("who", ["FunctionalObserver", "ReducedOrder"])
+def test_observers_on_y_equals_cx_refuse_feedthrough(who):
+    """A model with D ≠ 0: FunctionalObserver accepted it and estimated aᵀx with a bias eᵀ D u (−12.1 against
+    −0.1 with D = 1, u = 2); ReducedOrder refused it already.  Both name `D` and what they found."""
+    A = [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-6.0, -11.0, -6.0]]
+    plant = obsjax.LTI(A, [[0.0], [0.0], [1.0]], [[1.0, 0.0, 0.0]], D=[[1.0]])
+    with pytest.raises(ValueError, match=rf"{who} needs a model without feedthrough: `D` must be 0, got max \|D\| = 1"):
+        if who == "FunctionalObserver":
+            obsjax.FunctionalObserver(plant, np.array([0.0, 1.0, 0.0]), [-4.0, -5.0])
+        else:
+            obsjax.ReducedOrder(plant, poles=[-4.0, -5.0])
+    # the same model without feedthrough is accepted
+    obsjax.FunctionalObserver(obsjax.LTI(A, [[0.0], [0.0], [1.0]], [[1.0, 0.0, 0.0]]), np.array([0.0, 1.0, 0.0]), [-4.0, -5.0])

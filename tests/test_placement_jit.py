@@ -30,6 +30,25 @@ def eig_error(A, C, L, poles) -> float:
     return match(np.linalg.eigvals(A - L @ C), poles)
 
 
+@pytest.mark.parametrize("im", [1e-13, 1e-11, 1e-10])
+def test_a_pair_closer_than_the_cluster_tolerance_is_a_real_double_pole(im):
+    """−1 ± i·im with |Im| below CLUSTER_RTOL/2: the two members are one repeated pole by the cluster rule.
+    Between REAL_RTOL (was 1e-12) and CLUSTER_RTOL each member matched itself and its conjugate: the
+    structure listed both as "up" and "down", place failed with a reshape error and Luenberger stored the
+    poles as [1e-11, 1e-11, −2] (the real part lost)."""
+    poles = np.array([-1 + 1j * im, -1 - 1j * im, -2.0])
+    assert pole_structure(poles).clusters == ((1, (0, 1), ()), (1, (2,), ()))
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -3.0]])
+    C = np.array([[1.0, 0.0, 0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the Jordan-chain warning of a double pole with one output
+        L = np.asarray(place(A, C, poles))
+        obs = obsjax.Luenberger.from_poles(obsjax.LTI(A, np.eye(3)[:, 2:], C), poles)
+    # a double pole with one output is a Jordan block: its eigenvalues move by ~sqrt(rounding)
+    assert eig_error(A, C, L, [-1.0, -1.0, -2.0]) < 1e-6
+    np.testing.assert_allclose(np.sort(np.asarray(obs.spectrum).real), [-2.0, -1.0, -1.0], rtol=1e-12)
+
+
 # ---------------------------------------------------------------- derivatives, jit, vmap
 def test_eager_derivative_in_the_model_includes_the_balancing():
     """jax.jvp/grad of place in A or C run eagerly (no jit), m = 2 < n = 4: the balancing (d, e) of the pair
@@ -428,3 +447,17 @@ def test_estimate_under_a_change_of_state_units(s):
             L = np.asarray(place(A, C, poles, method=method, rtol=np.inf))
             est = _canonical_estimate(A, C, poles, method=method)
         assert _true_error(A, C, L, poles) <= est
+
+
+def test_canonical_form_refuses_indices_that_do_not_fit_the_pair():
+    """The indices of (A, C) are (2, 1); given (1, 2) the rows of P are dependent: the form came back NaN,
+    eagerly and under jit, without a word."""
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    C = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match=r"`indices` must be the observability indices of \(A, C\), which are \(2, 1\), got \(1, 2\)"):
+        observable_canonical_form(A, C, indices=(1, 2))
+    f = jax.jit(lambda A, C: observable_canonical_form(A, C, indices=(1, 2)).A)
+    with pytest.raises(Exception, match="`indices` are not the observability indices"):
+        jax.block_until_ready(f(A, C))
+    good = jax.jit(lambda A, C: observable_canonical_form(A, C, indices=(2, 1)).A)(A, C)
+    np.testing.assert_allclose(np.asarray(good), np.asarray(observable_canonical_form(A, C).A), atol=1e-12)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import warnings
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -151,7 +152,23 @@ def observable_canonical_form(A, C, *, tol: float | None = None, indices=None) -
                 f"got {indices}."
             )
         scale = (jnp.ones(A.shape[0]), 1.0)
-    return _form(A, C, indices, scale)
+        if concrete_value(A) is not None and concrete_value(C) is not None:
+            true, _ = _indices_and_scale(A, C, tol, "observable_canonical_form")
+            if tuple(true) != indices:
+                raise ValueError(
+                    f"`indices` must be the observability indices of (A, C), which are {tuple(true)}, "
+                    f"got {indices}: with others the rows of P are dependent (P singular)."
+                )
+    cf = _form(A, C, indices, scale)
+    if concrete_value(A) is None or concrete_value(C) is None:  # traced: indices that do not fit give NaN
+        bad = ~(jnp.all(jnp.isfinite(cf.P)) & jnp.all(jnp.isfinite(cf.A)))
+        msg = (
+            "observable_canonical_form: `indices` are not the observability indices of the pair (A, C) "
+            "(the transformation P is singular, the form NaN)."
+        )
+        # on every matrix of the form, so that the check is not dead code of a field left unread
+        cf = cf._replace(**{k: eqx.error_if(getattr(cf, k), bad, msg) for k in ("P", "A", "C", "R", "Gamma")})
+    return cf
 
 
 def assign_subsystems(structure: PoleStructure, indices) -> list[list[int]]:

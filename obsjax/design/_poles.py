@@ -18,8 +18,10 @@ import numpy as np
 
 #: Poles closer than this (relative) are one repeated pole; a conjugate must match this closely.
 CLUSTER_RTOL = 1e-9
-#: |Im p| ≤ this · |p| makes p real.
-REAL_RTOL = 1e-12
+#: |Im p| ≤ this · |p| makes p real.  Half of CLUSTER_RTOL: a "pair" whose two members are closer than
+#: CLUSTER_RTOL is one repeated pole by the rule above, i.e. a real double pole (with a smaller threshold
+#: such a pair matched both itself and its conjugate, and its structure was corrupt).
+REAL_RTOL = CLUSTER_RTOL / 2
 
 
 class PoleStructure(NamedTuple):
@@ -79,8 +81,9 @@ def pole_structure(poles) -> PoleStructure:
             clusters.append((1, tuple(members), ()))
             continue
         up = p if p.imag > 0 else np.conj(p)
-        members_up = [k for k in range(n) if not used[k] and not real[k] and close(v[k], up)]
-        members_dn = [k for k in range(n) if not used[k] and not real[k] and close(v[k], np.conj(up))]
+        free = [k for k in range(n) if not used[k] and not real[k]]
+        members_up = [k for k in free if v[k].imag > 0 and close(v[k], up)]
+        members_dn = [k for k in free if v[k].imag < 0 and close(v[k], np.conj(up))]
         if len(members_up) != len(members_dn):
             raise ValueError(
                 "`poles` must be closed under conjugation for a real gain: "

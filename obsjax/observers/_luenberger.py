@@ -258,9 +258,7 @@ class ReducedOrder(AbstractObserver):
         n, m = model.n, model.m
         if m >= n:
             raise ValueError(f"ReducedOrder needs fewer outputs than states, got m = {m}, n = {n}.")
-        Dv = concrete_value(model.D)
-        if Dv is not None and np.any(Dv != 0):
-            raise ValueError("ReducedOrder needs a model without feedthrough (D = 0).")
+        _require_no_feedthrough(model, "ReducedOrder")
         if (G is None) == (poles is None):
             raise ValueError("ReducedOrder needs exactly one of `G` (a gain) or `poles`.")
         if Dc is None:
@@ -367,6 +365,17 @@ def _companion(coeffs):
     return F
 
 
+def _require_no_feedthrough(model, who):
+    """The observers built on y = Cx alone (reduced-order, functional) need D = 0: with feedthrough their
+    estimate is biased by D u without a word.  (Measure y − D u instead, with a model whose D is 0.)"""
+    Dv = concrete_value(model.D)
+    if Dv is not None and np.any(Dv != 0):
+        raise ValueError(
+            f"{who} needs a model without feedthrough: `D` must be 0, got max |D| = "
+            f"{float(np.max(np.abs(Dv))):.3g}. Give it the measurement y − D u and a model with D = 0."
+        )
+
+
 class FunctionalObserver(AbstractObserver):
     """Observer of a single linear functional s = aᵀx with ν − 1 arbitrary poles (thesis §3.3, Theorem II).
 
@@ -403,6 +412,7 @@ class FunctionalObserver(AbstractObserver):
 
     def __init__(self, model, a, poles, *, tol=None, rtol=1e-8):
         _require_lti(model, "FunctionalObserver")
+        _require_no_feedthrough(model, "FunctionalObserver")
         A, B, C = (concrete_value(M) for M in (model.A, model.B, model.C))
         if A is None or C is None:
             raise ValueError("FunctionalObserver is designed from concrete model matrices (not under jit).")
