@@ -328,3 +328,37 @@ def test_observers_on_y_equals_cx_refuse_feedthrough(who):
             obsjax.ReducedOrder(plant, poles=[-4.0, -5.0])
     # the same model without feedthrough is accepted
     obsjax.FunctionalObserver(obsjax.LTI(A, [[0.0], [0.0], [1.0]], [[1.0, 0.0, 0.0]]), np.array([0.0, 1.0, 0.0]), [-4.0, -5.0])
+
+
+def test_reduced_order_does_not_depend_on_the_units_of_the_sensors():
+    """Two independent sensors in units 1e10 apart: the rank test of C was unscaled and refused them
+    ("rank 1"), though Luenberger placed the same pair.  Now the estimate of x is the same in any units
+    (the reduced error decays at the requested rate; x̂ does not depend on how the complement is scaled)."""
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -3.0]])
+    B = np.array([[0.0], [0.0], [1.0]])
+    ts = np.linspace(0.0, 3.0, 7)
+    x0, xh0 = jnp.array([1.0, -0.5, 0.3]), jnp.zeros(3)
+    runs = []
+    for k in (1.0, 1e-5):
+        plant = obsjax.LTI(A, B, np.array([[k, 0.0, 0.0], [0.0, 1.0 / k, 0.0]]))
+        obs = obsjax.ReducedOrder.from_poles(plant, [-4.0])
+        runs.append(np.asarray(obsjax.simulate(plant, obs, x0, xh0, ts, rtol=1e-10, atol=1e-12).error))
+    np.testing.assert_allclose(runs[1], runs[0], rtol=1e-9, atol=1e-12)
+    # x̃ = x̂ − x lies along the unmeasured state and decays as e^{−4t}
+    np.testing.assert_allclose(runs[0][:, :2], 0.0, atol=1e-7)
+    np.testing.assert_allclose(runs[0][-1, 2] / runs[0][0, 2], np.exp(-12.0), rtol=1e-4)
+
+
+def test_reduced_order_with_a_rank_deficient_a12_places_under_jit():
+    """m = 3 outputs > n − m = 2 unmeasured states, rank A12 = 1: the poles are placed on the rank-1 rows
+    of A12 decided at construction; under jit the traced path kept both rows of its QR factor and the
+    gain was refused at run time ("does not place the poles") though the eager one places them exactly."""
+    import equinox as eqx
+
+    A = np.zeros((5, 5))
+    A[0, 3], A[1, 3], A[3, 4], A[4, 3], A[3, 3], A[4, 4] = 1.0, 2.0, 0.5, -1.0, -1.0, 0.3
+    plant = obsjax.LTI(A, np.ones((5, 1)), np.eye(5)[:3])
+    obs = obsjax.ReducedOrder.from_poles(plant, [-2.0, -3.0])
+    _, _, _, A12, _, A22, _, _ = (np.asarray(x) for x in obs._blocks())
+    for G in (np.asarray(obs.gain), np.asarray(eqx.filter_jit(lambda o: o.gain)(obs))):
+        np.testing.assert_allclose(np.sort(np.linalg.eigvals(A22 - G @ A12).real), [-3.0, -2.0], rtol=1e-10)

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value, matrix, require_finite, vector
-from ..analysis._lti import require_observable
+from ..analysis._lti import balancing, require_observable
 from ..design._place import (
     as_design_matrix,
     design_pair,
@@ -192,36 +192,65 @@ class Luenberger(AbstractObserver):
         return z
 
 
-def _complement(C, tol=None):
-    """Rows D completing C to a nonsingular M = [C; D] (orthonormal basis of the null space of C)."""
-    C = np.asarray(C)
-    _, s, vt = np.linalg.svd(C)
+def _balanced_units(A, C):
+    """State and output scalings (d, e) of the balanced pair (units of states and outputs taken out, as
+    the rank decisions of the design layer do), in NumPy."""
+    return balancing(np.asarray(A, float), np.asarray(C, float))
+
+
+def _complement(C, tol=None, A=None):
+    """Rows D completing C to a nonsingular M = [C; D]: an orthonormal basis of the null space of C.
+
+    The rank of C is decided in the balanced units of (A, C) (`A` given; unit rows of C otherwise), so that
+    independent sensors in very different units are not declared dependent; where the unscaled C already
+    has full row rank its own orthonormal null-space basis is kept (the thesis's examples' gains)."""
+    C = np.asarray(C, float)
+    m = C.shape[0]
     tol = 1e-9 if tol is None else tol
+    _, s0, vt0 = np.linalg.svd(C)
+    if int(np.sum(s0 > tol * max(s0[0], np.finfo(float).tiny))) == m:
+        return vt0[m:]
+    d, e = _balanced_units(A, C) if A is not None else (np.ones(C.shape[1]), np.ones(m))
+    Cb = e[:, None] * C * d[None, :]
+    Cb = Cb / np.maximum(np.linalg.norm(Cb, axis=1, keepdims=True), np.finfo(float).tiny)
+    _, s, vt = np.linalg.svd(Cb)
     r = int(np.sum(s > tol * max(s[0], np.finfo(float).tiny)))
-    if r < C.shape[0]:
+    if r < m:
         raise ValueError(
-            f"`C` must have full row rank m = {C.shape[0]} for a reduced-order observer, got rank {r} "
-            f"(relative tolerance {tol:.1e})."
+            f"`C` must have full row rank m = {m} for a reduced-order observer, got rank {r} "
+            f"(relative tolerance {tol:.1e}, in balanced units)."
         )
-    return vt[r:]
+    # C (d ⊙ w) = 0 where (E C D) w = 0: the null space in the original units, orthonormalised
+    q, _ = np.linalg.qr((vt[m:] * d[None, :]).T)
+    return q.T
 
 
-def _compress_rows(A12):
+def _a12_rank(A12):
+    """The rank of a concrete A12 with more rows than columns (``None`` otherwise)."""
+    m, k = A12.shape
+    v = concrete_value(A12)
+    if m <= k or v is None:
+        return None
+    sv = np.linalg.svd(np.asarray(v, float), compute_uv=False)
+    return int(np.sum(sv > 1e-12 * sv[0])) if sv[0] > 0 else 0
+
+
+def _compress_rows(A12, rank=None):
     """(R, Q) with A12 = Q R (reduced QR, Q orthonormal m × (n − m)) when A12 has more rows than
     columns (m > n − m: more outputs than unmeasured states), else (A12, None).  Then
     A22 − G A12 = A22 − G_r R for G = G_r Qᵀ, and (A22, R) is observable exactly when (A22, A12) is
     (A12 v = 0 ⟺ R v = 0): the poles are placed on the square pair (on r rows, R = Qᵀ A12 with Q the
-    leading left singular vectors, when a concrete A12 has rank r < n − m)."""
+    leading left singular vectors, when A12 has rank r < n − m: decided on the concrete A12, or
+    `rank`, the rank decided at construction, when it is traced)."""
     m, k = A12.shape
     if m <= k:
         return A12, None
-    v = concrete_value(A12)
-    if v is not None:  # a concrete A12 of rank r < k: keep r rows (an orthonormal basis of its range)
-        U, sv, _ = np.linalg.svd(np.asarray(v, float), full_matrices=False)
-        r = int(np.sum(sv > 1e-12 * sv[0])) if sv[0] > 0 else 0
-        if 0 < r < k:
-            Q = jnp.asarray(U[:, :r])
-            return Q.T @ A12, Q
+    r = _a12_rank(A12)
+    r = rank if r is None else r
+    if r is not None and 0 < r < k:  # keep r rows (an orthonormal basis of the range of A12)
+        U = jnp.linalg.svd(A12, full_matrices=False)[0]
+        Q = U[:, :r]
+        return Q.T @ A12, Q
     Q, R = jnp.linalg.qr(A12, mode="reduced")
     return R, Q
 
@@ -252,6 +281,7 @@ class ReducedOrder(AbstractObserver):
     Dc: jax.Array
     structure: PoleStructure | None = eqx.field(static=True, default=None)
     chains: tuple | None = eqx.field(static=True, default=None)
+    a12_rank: int | None = eqx.field(static=True, default=None)  # decided at construction (m > n − m)
 
     def __init__(self, model, G=None, poles=None, Dc=None, *, structure=None, tol=None):
         _require_lti(model, "ReducedOrder")
@@ -265,11 +295,17 @@ class ReducedOrder(AbstractObserver):
             Cv = concrete_value(model.C)
             if Cv is None:
                 raise ValueError("`Dc` must be given when the model's C is traced.")
-            Dc = _complement(Cv, tol)
+            Dc = _complement(Cv, tol, concrete_value(model.A))
         Dc = require_finite(matrix(Dc, "Dc", (n - m, n)), "Dc")
         Mv = concrete_value(jnp.concatenate([model.C, Dc]))
         if Mv is not None:
-            sv = np.linalg.svd(Mv, compute_uv=False)
+            # in units of the states where the pair is balanced, rows normalised: a test of M that does
+            # not depend on the units of states or outputs
+            Av = concrete_value(model.A)
+            d = _balanced_units(Av, Mv[:m])[0] if Av is not None else np.ones(n)
+            Mb = Mv * d[None, :]
+            Mb = Mb / np.maximum(np.linalg.norm(Mb, axis=1, keepdims=True), np.finfo(float).tiny)
+            sv = np.linalg.svd(Mb, compute_uv=False)
             if not sv[-1] > 1e-12 * sv[0]:
                 raise ValueError(
                     "M = [C; Dc] must be nonsingular: `Dc` does not complete `C` "
@@ -283,6 +319,7 @@ class ReducedOrder(AbstractObserver):
         self.G = None
         self.poles, self.structure = _poles_leaf(poles, n - m, structure, "ReducedOrder")
         _, _, _, A12, _, A22, _, _ = self._blocks()
+        self.a12_rank = _a12_rank(A12)
         self.chains, _ = _chains(
             A22, _compress_rows(A12)[0], self.structure, self.poles, tol, "ReducedOrder (pair (A22, A12))"
         )
@@ -313,7 +350,7 @@ class ReducedOrder(AbstractObserver):
         if self.G is not None:
             return self.G
         _, _, _, A12, _, A22, _, _ = self._blocks()
-        A12r, Q = _compress_rows(A12)
+        A12r, Q = _compress_rows(A12, self.a12_rank)
         A22, A12r = design_pair(A22, A12r, "ReducedOrder")
         re, im = decode(self.poles, self.structure)
         Gr = place_real(
