@@ -171,6 +171,22 @@ def test_error_transition_matrix_bad_plant():
 def test_error_gramian_bad_k():
     with pytest.raises(ValueError, match="`k`"):
         an.observability_gramian(CY, 0, 1.0)
+    for k in (1.5, 2.7, float("nan")):  # was truncated to a window [0.5, 1.5] for k = 1.5
+        with pytest.raises(ValueError, match=r"`k` must be an integer >= 1"):
+            an.observability_gramian(CY, k, 1.0)
+    np.testing.assert_allclose(an.observability_gramian(CY, 2.0, 1.0), an.observability_gramian(CY, 2, 1.0))
+
+
+def test_error_gramian_end_reference_that_overflows():
+    """A fast stable mode (−1e5) over T = 2: Φ(kT − T, kT) overflows, and the end-referenced gramian came
+    back with −inf on its diagonal (a gramian is positive semidefinite)."""
+    import obsjax
+
+    A = np.diag([-1.0, -1e3, -1e5]) + np.eye(3, k=1)
+    plant = obsjax.LTI(A, np.zeros((3, 1)), np.array([[1.0, 1.0, 1.0]]))
+    with pytest.raises(ValueError, match=r"reference='end'\): W_o\(k\) .* overflows"):
+        an.observability_gramian(plant, 1, 2.0, reference="end")
+    assert np.all(np.isfinite(np.asarray(an.observability_gramian(plant, 1, 2.0))))  # start reference
 
 
 def test_error_gramian_bad_reference():

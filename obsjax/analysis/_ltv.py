@@ -137,10 +137,13 @@ def _periods(plant, starts, T, n_grid, rtol, atol):
 
 
 def _window(k, T, t0):
-    k = int(k)
-    if k < 1:
-        raise ValueError(f"`k` must be an integer >= 1 (window [kT - T, kT]), got {k}.")
-    return t0 + (k - 1) * T
+    kv = k if isinstance(k, (int, np.integer)) else concrete_value(jnp.asarray(k))
+    if kv is None:
+        raise ValueError("`k` must be a concrete integer >= 1 (not traced).")
+    kv = np.asarray(kv)
+    if kv.ndim != 0 or not np.isfinite(kv) or kv != np.round(kv) or kv < 1:
+        raise ValueError(f"`k` must be an integer >= 1 (window [kT - T, kT]), got {k!r}.")
+    return t0 + (int(kv) - 1) * T
 
 
 def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL, atol=_ATOL):
@@ -172,7 +175,16 @@ def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL,
         return G
     Phi_inv = jnp.linalg.inv(PhiT)  # Φ(kT-T, kT)
     W = Phi_inv.T @ G @ Phi_inv
-    return 0.5 * (W + W.T)
+    W = 0.5 * (W + W.T)
+    Wv = concrete_value(W)
+    if Wv is not None and not np.all(np.isfinite(Wv)):
+        raise ValueError(
+            "observability_gramian(reference='end'): W_o(k) = Φ(kT − T, kT)ᵀ W_o^start Φ(kT − T, kT) "
+            "overflows: Φ(kT − T, kT) = Φ(kT, kT − T)⁻¹ grows like exp(−λ T) for a fast stable mode λ "
+            f"(max |Φ(kT − T, kT)| = {float(np.max(np.abs(np.asarray(Phi_inv)))):.3g}). Use a shorter "
+            "window T or reference='start'."
+        )
+    return W
 
 
 def regressor_gramian(plant, k, T, *, t0=0.0, rtol=_RTOL, atol=_ATOL):
