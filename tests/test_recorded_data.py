@@ -91,6 +91,29 @@ def test_experiments_of_different_lengths_batch_with_a_mask(truth):
     assert bb.ts.shape == (3, 21)
 
 
+def test_padding_does_not_run_an_unstable_model_past_the_data():
+    """An inverted pendulum's Kalman filter on a 2 s and a 90 s experiment, stacked: the short one was padded
+    with samples continuing at its own interval, so its filter predicted open loop over 88 s without an
+    update and overflowed (status 2 for data that are fine alone).  The padding now follows the last sample
+    within 1e-6 of the span: the stacked estimates equal the single ones, status 0."""
+    from obsjax.observers import ContinuousDiscreteKalman
+
+    A, B, C = np.array([[0.0, 1.0], [19.6, 0.0]]), np.array([[0.0], [1.0]]), np.array([[1.0, 0.0]])
+    kf = ContinuousDiscreteKalman(obsjax.LTI(A, B, C), 1e-3 * jnp.eye(2), 1e-4 * jnp.eye(1), jnp.eye(2))
+    rng = np.random.default_rng(0)
+
+    def experiment(T):
+        ts = np.arange(0.0, T, 0.05)
+        return obsjax.Measurements(ts, 0.01 * np.sin(ts) + 1e-3 * rng.normal(size=ts.size), -0.206 * np.sin(ts))
+
+    short, long_ = experiment(2.0), experiment(90.0)
+    both = obsjax.estimate(kf, obsjax.Measurements.stack([short, long_]), jnp.zeros(2), throw=False)
+    assert np.asarray(both.status).tolist() == [0, 0]
+    for i, d in enumerate((short, long_)):
+        one = obsjax.estimate(kf, d, jnp.zeros(2))
+        np.testing.assert_allclose(np.asarray(both.xhat[i, : d.K]), np.asarray(one.xhat), rtol=1e-9, atol=1e-12)
+
+
 def test_no_valid_sample_is_refused_or_nan(truth):
     """A mask with no sample is refused at construction; an estimate with no valid row (the mask
     traced, or padding only) scores NaN, not the zero loss it used to (which reads as a perfect fit)."""

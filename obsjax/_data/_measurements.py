@@ -21,6 +21,11 @@ def _check_choice(value, name, choices):
     return value
 
 
+#: Spacing of the padding samples of :meth:`Measurements.stack`, relative to max(1, t_K − t_0): a thousand
+#: times the update schedule's tolerance, and short enough that the observer does not run past the data.
+PAD_STEP = 1e-6
+
+
 def _check_separated(ts):
     """Sample times farther apart than the update schedule's tolerance, 1e-9·max(1, t_K − t_0).
 
@@ -422,8 +427,10 @@ class Measurements(eqx.Module):
     def stack(cls, datasets) -> Measurements:
         """A batch of experiments of possibly different lengths, padded to the longest.
 
-        Each experiment is padded at its end by repeating its last sample at times continuing with its
-        last sampling interval; ``mask`` is False on the padding.  Every array gains a leading axis of
+        Each experiment is padded at its end by repeating its last sample at times 1e-6·max(1, t_K − t_0)
+        apart after its last sample, so that the observer runs no further than the experiment's data (an
+        unstable model run open loop over the longest experiment's duration would overflow and fail a good
+        short experiment); ``mask`` is False on the padding.  Every array gains a leading axis of
         length len(datasets), so ``jax.vmap``/``eqx.filter_vmap`` maps :func:`obsjax.estimate` over it
         and the losses ignore the padding.
 
@@ -448,7 +455,7 @@ class Measurements(eqx.Module):
 
     def _padded(self, K):
         extra = K - self.K
-        dt = self.ts[-1] - self.ts[-2]
+        dt = PAD_STEP * jnp.maximum(1.0, self.ts[-1] - self.ts[0])
         ts = jnp.concatenate([self.ts, self.ts[-1] + dt * jnp.arange(1, extra + 1)])
 
         def rep(a):
