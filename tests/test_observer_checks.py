@@ -362,3 +362,19 @@ def test_reduced_order_with_a_rank_deficient_a12_places_under_jit():
     _, _, _, A12, _, A22, _, _ = (np.asarray(x) for x in obs._blocks())
     for G in (np.asarray(obs.gain), np.asarray(eqx.filter_jit(lambda o: o.gain)(obs))):
         np.testing.assert_allclose(np.sort(np.linalg.eigvals(A22 - G @ A12).real), [-3.0, -2.0], rtol=1e-10)
+
+
+@pytest.mark.parametrize("c", [1.0, 1e4, 1e5])
+def test_functional_observer_does_not_depend_on_the_time_unit(c):
+    """A → cA, poles → c·poles (n = 4, one output, order 3): the conditions were solved with the companion
+    matrix of the poles, entries up to c³, and the design was refused from c = 1e4 on ("cannot be
+    observed").  Defining properties in every unit: eig F = the poles, TA − FT = GC and aᵀ = kᵀT + eᵀC."""
+    rng = np.random.default_rng(13)
+    A, B, C, a = (rng.standard_normal(s) for s in ((4, 4), (4, 1), (1, 4), (4,)))
+    poles = c * np.array([-1.0, -2.0, -3.0])
+    obs = obsjax.FunctionalObserver(obsjax.LTI(c * A, B, C), a, poles)
+    F, T, G, k, e = (np.asarray(x) for x in (obs.F, obs.T, obs.G, obs.k, obs.e))
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(F).real), np.sort(poles), rtol=1e-9)
+    lhs = T @ (c * A) - F @ T
+    assert np.abs(lhs - G @ C).max() <= 1e-10 * max(np.abs(lhs).max(), np.abs(G @ C).max())
+    np.testing.assert_allclose(k @ T + e @ C, a, rtol=1e-10, atol=1e-12 * np.abs(a).max())

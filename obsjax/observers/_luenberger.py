@@ -422,10 +422,11 @@ class FunctionalObserver(AbstractObserver):
         ż = F z + G y + T B u,      ŝ = kᵀ z + eᵀ y,
 
     with T A − F T = G C (Theorem 1, (2.4)) and aᵀ = kᵀ T + eᵀ C, so that ŝ − s = kᵀ e^{Ft}(z(0) − T x(0)).
-    F is the observer-companion matrix of the requested poles and k = e_r; the linear conditions are
-    solved for (T, G, e) by least squares with unit-norm columns (so the test does not depend on the
-    units of A, C and a), and a relative residual above ``rtol`` raises ``ValueError`` (the functional is
-    not observable with that order).  When ν = 1 (r = 0) the functional is a static map of y.
+    F = σ F_σ, F_σ the observer-companion matrix of the poles divided by σ, the geometric mean of their
+    magnitudes (the companion form in the poles' own time unit: its eigenvalues are the requested poles),
+    and k = e_r; the linear conditions are solved for (T, G, e) by least squares with unit-norm columns,
+    in that time unit (so the test does not depend on the units of time, A, C and a), and a relative
+    residual above ``rtol`` raises ``ValueError`` (the functional is not observable with that order).  When ν = 1 (r = 0) the functional is a static map of y.
 
     ``estimate`` returns ŝ (shape (1,)) and ``target(t, x) = aᵀx``, so ``Trajectory.error`` is ŝ − aᵀx.
 
@@ -464,11 +465,20 @@ class FunctionalObserver(AbstractObserver):
                 f"`poles` must hold ν − 1 = {r} poles (observability index ν = {nu}), got "
                 f"{pv.shape[0] if pv.ndim == 1 else pv.shape}."
             )
+        # The conditions are solved in the time unit of the poles, s their geometric mean |p|: with
+        # A_s = A/s and F_s the companion matrix of p/s, T A_s − F_s T = G_s C is T A − F T = G C for
+        # F = s F_s, G = s G_s.  The companion matrix of p itself has entries up to |p|^r, so the test
+        # refused well-posed designs after a change of time unit (A → 1e4 A, p → 1e4 p, r = 3).
+        scale = 1.0
         if r > 0:
             pole_structure(pv)  # finite, conjugate-closed
-            F = _companion(np.real(np.poly(pv)))
+            mags = np.abs(pv)
+            if np.all(mags > 0):
+                scale = float(np.exp(np.mean(np.log(mags))))
+            F = _companion(np.real(np.poly(pv / scale)))
         else:
             F = np.zeros((0, 0))
+        A = np.asarray(A, float) / scale
         k = np.zeros(r)
         if r:
             k[-1] = 1.0
@@ -504,9 +514,9 @@ class FunctionalObserver(AbstractObserver):
             )
         self.model = model
         self.a = a
-        self.F = jnp.asarray(F)
+        self.F = jnp.asarray(scale * F)
         self.T = jnp.asarray(sol[:nT].reshape(r, n))
-        self.G = jnp.asarray(sol[nT : nT + nG].reshape(r, m))
+        self.G = jnp.asarray(scale * sol[nT : nT + nG].reshape(r, m))
         self.k = jnp.asarray(k)
         self.e = jnp.asarray(sol[nT + nG :])
 
