@@ -710,3 +710,25 @@ def test_nan_checks_are_counted_across_threads():
     assert E.EQX_ON_ERROR == mode
     with pytest.raises(Exception, match="fires"):
         jax.block_until_ready(check(2.0))
+
+
+def test_an_input_signal_with_arrays_is_a_simulate_kwarg(tmp_path):
+    """u = multisine(...) (an eqx.Module holding arrays) was refused as unhashable, so the input signal of
+    the README could not drive a study.  Its arrays now travel as kernel arguments: each trajectory equals
+    simulate's with the same draw and input, and a changed amplitude is another study for the checkpoint."""
+    u = obsjax.signals.multisine([1.0], [1.3])
+    ts = jnp.linspace(0.0, 2.0, 5)
+    key = jr.key(0)
+
+    def run(u, ckpt=None):
+        return obsjax.monte_carlo(PLANT, OBS, key, 4, x0_sampler=lambda k: jr.normal(k, (2,)), xhat0_sampler=jnp.zeros(2),
+                                  ts=ts, chunk_size=4, progress=False, checkpoint=ckpt, simulate_kwargs=dict(u=u))
+    res = run(u, tmp_path / "ck")
+    for i in range(4):
+        x0 = jr.normal(jr.split(jr.fold_in(key, i), 4)[0], (2,))
+        one = obsjax.simulate(PLANT, OBS, x0, jnp.zeros(2), ts, u=u)
+        np.testing.assert_allclose(res.error_norm[i], np.asarray(one.error_norm), rtol=1e-9, atol=1e-12)
+    louder = obsjax.signals.multisine([3.0], [1.3])
+    with pytest.raises(ValueError, match="holds a different study"):
+        run(louder, tmp_path / "ck")
+    assert run(u, tmp_path / "ck").n_computed == 0  # the same study: resumed

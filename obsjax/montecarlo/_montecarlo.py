@@ -572,7 +572,7 @@ class _Config(eqx.Module):
 
 def _draw(dyn, cfg: _Config, key, i):
     """Trajectory i's plant, initial state, initial estimate and noise key, all from fold_in(key, i)."""
-    plant, observer, noise = eqx.combine(dyn, cfg.static)
+    plant, observer, noise, _ = eqx.combine(dyn, cfg.static)
     k = jr.fold_in(key, i)
     kx, kh, kn, kp = jr.split(k, 4)
     if cfg.param_sampler is not None:
@@ -583,7 +583,7 @@ def _draw(dyn, cfg: _Config, key, i):
 
 
 def _one(dyn, cfg: _Config, key, i):
-    _, observer, noise = eqx.combine(dyn, cfg.static)
+    _, observer, noise, sim_kwargs = eqx.combine(dyn, cfg.static)
     plant, x0, xhat0, kn = _draw(dyn, cfg, key, i)
     traj = simulate(
         plant,
@@ -595,7 +595,7 @@ def _one(dyn, cfg: _Config, key, i):
         key=kn if noise is not None else None,
         throw=False,
         max_segments=cfg.max_segments,
-        **dict(cfg.sim_kwargs),
+        **dict(sim_kwargs),
     )
     return traj.error_norm, traj.status
 
@@ -603,8 +603,8 @@ def _one(dyn, cfg: _Config, key, i):
 def _batch(dyn, cfg: _Config, key, idx, lockstep: bool):
     """One shard's members as one ``simulate_batch``: in lock step, or each with its own steps (the masked
     adaptive Runge–Kutta loop where the problem allows it, else ``jax.vmap(simulate)``)."""
-    plant, observer, noise = eqx.combine(dyn, cfg.static)
-    kw = dict(noise=noise, throw=False, max_segments=cfg.max_segments, **dict(cfg.sim_kwargs))
+    plant, observer, noise, sim_kwargs = eqx.combine(dyn, cfg.static)
+    kw = dict(noise=noise, throw=False, max_segments=cfg.max_segments, **dict(sim_kwargs))
     ts = np.asarray(cfg.ts)
     if cfg.param_sampler is not None:  # a plant per member (never in lock step)
         plants, x0s, xhat0s, kns = eqx.filter_vmap(lambda i: _draw(dyn, cfg, key, i))(idx)
@@ -651,6 +651,14 @@ def _chunk_kernel(dyn, key_data, idx, cfg: _Config):
 _chunk_kernel_saved = _trace_cache.filter_jit(_chunk_kernel.__wrapped__, fast_compile=True)
 
 
+def _is_hashable(v) -> bool:
+    try:
+        hash(v)
+    except TypeError:
+        return False
+    return True
+
+
 def _hashable_kwargs(kw: dict) -> tuple:
     items = []
     for k, v in sorted(kw.items()):
@@ -658,8 +666,8 @@ def _hashable_kwargs(kw: dict) -> tuple:
             hash(v)
         except TypeError:
             raise ValueError(
-                f"`simulate_kwargs[{k!r}]` must be hashable (a number, a diffrax solver, ...), got "
-                f"{type(v).__name__}."
+                f"`simulate_kwargs[{k!r}]` must be hashable once its arrays are taken out (a number, a diffrax "
+                f"solver, an eqx.Module such as obsjax.signals.multisine(...)), got {type(v).__name__}."
             ) from None
         items.append((k, v))
     return tuple(items)
@@ -838,7 +846,9 @@ def monte_carlo(
       checkpoint a study whose samplers or plant read objects that cannot be fingerprinted by
       content.
     - `simulate_kwargs`: extra keyword arguments of :func:`obsjax.simulate` (``solver``, ``rtol``,
-      ``atol``, ``dt0``, ``adaptive``, ``max_steps``, ``max_segments``); ``throw`` is always ``False``
+      ``atol``, ``dt0``, ``adaptive``, ``max_steps``, ``max_segments``, an input ``u`` such as
+      ``obsjax.signals.multisine(...)`` or a ``controller``: an argument holding arrays passes them to
+      the kernel as arrays, and they enter the checkpoint's fingerprint by value); ``throw`` is always ``False``
       (failures are counted from the per-trajectory ``status``).  Without ``max_segments`` a resetting
       observer's study holds exactly the ceil((t1 − t0)/T) reset segments of its period, so studies of
       two periods (a paper's gain against a tuned one) compile one program each; the same
@@ -911,7 +921,12 @@ def monte_carlo(
         if bad in sim_kwargs:
             raise ValueError(f"`simulate_kwargs` must not contain {bad!r}: monte_carlo sets it.")
     given_segments = sim_kwargs.pop("max_segments", None)
-    sim_kw = _hashable_kwargs(sim_kwargs)
+    # an argument that holds arrays (an input signal u = multisine(...), an eqx.Module: not hashable as a
+    # whole) travels with the plant and observer, its arrays as arguments of the kernel; the rest (numbers,
+    # solvers, ...) is part of the kernel's static configuration, as before
+    sim_items = tuple(sorted(sim_kwargs.items()))
+    sim_spec = tuple((False, False) if _is_hashable(v) else (False, eqx.is_array) for _, v in sim_items)
+    sim_kw = _hashable_kwargs(dict(eqx.partition(sim_items, sim_spec)[1]))
 
     # Key handling: raw key data travels through jit/shard_map; the implementation is static.
     if jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
@@ -950,7 +965,9 @@ def monte_carlo(
         mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
 
     masked = _masked.eligible_options(observer, ts_arr, noise=noise, **sim_kwargs)
-    dyn, static = eqx.partition((plant, observer, noise), eqx.is_array)
+    dyn, static = eqx.partition(
+        (plant, observer, noise, sim_items), (eqx.is_array, eqx.is_array, eqx.is_array, sim_spec)
+    )
     cfg = _Config(
         static=static,
         ts=tuple(float(t) for t in ts_arr),
@@ -1014,7 +1031,7 @@ def monte_carlo(
             xhat0_sampler=xhat0_sampler,
             xhat0_takes_x0=takes_x0,
             param_sampler=param_sampler,
-            simulate_kwargs=sim_kw if given_segments is None else (*sim_kw, ("max_segments", max_segments)),
+            simulate_kwargs=sim_items if given_segments is None else (*sim_items, ("max_segments", max_segments)),
             ts=ts_arr,
             key_data=np.asarray(key_data),
             key_impl=key_impl,
