@@ -189,6 +189,13 @@ def test_nan_samples_are_refused_or_skipped():
     assert d.K == 4 and np.all(np.isfinite(np.asarray(d.y))) and 3 not in np.flatnonzero(np.isin(ts, d.ts))
     with pytest.raises(ValueError, match=r"`missing` must be one of 'raise', 'skip', got 'drop'"):
         obsjax.Measurements(ts, y, u, missing="drop")
+    y3 = np.full_like(y, np.nan)
+    y3[2, 0] = 1.0
+    with pytest.raises(ValueError, match=r"`missing='skip'` dropped 5 of 6 samples .* 1 remain"):
+        obsjax.Measurements(ts, y3, u, missing="skip")
+    with pytest.raises(ValueError, match=r"`mask` must hold booleans .* got values \[0, 1, 2\]"):
+        obsjax.Measurements(ts, np.sin(ts), u, mask=[1, 2, 0, 1, 1, 1])
+    assert np.asarray(obsjax.Measurements(ts, np.sin(ts), u, mask=[1, 0, 1, 1, 1, 1]).mask).tolist()[:2] == [True, False]
 
 
 def test_lengths_holds_and_shapes_are_checked():

@@ -114,6 +114,11 @@ def _finite_rows(arrays, ts, missing):
                 f"(t = {float(ts[i])!r}): clean the data, or pass missing='skip' to drop those samples."
             )
         keep &= ok
+    if missing == "skip" and int(keep.sum()) < 2:
+        raise ValueError(
+            f"`missing='skip'` dropped {int((~keep).sum())} of {len(keep)} samples (non-finite y, u or x_ref): "
+            f"{int(keep.sum())} remain, and at least 2 sample times are needed."
+        )
     return keep
 
 
@@ -224,6 +229,12 @@ class Measurements(eqx.Module):
         checked = [("y", y), ("u", u)] + ([("x_ref", x_ref)] if x_ref is not None else [])
         keep = _finite_rows(checked, np.asarray(tv) if tv is not None else np.zeros(K), missing)
         if mask is not None:
+            mv = concrete_value(mask)
+            if mv is not None and np.asarray(mv).dtype != bool and not np.all(np.isin(np.asarray(mv), (0, 1))):
+                raise ValueError(
+                    "`mask` must hold booleans (True: a sample to use, False: padding or a sample to skip), "
+                    f"got values {np.unique(np.asarray(mv))[:6].tolist()}."
+                )
             mask = jnp.asarray(mask, bool)
             if mask.shape != (K,):
                 raise ValueError(f"`mask` must have shape ({K},) (one flag per sample), got {tuple(mask.shape)}.")
