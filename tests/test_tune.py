@@ -14,6 +14,7 @@ import optax
 import pytest
 
 import obsjax
+from obsjax.montecarlo import summarise
 
 PLANT = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
 TS = jnp.linspace(0.0, 5.0, 101)
@@ -140,6 +141,20 @@ def test_risk_measure_values():
     assert float(obsjax.risk_measure(x, ("cvar", 0.8))) == 8.5
     with pytest.raises(ValueError, match="CVaR level"):
         obsjax.risk_measure(x, ("cvar", 1.5))
+
+
+@pytest.mark.parametrize("alpha, n, k", [(0.95, 20, 1), (0.95, 100, 5), (0.7, 10, 3), (0.95, 2000, 100), (0.95, 19, 1)])
+def test_cvar_averages_the_worst_ceil_of_one_minus_alpha_n(alpha, n, k):
+    """(1 − 0.95)·20 = 1.0000000000000009 in floating point: the ceiling made it the worst 2 of 20 (19.5
+    instead of 20.0 on 1..20), in risk_measure, tune's weights and monte_carlo's ise_cvar95 alike."""
+    x = jnp.arange(1.0, n + 1.0)
+    expected = float(np.mean(np.arange(n - k + 1.0, n + 1.0)))
+    assert float(obsjax.risk_measure(x, ("cvar", alpha))) == pytest.approx(expected, rel=1e-14)
+    w = obsjax.risk_weights(("cvar", alpha), n)
+    assert np.count_nonzero(w) == k and np.sum(w * np.asarray(x)) == pytest.approx(expected, rel=1e-14)
+    rows = np.tile(np.sqrt(np.asarray(x))[:, None], (1, 3))  # ‖x̃‖² = i on the grid: ISE = 2 i over [0, 2]
+    s = summarise(np.array([0.0, 1.0, 2.0]), rows, np.zeros(n, int)).summary(cvar_alpha=alpha)
+    assert s[f"ise_cvar{int(round(alpha * 100))}"] == pytest.approx(2 * expected, rel=1e-12)
 
 
 def test_tune_bad_inputs():

@@ -27,6 +27,7 @@ from ._checkpoint import _read_chunk, write_chunk
 from ._checkpoint import chunk_path as _chunk_path
 from ._checkpoint import read_checkpoint as _resume
 from ._fingerprint import fingerprint
+from ..tuning._losses import tail_count
 from ._streaming import DEFAULT_SKETCH_RTOL, LogHistogram
 
 DEFAULT_QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
@@ -257,11 +258,11 @@ class MonteCarloResult:
     def _ise_mean_cvar(self, cvar_alpha: float):
         if self._stream is not None:
             st = self._stream
-            k = max(1, int(math.ceil((1 - cvar_alpha) * st.n_ok))) if st.n_ok else 0
+            k = tail_count(cvar_alpha, st.n_ok) if st.n_ok else 0
             mean = st.ise_sum / st.n_ok if st.n_ok else float("nan")
             return mean, (st.ise.top_mean(k) if k else float("nan"))
         ise = self.ise[self.ok]
-        k = max(1, int(math.ceil((1 - cvar_alpha) * ise.size))) if ise.size else 0
+        k = tail_count(cvar_alpha, ise.size) if ise.size else 0
         mean = float(np.mean(ise)) if ise.size else float("nan")
         return mean, (float(np.mean(np.sort(ise)[-k:])) if k else float("nan"))
 

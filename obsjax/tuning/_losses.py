@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 
 
@@ -76,3 +78,12 @@ def state_error(est) -> jnp.ndarray:
             "save at the samples (ts=None)."
         )
     return _valid_mean(jnp.sum(est.state_error**2, axis=-1), est.valid)
+
+
+def tail_count(alpha: float, n: int) -> int:
+    """k = ⌈(1 − α) n⌉ (at least 1): how many of n equally weighted losses the CVaR at level α averages
+    (the worst k).  The product is rounded before the ceiling: 1 − 0.95 is not exact in binary, and
+    (1 − 0.95)·20 = 1.0000000000000009 would otherwise average the worst 2 of 20 instead of the worst 1."""
+    x = (1.0 - float(alpha)) * int(n)
+    return max(1, int(math.ceil(x - 1e-9 * max(1.0, x))))
+

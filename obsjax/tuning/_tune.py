@@ -23,6 +23,7 @@ from .._simulate import SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch, simulate_plants
 from ..montecarlo._fingerprint import content_key
 from ..systems._noise import WhiteNoise
+from ._losses import tail_count
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
 BACKTRACK = 0.5
@@ -85,7 +86,7 @@ def risk_measure(losses, risk):
         alpha = float(risk[1])
         if not 0.0 <= alpha < 1.0:
             raise ValueError(f"CVaR level α must be in [0, 1), got {alpha}.")
-        k = max(1, int(math.ceil((1.0 - alpha) * losses.shape[0])))
+        k = tail_count(alpha, losses.shape[0])
         return jnp.mean(jax.lax.top_k(losses, k)[0])
     raise ValueError(f"`risk` must be 'mean', 'worst' or ('cvar', α), got {risk!r}.")
 
@@ -109,7 +110,7 @@ def risk_weights(risk, batch: int) -> np.ndarray:
         alpha = float(risk[1])
         if not 0.0 <= alpha < 1.0:
             raise ValueError(f"CVaR level α must be in [0, 1), got {alpha}.")
-        k = max(1, int(math.ceil((1.0 - alpha) * batch)))
+        k = tail_count(alpha, batch)
         w[batch - k :] = 1.0 / k
     else:
         raise ValueError(f"`risk` must be 'mean', 'worst' or ('cvar', α), got {risk!r}.")
