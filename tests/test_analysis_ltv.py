@@ -217,3 +217,55 @@ def test_error_pe_bad_regressor():
 def test_error_decay_rate_shape():
     with pytest.raises(ValueError, match="error"):
         an.decay_rate((jnp.linspace(0, 1, 5), jnp.ones((4, 2))))
+
+
+def test_non_finite_times_and_bad_tolerances_are_refused():
+    """A NaN time gave the identity for Φ (eagerly and under jit; diffrax returns y0 for a NaN end), a NaN
+    or infinite t0 gave gramians of inf or zeros and PE verdicts of False, and tol = −1 called a constant
+    two-dimensional regressor persistently exciting."""
+    import jax
+    import jax.numpy as jnp
+
+    import obsjax
+
+    pl = obsjax.LTV(lambda t: jnp.array([[0.0, 1.0], [-1.0, 0.0]]), lambda t: jnp.array([[1.0, 0.0]]))
+    sc = lambda t: jnp.array([jnp.sin(t), jnp.cos(t)])  # noqa: E731 - PE, η1 = π per window 2π
+    cases = [
+        (lambda: an.transition_matrix(pl, np.nan, 0.0), r"`t` must be a finite scalar time"),
+        (lambda: an.transition_matrix(pl, 2.0, 0.0, rtol=-1.0), r"`rtol` must be a positive finite scalar"),
+        (lambda: an.observability_gramian(pl, 1, 1.0, t0=np.nan), r"`t0` must be a finite scalar"),
+        (lambda: an.regressor_gramian(pl, 1, 1.0, t0=np.inf), r"`t0` must be a finite scalar"),
+        (lambda: an.uniform_observability_constants(pl, 1.0, 3.0, t0=np.nan), r"`t0` must be a finite scalar"),
+        (lambda: an.uniform_observability_constants(pl, 1.0, 3.0, n_grid=2.7), r"`n_grid` must be an integer"),
+        (lambda: an.is_persistently_exciting(sc, T=2 * np.pi, horizon=20.0, t0=np.nan), r"`t0` must be a finite"),
+        (lambda: an.is_persistently_exciting(sc, T=2 * np.pi, horizon=20.0, tol=np.nan), r"`tol` must be a finite"),
+        (lambda: an.is_persistently_exciting(lambda t: jnp.array([1.0, 2.0]), T=1.0, horizon=5.0, tol=-1.0),
+         r"`tol` must be ≥ 0"),
+        (lambda: an.morgan_narendra(sc, T=2 * np.pi, horizon=20.0, t0=np.nan), r"`t0` must be a finite"),
+        (lambda: an.morgan_narendra(sc, T=2 * np.pi, horizon=20.0, tol=np.nan), r"`tol` must be a finite"),
+    ]
+    for call, match in cases:
+        with pytest.raises(ValueError, match=match):
+            call()
+    with pytest.raises(Exception, match=r"`t` and `tau` must be finite"):
+        jax.block_until_ready(jax.jit(lambda t: an.transition_matrix(pl, t, 0.0))(jnp.nan))
+    assert bool(an.is_persistently_exciting(sc, T=2 * np.pi, horizon=20.0))  # the valid call is unchanged
+
+
+def test_decay_rate_refuses_a_window_it_cannot_fit():
+    """A window past the data, t_min > t_max, one sample left or an error at round-off gave NaN; ts of
+    shape (51, 1) gave 1.4e-18 instead of the true rate 2."""
+    ts = np.linspace(0.0, 5.0, 51)
+    err = np.exp(-2.0 * ts)[:, None] * np.array([[1.0, 0.5]])
+    assert abs(float(an.decay_rate((ts, err))) - 2.0) < 1e-12
+    for kw, match in (
+        (dict(t_min=10.0), "at least 2 samples"),
+        (dict(t_min=5.0), "at least 2 samples"),
+        (dict(t_min=3.0, t_max=1.0), r"`t_min` must be < `t_max`"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            an.decay_rate((ts, err), **kw)
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        an.decay_rate((ts, np.zeros_like(err)))
+    with pytest.raises(ValueError, match=r"`ts` must be a 1-D array"):
+        an.decay_rate((ts[:, None], err))

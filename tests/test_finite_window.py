@@ -651,3 +651,26 @@ def test_gradient_through_the_closed_loop_wrt_T():
     lf = jax.jit(loss)
     h = 1e-4
     assert float(g) == pytest.approx(float((lf(1.03 + h) - lf(1.03 - h)) / (2 * h)), rel=1e-6)
+
+
+def test_estimate_window_grid_checks_hold_under_jit():
+    """Eagerly a non-uniform grid with rule='simpson' and a non-monotone ts are refused; under jit both ran
+    (x̂(T) 0.46 off on the non-uniform Simpson grid).  Now both raise there too; a valid grid is unchanged."""
+    import jax
+
+    A, B, C = np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]), np.array([[2.0, 0.0]])
+    obs = obsjax.FiniteWindow(obsjax.LTI(A=A, B=B, C=C), T=1.0)
+    g = np.sort(np.concatenate([[0.0, 1.0], np.random.default_rng(0).uniform(0.0, 1.0, 99)]))
+    y, u = np.cos(g)[:, None], np.sin(g)[:, None]
+    with pytest.raises(Exception, match="Simpson's rule needs a uniform grid"):
+        jax.block_until_ready(jax.jit(lambda a, b, c: obs.estimate_window(a, b, c, rule="simpson"))(g, y, u))
+    ts = np.linspace(0.0, 1.0, 101)
+    swapped = ts.copy()
+    swapped[[10, 20]] = swapped[[20, 10]]
+    with pytest.raises(Exception, match="`ts` must be strictly increasing"):
+        jax.block_until_ready(jax.jit(lambda a, b, c: obs.estimate_window(a, b, c, rule="trapezoid"))(swapped, y, u))
+    yu = (np.cos(ts)[:, None], np.sin(ts)[:, None])
+    np.testing.assert_allclose(
+        np.asarray(jax.jit(lambda a, b, c: obs.estimate_window(a, b, c, rule="simpson"))(ts, *yu)),
+        np.asarray(obs.estimate_window(ts, *yu, rule="simpson")), rtol=1e-12, atol=1e-14,
+    )

@@ -70,6 +70,37 @@ def _pos_float(x, name):
     return float(v)
 
 
+def _finite_float(x, name):
+    """A concrete finite scalar (a time origin), else a ValueError naming it."""
+    v = concrete_value(jnp.asarray(x))
+    if v is None:
+        raise ValueError(f"`{name}` must be a concrete number (not traced), got a tracer.")
+    if v.ndim != 0 or not np.isfinite(v):
+        raise ValueError(f"`{name}` must be a finite scalar, got {v.tolist()}.")
+    return float(v)
+
+
+def _threshold(x, name):
+    """A concrete finite threshold ≥ 0 (`tol`)."""
+    v = _finite_float(x, name)
+    if v < 0:
+        raise ValueError(f"`{name}` must be ≥ 0, got {v}.")
+    return v
+
+
+def _solver_tolerances(rtol, atol):
+    for v, name in ((rtol, "rtol"), (atol, "atol")):
+        c = concrete_value(jnp.asarray(v))
+        if c is not None and (np.ndim(c) != 0 or not np.isfinite(c) or c <= 0):
+            raise ValueError(f"`{name}` must be a positive finite scalar, got {np.asarray(c).tolist()}.")
+
+
+def _grid_size(n_grid):
+    if isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)) or n_grid < 2:
+        raise ValueError(f"`n_grid` must be an integer ≥ 2, got {n_grid!r}.")
+    return int(n_grid)
+
+
 def transition_matrix(plant, t, tau, *, rtol=_RTOL, atol=_ATOL, max_steps=65536):
     """State transition matrix Φ(t, τ) of ẋ = A(t)x (Chen & Yen (2), (11)).
 
@@ -89,9 +120,13 @@ def transition_matrix(plant, t, tau, *, rtol=_RTOL, atol=_ATOL, max_steps=65536)
         Phi = obsjax.analysis.transition_matrix(obsjax.chen_yen_example(), 10.0, 0.0)
     """
     _check_plant(plant)
-    return _transition(
-        plant, jnp.asarray(t, dtype=float), jnp.asarray(tau, dtype=float), rtol, atol, max_steps
-    )
+    _solver_tolerances(rtol, atol)
+    t, tau = jnp.asarray(t, dtype=float), jnp.asarray(tau, dtype=float)
+    for v, name in ((t, "t"), (tau, "tau")):
+        c = concrete_value(v)
+        if c is not None and (c.ndim != 0 or not np.isfinite(c)):
+            raise ValueError(f"`{name}` must be a finite scalar time, got {c.tolist()}.")
+    return _transition(plant, t, tau, rtol, atol, max_steps)
 
 
 @eqx.filter_jit
@@ -102,6 +137,8 @@ def _transition(plant, t, tau, rtol, atol, max_steps):
         return plant.A_of(s) @ Phi
 
     eye = jnp.eye(n)
+    # traced times: a NaN would give the identity (diffrax returns y0 for a NaN end), so it raises
+    t = eqx.error_if(t, ~(jnp.isfinite(t) & jnp.isfinite(tau)), "transition_matrix: `t` and `tau` must be finite.")
     # diffrax refuses t0 == t1 only under some controllers; guard the trivial case.
     same = t == tau
     t_end = jnp.where(same, tau + 1.0, t)
@@ -165,10 +202,12 @@ def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL,
         W = obsjax.analysis.observability_gramian(obsjax.chen_yen_example(), k=1, T=2.0)
     """
     _check_plant(plant)
+    _solver_tolerances(rtol, atol)
     T = _pos_float(T, "T")
+    t0 = _finite_float(t0, "t0")
     if reference not in ("start", "end"):
         raise ValueError(f"`reference` must be 'start' or 'end', got {reference!r}.")
-    a = _window(k, T, float(t0))
+    a = _window(k, T, t0)
     _, PhiT, G = _periods(plant, _pad(jnp.asarray([a])), jnp.asarray(T), 2, rtol, atol)
     PhiT, G = PhiT[0], G[0]
     if reference == "start":
@@ -202,8 +241,9 @@ def regressor_gramian(plant, k, T, *, t0=0.0, rtol=_RTOL, atol=_ATOL):
         Wz = obsjax.analysis.regressor_gramian(obsjax.chen_yen_example(), k=1, T=0.25)
     """
     _check_plant(plant)
+    _solver_tolerances(rtol, atol)
     T = _pos_float(T, "T")
-    a = _window(k, T, float(t0))
+    a = _window(k, T, _finite_float(t0, "t0"))
     return _periods(plant, _pad(jnp.asarray([a])), jnp.asarray(T), 2, rtol, atol)[2][0]
 
 
@@ -263,14 +303,14 @@ def uniform_observability_constants(
         mu, alpha1, m1 = c.mu.max(), c.alpha1.min(), c.m1.min()
     """
     _check_plant(plant)
+    _solver_tolerances(rtol, atol)
     T = _pos_float(T, "T")
     horizon = _pos_float(horizon, "horizon")
-    if int(n_grid) < 2:
-        raise ValueError(f"`n_grid` must be >= 2, got {n_grid}.")
+    n_grid = _grid_size(n_grid)
     K = _n_periods(T, horizon)
-    starts = float(t0) + T * jnp.arange(K, dtype=float)
+    starts = _finite_float(t0, "t0") + T * jnp.arange(K, dtype=float)
 
-    mu, PhiT, Wz = _periods(plant, _pad(starts), jnp.asarray(T), int(n_grid), rtol, atol)
+    mu, PhiT, Wz = _periods(plant, _pad(starts), jnp.asarray(T), n_grid, rtol, atol)
     mu, PhiT, Wz = mu[:K], PhiT[:K], Wz[:K]
     sv = jnp.linalg.svd(PhiT, compute_uv=False)
     Pinv = jnp.linalg.inv(PhiT)
@@ -342,10 +382,13 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
                                                       T=2 * jnp.pi, horizon=20.0)
         assert pe and abs(pe.eta1 - jnp.pi) < 1e-8
     """
+    _solver_tolerances(rtol, atol)
     T = _pos_float(T, "T")
     horizon = _pos_float(horizon, "horizon")
+    tol = _threshold(tol, "tol")
+    t0 = _finite_float(t0, "t0")
     K = _n_periods(T, horizon)
-    starts = float(t0) + T * jnp.arange(K, dtype=float)
+    starts = t0 + T * jnp.arange(K, dtype=float)
     if hasattr(w, "A_of") and hasattr(w, "C_of"):
         Gs = _periods(w, _pad(starts), jnp.asarray(T), 2, rtol, atol)[2][:K]
 
@@ -397,7 +440,8 @@ def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
     - `t_min`, `t_max`: fit window (default: the whole trajectory).
     - `floor`: samples with ‖x̃‖ ≤ floor (converged to round-off) are left out of the fit.
 
-    **Returns:** scalar λ (positive for a decaying error); jit/vmap compatible.
+    **Returns:** scalar λ (positive for a decaying error); jit/vmap compatible (traced, a window with fewer
+    than two usable samples gives NaN; eagerly it raises ``ValueError``).
 
     **Example:**
 
@@ -409,16 +453,27 @@ def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
         ts, err = trajectory.ts, trajectory.error
     ts = jnp.asarray(ts, dtype=float)
     err = jnp.asarray(err, dtype=float)
-    if err.shape[0] != ts.shape[0]:
+    if ts.ndim != 1:
+        raise ValueError(f"`ts` must be a 1-D array of times, got shape {tuple(ts.shape)}.")
+    if err.ndim not in (1, 2) or err.shape[0] != ts.shape[0]:
         raise ValueError(
-            f"`error` must have {ts.shape[0]} rows (one per time), got shape {err.shape}."
+            f"`error` must have {ts.shape[0]} rows (one per time), shape (T, n) or (T,), got shape {err.shape}."
         )
+    if t_min is not None and t_max is not None and not float(t_min) < float(t_max):
+        raise ValueError(f"`t_min` must be < `t_max`, got t_min = {t_min}, t_max = {t_max}.")
     nrm = jnp.linalg.norm(err, axis=-1) if err.ndim == 2 else jnp.abs(err)
     mask = nrm > floor
     if t_min is not None:
         mask = mask & (ts >= t_min)
     if t_max is not None:
         mask = mask & (ts <= t_max)
+    used = concrete_value(mask)
+    if used is not None and int(np.sum(used)) < 2:
+        raise ValueError(
+            f"decay_rate needs at least 2 samples with ‖x̃‖ > floor = {floor:g} in the fit window "
+            f"[t_min, t_max] = [{t_min}, {t_max}], got {int(np.sum(used))} (an error already at round-off, "
+            "or a window outside the trajectory)."
+        )
     wgt = mask.astype(float)
     logn = jnp.log(jnp.where(mask, nrm, 1.0))
     sw = jnp.sum(wgt)

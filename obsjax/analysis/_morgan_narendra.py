@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._ltv import _ATOL, _RTOL, _n_periods, _pos_float, _solve
+from ._ltv import _ATOL, _RTOL, _finite_float, _n_periods, _pos_float, _solve, _solver_tolerances, _threshold
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,8 +109,11 @@ def morgan_narendra(
         assert mn and abs(mn.a - 0.5) < 1e-8                 # λ_min ∫₀^{2π} = π
         assert abs(mn.epsilon0 - 2 ** 0.5 * np.sin(0.5)) < 1e-8
     """
+    _solver_tolerances(rtol, atol)
     T = _pos_float(T, "T")
     horizon = _pos_float(horizon, "horizon")
+    t0 = _finite_float(t0, "t0")
+    tol = _threshold(tol, "tol")
     delta0 = T / 4.0 if delta0 is None else _pos_float(delta0, "delta0")
     K = _n_periods(T, horizon)
     n, m = _signal_shape(B, float(t0))

@@ -346,6 +346,14 @@ class FiniteWindow(AbstractObserver):
             jnp.abs((ts[-1] - ts[0]) - self.T) > 1e-9 * jnp.maximum(1.0, jnp.abs(self.T)),
             "FiniteWindow.estimate_window: `ts` must span [t − T, t].",
         )
+        if tsc is None:  # the grid checks made above on concrete times, under jit
+            d = jnp.diff(ts)
+            ts = eqx.error_if(ts, ~jnp.all(d > 0), "FiniteWindow.estimate_window: `ts` must be strictly increasing.")
+            if rule == "simpson":
+                ts = eqx.error_if(
+                    ts, jnp.any(jnp.abs(d - d[0]) > 1e-9 * jnp.abs(d[0])),
+                    "FiniteWindow.estimate_window: Simpson's rule needs a uniform grid `ts`; use rule='trapezoid'.",
+                )
         G1, G2 = self.kernels(ts - ts[0])
         return _quadrature(wts, G1, G2, ys, us, self.model.D)
 
