@@ -171,7 +171,7 @@ def test_error_transition_matrix_bad_plant():
 def test_error_gramian_bad_k():
     with pytest.raises(ValueError, match="`k`"):
         an.observability_gramian(CY, 0, 1.0)
-    for k in (1.5, 2.7, float("nan")):  # was truncated to a window [0.5, 1.5] for k = 1.5
+    for k in (1.5, 2.7, float("nan"), True):  # was truncated to a window [0.5, 1.5] for k = 1.5
         with pytest.raises(ValueError, match=r"`k` must be an integer >= 1"):
             an.observability_gramian(CY, k, 1.0)
     np.testing.assert_allclose(an.observability_gramian(CY, 2.0, 1.0), an.observability_gramian(CY, 2, 1.0))

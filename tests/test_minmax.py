@@ -235,6 +235,16 @@ def test_combination_record_too_short():
     obs = obsjax.MinMaxLuenberger(A_comb, B_comb, C_comb, F_comb, window=5)
     with pytest.raises(ValueError, match="more than window"):
         obs.run(np.zeros((4, 4)), np.zeros((3, 1)))
+    # an input record one row short was a NumPy reshape error
+    with pytest.raises(ValueError, match=r"`us` must have K = 9 rows .* got shape \(8, 1\)"):
+        obs.run(np.zeros((10, 4)), np.zeros((8, 1)))
+
+
+@pytest.mark.parametrize("window", [2.5, True, 0])
+def test_combination_window_must_be_a_positive_integer(window):
+    """window = 2.5 was truncated to 2 without a word."""
+    with pytest.raises(ValueError, match=r"`window` must be an integer >= 1"):
+        obsjax.MinMaxLuenberger(A_comb, B_comb, C_comb, F_comb, window=window)
 
 
 # --- the slides' basic cost (1): a sum over k of ∞-norms ----------------------------------------------

@@ -174,6 +174,8 @@ def _periods(plant, starts, T, n_grid, rtol, atol):
 
 
 def _window(k, T, t0):
+    if isinstance(k, bool):
+        raise ValueError(f"`k` must be an integer >= 1 (window [kT - T, kT]), got {k!r}.")
     kv = k if isinstance(k, (int, np.integer)) else concrete_value(jnp.asarray(k))
     if kv is None:
         raise ValueError("`k` must be a concrete integer >= 1 (not traced).")

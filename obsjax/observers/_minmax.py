@@ -382,8 +382,8 @@ class MinMaxLuenberger(eqx.Module):
             )
         self.F = F
         self.T = (lambda k: np.eye(n)) if T is None else _of_k(T, "T")
-        if int(window) < 1:
-            raise ValueError(f"`window` must be >= 1, got {window}.")
+        if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
+            raise ValueError(f"`window` must be an integer >= 1 (steps of each window), got {window!r}.")
         self.window = int(window)
         if not (float(eps) >= 0 and np.isfinite(float(eps))):
             raise ValueError(f"`eps` must be >= 0 and finite (a bound on |δy|), got {eps}.")
@@ -452,7 +452,14 @@ class MinMaxLuenberger(eqx.Module):
         if B is not None:
             if us is None:
                 raise ValueError("`us` is required when the model has an input matrix B.")
-            us = _np(us, "us").reshape(K, -1)
+            us = _np(us, "us")
+            if us.ndim == 1:
+                us = us[:, None]
+            if us.ndim != 2 or us.shape[0] != K:
+                raise ValueError(
+                    f"`us` must have K = {K} rows (one input per step between the {K + 1} samples of `ys`), "
+                    f"got shape {tuple(us.shape)}."
+                )
         G = self.gains(K)
         ks, xc, xm, xs, th = [], [], [], [], []
         for k in range(W, K + 1):
