@@ -725,3 +725,10 @@ def test_guards_survive_jit():
         assert jnp.all(jnp.isfinite(jax.jit(fn)(1.0)))
         with pytest.raises(Exception, match=match):
             jax.block_until_ready(jax.jit(fn)(-1.0))
+
+
+@pytest.mark.parametrize("n", [2.5, True, 0])
+def test_kreisselmeier_order_must_be_a_positive_integer(n):
+    """n = 2.5 was truncated to 2 without a word."""
+    with pytest.raises(ValueError, match=r"`n` \(the plant order\) must be an integer >= 1"):
+        obsjax.Kreisselmeier(n, [-1.0, -2.0], np.ones(4))

@@ -144,9 +144,9 @@ class Kreisselmeier(AbstractObserver):
         a0=None,
         b0=None,
     ):
+        if isinstance(n, bool) or not float(n).is_integer() or n < 1:
+            raise ValueError(f"`n` (the plant order) must be an integer >= 1, got {n!r}.")
         n = int(n)
-        if n < 1:
-            raise ValueError(f"`n` (the plant order) must be >= 1, got {n}.")
         if scheme not in _SCHEMES:
             raise ValueError(f"`scheme` must be one of {_SCHEMES}, got {scheme!r}.")
         self.n = n
