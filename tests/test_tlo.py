@@ -636,3 +636,27 @@ def test_nonfinite_initial_state_is_a_status_not_an_abort():
     # a finite margin at the threshold is still the loss of observability, not a status
     with pytest.raises(ValueError, match="not observable at t = 0"):
         obsjax.design.ltv_observer_canonical_form(lambda t: jnp.zeros((2, 2)), lambda t: jnp.array([[1.0, 0.0]]), 0.0)
+
+
+def test_built_inside_jit_with_a_traced_eps():
+    """Built inside jax.jit with ε traced, the observer failed with a TracerArrayConversionError from the
+    observability indices (the model's Jacobians were staged, not evaluated).  It is the same observer as
+    one built outside and given ε with eqx.tree_at; a traced model is refused with a ValueError."""
+    A, C = jnp.array([[0.0, 1.0], [-2.0, -3.0]]), jnp.array([[1.0, 0.0]])
+    model = obsjax.Nonlinear(lambda t, x, u: A @ x, lambda t, x, u: C @ x, n=2, m=1, p=0)
+    ts, x0, xh0 = jnp.linspace(0.0, 3.0, 31), jnp.array([1.0, 0.5]), jnp.zeros(2)
+    outside = obsjax.TrajectoryLinearization(model, rho_bar=[-1.0, -2.0], omega=2.0, eps=0.5)
+    ref = jax.jit(lambda e: obsjax.simulate(model, eqx.tree_at(lambda o: o.eps, outside, e), x0, xh0, ts).error)(0.5)
+    inside = jax.jit(
+        lambda e: obsjax.simulate(
+            model, obsjax.TrajectoryLinearization(model, rho_bar=[-1.0, -2.0], omega=2.0, eps=e), x0, xh0, ts
+        ).error
+    )(0.5)
+    np.testing.assert_allclose(np.asarray(inside), np.asarray(ref), rtol=1e-12, atol=1e-15)
+
+    def traced_model(a):
+        m = obsjax.Nonlinear(lambda t, x, u: a * (A @ x), lambda t, x, u: C @ x, n=2, m=1, p=0)
+        return obsjax.TrajectoryLinearization(m, rho_bar=[-1.0, -2.0], omega=2.0, eps=0.5).indices
+
+    with pytest.raises(ValueError, match="the model is traced here: pass `indices`"):
+        jax.jit(traced_model)(1.0)

@@ -194,6 +194,26 @@ class TrajectoryLinearization(AbstractObserver):
         self.eps = as_float_array(eps, "eps")
         self.threshold = float(threshold)
         self.stiff_rate = float(stiff_rate)
+        # the indices and the strong-observability test are decided on the model's values; built inside
+        # jit (a traced ε), the model's Jacobians are staged like everything else, so they are evaluated at
+        # trace time instead (they do not depend on what is traced)
+        tracing = (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError)
+        try:
+            self._structure(indices, check_ts)
+        except tracing:
+            try:
+                with jax.ensure_compile_time_eval():
+                    self._structure(indices, check_ts)
+            except tracing as e:
+                raise ValueError(
+                    "TrajectoryLinearization decides its observability indices (and the check over "
+                    "`check_ts`) on the model's values, and the model is traced here: pass `indices`, or "
+                    "build the observer outside jit and change its gains with eqx.tree_at."
+                ) from e
+        self.check()
+
+    def _structure(self, indices, check_ts):
+        model = self.model
         if indices is None:
             A, C = self._frozen_jacobians()
             indices = ltv_observability_indices(A, C, 0.0 if check_ts is None else check_ts)
@@ -201,7 +221,6 @@ class TrajectoryLinearization(AbstractObserver):
         if check_ts is not None:
             A, C = self._jacobian_fns(None, None)
             strong_observability(A, C, check_ts, threshold=self.threshold)
-        self.check()
 
     # ------------------------------------------------------------------ validation
     def check(self) -> TrajectoryLinearization:
