@@ -663,13 +663,11 @@ def _is_hashable(v) -> bool:
 def _hashable_kwargs(kw: dict) -> tuple:
     items = []
     for k, v in sorted(kw.items()):
-        try:
-            hash(v)
-        except TypeError:
+        if not _is_hashable(v):
             raise ValueError(
                 f"`simulate_kwargs[{k!r}]` must be hashable once its arrays are taken out (a number, a diffrax "
                 f"solver, an eqx.Module such as obsjax.signals.multisine(...)), got {type(v).__name__}."
-            ) from None
+            )
         items.append((k, v))
     return tuple(items)
 

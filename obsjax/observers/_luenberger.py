@@ -231,7 +231,10 @@ def _a12_rank(A12):
     v = concrete_value(A12)
     if m <= k or v is None:
         return None
-    sv = np.linalg.svd(np.asarray(v, float), compute_uv=False)
+    return _numerical_rank(np.linalg.svd(np.asarray(v, float), compute_uv=False))
+
+
+def _numerical_rank(sv):
     return int(np.sum(sv > 1e-12 * sv[0])) if sv[0] > 0 else 0
 
 
@@ -245,10 +248,15 @@ def _compress_rows(A12, rank=None):
     m, k = A12.shape
     if m <= k:
         return A12, None
-    r = _a12_rank(A12)
-    r = rank if r is None else r
+    v = concrete_value(A12)
+    if v is not None:  # one SVD in NumPy gives the rank and the basis
+        U, sv, _ = np.linalg.svd(np.asarray(v, float), full_matrices=False)
+        r = _numerical_rank(sv)
+        U = jnp.asarray(U)
+    else:
+        r = rank
+        U = jnp.linalg.svd(A12, full_matrices=False)[0] if r is not None and 0 < r < k else None
     if r is not None and 0 < r < k:  # keep r rows (an orthonormal basis of the range of A12)
-        U = jnp.linalg.svd(A12, full_matrices=False)[0]
         Q = U[:, :r]
         return Q.T @ A12, Q
     Q, R = jnp.linalg.qr(A12, mode="reduced")
