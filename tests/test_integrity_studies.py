@@ -199,6 +199,45 @@ def test_a_setting_read_by_name_enters_the_fingerprint(access):
     assert fingerprint({"x0_sampler": sampler})[0] == before
 
 
+@pytest.mark.parametrize("form", ["import", "from-import", "relative"])
+def test_a_setting_of_a_module_imported_inside_the_sampler_enters_the_fingerprint(tmp_path, monkeypatch, form):
+    """``import cfg`` (or ``from cfg import SCALE``) inside the sampler: the module was bound by the
+    function's own code, not read as a global, and was never hashed.  A changed setting resumed the old
+    study's chunks, and a fresh study in the same process was served the kernel compiled with the old
+    value (‖x̃(0)‖ unchanged after SCALE 1 → 100)."""
+    import importlib
+    import sys
+
+    pkg = tmp_path / "user_pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "cfg.py").write_text("SCALE = 1.0\n")
+    body = {
+        "import": "    import user_pkg.cfg\n    return user_pkg.cfg.SCALE * jr.normal(k, (2,))\n",
+        "from-import": "    from user_pkg.cfg import SCALE\n    return SCALE * jr.normal(k, (2,))\n",
+        "relative": "    from . import cfg\n    return cfg.SCALE * jr.normal(k, (2,))\n",
+    }[form]
+    (pkg / "samplers.py").write_text("import jax.random as jr\n\n\ndef x0(k):\n" + body)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("user_pkg", "user_pkg.cfg", "user_pkg.samplers"):
+        sys.modules.pop(name, None)
+    try:
+        sampler = importlib.import_module("user_pkg.samplers").x0
+        ck = tmp_path / "ck"
+        first = study(PLANT_A, None, sampler, ck)
+        cfg = importlib.import_module("user_pkg.cfg")
+        cfg.SCALE = 100.0
+        with pytest.raises(ValueError, match="holds a different study"):
+            study(PLANT_A, None, sampler, ck)
+        fresh = study(PLANT_A, None, sampler, None)
+        np.testing.assert_allclose(fresh.error_norm[:, 0], 100.0 * first.error_norm[:, 0], rtol=1e-12)
+        cfg.SCALE = 1.0
+        assert study(PLANT_A, None, sampler, ck).n_computed == 0
+    finally:
+        for name in ("user_pkg", "user_pkg.cfg", "user_pkg.samplers"):
+            sys.modules.pop(name, None)
+
+
 def test_a_setting_read_by_getattr_is_not_served_from_the_kernel_compiled_before():
     cfg = _settings_module(1.0)
     sampler = _getattr_sampler(cfg)

@@ -344,6 +344,20 @@ class _Hasher:
                 if name in glb:
                     self.put("global", name)
                     self._read(glb[name], names, f"{path}.<global {name}>")
+            # modules the function imports when it runs (``import cfg`` or ``from cfg import X`` in its
+            # body): their attributes that the code names, as for a module read as a global
+            for mod_name in _imported_modules(fn.__code__, fn.__globals__.get("__package__")):
+                self.put("import", mod_name)
+                if _is_library(mod_name):
+                    continue
+                mod = sys.modules.get(mod_name)
+                if mod is None:
+                    try:
+                        mod = importlib.import_module(mod_name)
+                    except Exception:  # noqa: BLE001 - it fails when the function runs, if ever
+                        self.opaque.append(f"{path} (imports module {mod_name}, which cannot be found)")
+                        continue
+                self._module_attributes(mod, names, f"{path}.<import {mod_name}>", set())
         self.visit(fn.__defaults__, f"{path}.__defaults__")
         self.visit(fn.__kwdefaults__, f"{path}.__kwdefaults__")
         for name, cell in zip(fn.__code__.co_freevars, fn.__closure__ or ()):
@@ -421,6 +435,52 @@ class _Hasher:
             if s not in ("__dict__", "__weakref__") and hasattr(obj, s):
                 self.put("slot", s)
                 self.visit(getattr(obj, s), f"{path}.{s}")
+
+
+def _imported_modules(co: types.CodeType, package) -> list[str]:
+    """The absolute names of the modules that a function's code (nested functions included) imports:
+    ``import a.b`` gives ``a`` and ``a.b``; a relative import is resolved against `package`."""
+    import dis
+    import importlib.util
+
+    out: list[str] = []
+    ins = list(dis.get_instructions(co))
+    for i, op in enumerate(ins):
+        if op.opname != "IMPORT_NAME":
+            continue
+        name = str(op.argval)
+        level = ins[i - 2].argval if i >= 2 and ins[i - 2].opname == "LOAD_CONST" else 0
+        if isinstance(level, int) and level > 0:
+            try:
+                name = importlib.util.resolve_name("." * level + name, package)
+            except (ImportError, ValueError, TypeError):
+                continue
+        parts = name.split(".") if name else []
+        out += [".".join(parts[: k + 1]) for k in range(len(parts))]
+        fromlist = ins[i - 1].argval if i >= 1 and ins[i - 1].opname == "LOAD_CONST" else None
+        # ``from pkg import sub``: sub may be a module of its own
+        for sub in fromlist or ():
+            if isinstance(sub, str) and sub != "*" and _is_submodule(name, sub):
+                out.append(f"{name}.{sub}")
+    for c in co.co_consts:
+        if isinstance(c, types.CodeType):
+            out += _imported_modules(c, package)
+    return sorted(set(out))
+
+
+def _is_submodule(package: str, name: str) -> bool:
+    """Whether ``package.name`` is a module (``from package import name`` then imports it)."""
+    import importlib.util
+
+    full = f"{package}.{name}"
+    if full in sys.modules:
+        return True
+    if _is_library(package):
+        return False
+    try:
+        return importlib.util.find_spec(full) is not None
+    except (ImportError, ValueError, AttributeError):
+        return False
 
 
 def _global_names(co: types.CodeType) -> set[str]:
