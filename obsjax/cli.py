@@ -249,6 +249,11 @@ def demo(
 ) -> dict:
     """Chen & Yen's example end to end: the paper's figures, gradient tuning of γ·p0 and T under measurement
     noise, and a Monte-Carlo comparison of the paper's and the tuned gains.  Returns the numbers printed."""
+    for name, value in (("n", n), ("steps", steps), ("batch", batch)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"`{name}` must be a positive integer, got {value!r}.")
+    if os.path.exists(outdir) and not os.path.isdir(outdir):
+        raise ValueError(f"`outdir` {outdir!r} is a file, not a directory.")
     t_all = time.perf_counter()
     import jax
     import jax.numpy as jnp
@@ -516,6 +521,17 @@ def bench(names, bench_dir=None) -> int:
 # ----------------------------------------------------------------------------------------------------------
 
 
+def _positive_int(text: str) -> int:
+    """argparse type: an integer ≥ 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
 def main(argv=None) -> int:
     from . import __version__
 
@@ -530,15 +546,15 @@ def main(argv=None) -> int:
     p_demo.add_argument(
         "--out", default="obsjax-demo", help="figure directory (default ./obsjax-demo)"
     )
-    p_demo.add_argument("-n", type=int, default=10_000, help="Monte-Carlo trajectories per study")
+    p_demo.add_argument("-n", type=_positive_int, default=10_000, help="Monte-Carlo trajectories per study")
     p_demo.add_argument(
         "--steps",
-        type=int,
+        type=_positive_int,
         default=40,
         help="most evaluations of the tuning (it stops once converged)",
     )
     p_demo.add_argument(
-        "--batch", type=int, default=8, help="initial conditions in the tuning batch"
+        "--batch", type=_positive_int, default=8, help="initial conditions in the tuning batch"
     )
     p_demo.add_argument("--seed", type=int, default=0)
     p_rep = sub.add_parser("reproduce", help="write a document's examples and figures")
@@ -645,6 +661,8 @@ def host_devices_for_demo() -> int | None:
 
 def _run(parser, args) -> int:
     if args.command == "demo":
+        if os.path.exists(args.out) and not os.path.isdir(args.out):
+            parser.error(f"--out {args.out!r} is a file, not a directory")
         host_devices_for_demo()
         demo(args.out, n=args.n, steps=args.steps, batch=args.batch, seed=args.seed)
         return 0

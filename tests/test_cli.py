@@ -47,6 +47,49 @@ def test_bench_refuses_unknown_names(capsys):
     assert "unknown benchmark" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["demo", "--batch", "0"], "argument --batch: expected a positive integer, got 0"),
+        (["demo", "-n", "0"], "argument -n: expected a positive integer, got 0"),
+        (["demo", "--steps", "-1"], "argument --steps: expected a positive integer, got -1"),
+        (["demo", "-n", "ten"], "argument -n: expected a positive integer, got 'ten'"),
+    ],
+)
+def test_demo_refuses_bad_arguments_before_running(argv, match, capsys):
+    """`--batch 0` ended in a TypeError traceback from tree_map, `-n 0` in one from monte_carlo after
+    the whole tuning had run: now argparse refuses them up front (exit status 2)."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    assert e.value.code == 2
+    assert match in capsys.readouterr().err
+
+
+def test_demo_refuses_an_output_path_that_is_a_file(tmp_path, capsys):
+    f = tmp_path / "afile"
+    f.write_text("")
+    with pytest.raises(SystemExit) as e:
+        cli.main(["demo", "--out", str(f)])
+    assert e.value.code == 2 and "is a file, not a directory" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="`batch` must be a positive integer, got 0"):
+        cli.demo(str(tmp_path / "out"), batch=0)
+
+
+def test_noisy_batch_refuses_a_bad_batch():
+    import jax.random as jr
+
+    from obsjax.montecarlo import noisy_batch
+
+    plant = obsjax.chen_yen_example()
+    noise = obsjax.noise.BandLimitedNoise(0.1, dt=0.01)
+    for bad in (0, -1, 2.0, True):
+        with pytest.raises(ValueError, match="`batch` .* must be a positive integer"):
+            noisy_batch(plant, noise, jr.PRNGKey(0), bad, 0.0, 1.0)
+    with pytest.raises(ValueError, match="`t0`, `t1` must be finite with t0 < t1"):
+        noisy_batch(plant, noise, jr.PRNGKey(0), 2, 1.0, 1.0)
+    assert noisy_batch(plant, noise, jr.PRNGKey(0), 2, 0.0, 1.0) is not None
+
+
 def test_row_relations_and_tolerances():
     assert Row("q", 2.0, 2.0 + 1e-7, rtol=1e-6).within
     assert not Row("q", 2.0, 2.0 + 1e-5, rtol=1e-6).within

@@ -13,6 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
+import numpy as np
 
 from ..systems._noise import BandLimitedNoise, SampledNoise, realise_band_limited
 from ..systems._plants import AbstractSystem
@@ -84,7 +85,12 @@ def noisy_batch(plant, noise, key, batch, t0, t1):
     """
     if not isinstance(noise, BandLimitedNoise):
         raise ValueError(f"`noise` must be a BandLimitedNoise here, got {type(noise).__name__}.")
-    keys = jr.split(key, batch)
+    if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
+        raise ValueError(f"`batch` (the number of noisy plants) must be a positive integer, got {batch!r}.")
+    a, b = float(t0), float(t1)
+    if not (np.isfinite(a) and np.isfinite(b) and a < b):
+        raise ValueError(f"`t0`, `t1` must be finite with t0 < t1, got t0 = {a}, t1 = {b}.")
+    keys = jr.split(key, int(batch))
     paths = [realise_band_limited(noise, k, float(t0), float(t1), plant.m) for k in keys]
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *paths)
     out = NoisyOutput(plant, stacked)
