@@ -408,6 +408,19 @@ def test_an_invalid_initial_point_raises():
         _tune_k(-2.0, LOSS_09, steps=3)
 
 
+def test_a_flat_loss_stops_as_a_stationary_point():
+    """x̂(0) = x(0): the error is zero for every gain, J ≡ 0 and ∇J = 0.  tune reported
+    stop_reason="rejections", converged=False, with nothing rejected; it is a stationary point."""
+    plant = obsjax.LTI([[-1.0, 1.0], [0.0, -2.0]], C=[[1.0, 0.0]])
+    obs = obsjax.Luenberger.from_poles(plant, [-3.0, -4.0])
+    x0s = jnp.array([[1.0, -1.0]])
+    with pytest.warns(obsjax.TuneWarning, match="stationary point"):
+        res = obsjax.tune(obs, plant, where=lambda o: o.poles, loss=obsjax.losses.ise, x0s=x0s, xhat0s=x0s,
+                          ts=jnp.linspace(0, 2, 11), optimizer=optax.adam(0.1), steps=20, progress=False)  # fmt: skip
+    assert res.stop_reason == "stationary" and res.converged
+    assert res.history["skipped"] == 0 and float(res.history["loss"][0]) == 0.0
+
+
 def test_stopping_rule_converges_to_the_closed_form_optimum():
     """‖x̃(1)‖ = e^{−(1+k)}: (‖x̃(1)‖ − 1/2)² is minimal at k* = ln 2 − 1.  With rtol the run stops
     once the loss stalls, well before the budget; without it, the whole budget runs."""

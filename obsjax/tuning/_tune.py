@@ -62,9 +62,12 @@ class TuneResult(eqx.Module):
         optimizer's full step);
       - ``rejections``: a list of ``(index, reason)`` for the rejected points;
       - ``skipped``: the number of rejected points; ``best_step``: the index of `observer`'s point.
-    - `converged`: True when the stopping rule (``rtol``, ``patience``) ended the run.
-    - `stop_reason`: ``"converged"``, ``"steps"`` (the budget of evaluations is spent) or
-      ``"rejections"`` (``max_rejections`` consecutive rejected steps).
+    - `converged`: True when the stopping rule (``rtol``, ``patience``) ended the run, or the
+      optimizer's full step no longer moves the gains (a stationary point).
+    - `stop_reason`: ``"converged"``, ``"stationary"`` (the optimizer's full, unscaled update leaves
+      θ unchanged, e.g. ∇J = 0: a flat loss), ``"steps"`` (the budget of evaluations is spent) or
+      ``"rejections"`` (``max_rejections`` consecutive rejected steps, or a step scaled down by
+      backtracking that no longer moves θ).
     - `steps_taken`: the number of evaluations made (≤ ``steps``).
     """
 
@@ -810,6 +813,15 @@ def _descend(
         while len(hist_loss) < steps:
             cand = jax.tree_util.tree_map(lambda t, d, s=scale: t + s * d, theta, updates)
             if all(bool(jnp.all(c == t)) for c, t in zip(cand, theta)):
+                if scale == 1.0:  # the optimizer's own step is zero: a stationary point
+                    stop_reason = "stationary"
+                    warnings.warn(
+                        "tune: the optimizer's update no longer changes the gains (a stationary "
+                        "point, e.g. a zero gradient: is the loss flat in the tuned gains?); stopping.",
+                        TuneWarning,
+                        stacklevel=3,
+                    )
+                    break
                 stop_reason = "rejections"  # the scaled step no longer moves θ
                 warnings.warn(
                     f"tune: the step scaled by {scale:g} no longer changes the gains; stopping.",
@@ -875,7 +887,7 @@ def _descend(
     return TuneResult(
         observer=best[1],
         history=history,
-        converged=stop_reason == "converged",
+        converged=stop_reason in ("converged", "stationary"),
         stop_reason=stop_reason,
         steps_taken=len(hist_loss),
     )
