@@ -114,6 +114,49 @@ def test_padding_does_not_run_an_unstable_model_past_the_data():
         np.testing.assert_allclose(np.asarray(both.xhat[i, : d.K]), np.asarray(one.xhat), rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("scale", [1.0, 1e-6])
+def test_padding_is_relative_to_the_span(scale):
+    """The same two experiments (an unstable filter, 10 and 800 samples) in a time unit 1e6 times
+    smaller: the padding followed the last sample by an absolute 1e-6 for spans below 1, i.e. 880 spans
+    past a 9e-7 s experiment, where the filter overflowed (stacked status [2, 0] against 0 alone).  It is
+    relative to the span now: in both units the stacked estimate equals the single one."""
+    from obsjax.observers import ContinuousDiscreteKalman
+
+    a = 1.0 / scale  # an unstable pole at +1 per time unit
+    kf = ContinuousDiscreteKalman(obsjax.LTI([[a]], C=[[1.0]]), a * jnp.eye(1), 0.01 * jnp.eye(1), jnp.eye(1))
+    tA, tB = np.arange(10) * 0.1 * scale, np.arange(800) * 0.1 * scale
+    dA = obsjax.Measurements(tA, 0.1 * np.exp(tA * a)[:, None])
+    dB = obsjax.Measurements(tB, 0.1 * np.exp(-tB * a)[:, None])
+    both = obsjax.estimate(kf, obsjax.Measurements.stack([dA, dB]), jnp.zeros(1), throw=False)
+    assert np.asarray(both.status).tolist() == [0, 0]
+    one = obsjax.estimate(kf, dA, jnp.zeros(1))
+    np.testing.assert_allclose(np.asarray(both.xhat[0, : dA.K]), np.asarray(one.xhat), rtol=1e-9)
+
+
+def test_sample_schedule_is_invariant_under_a_change_of_time_unit():
+    """Forty irregular samples about 1 ns apart, given in ns and in s: the schedule's tolerance was
+    1e-9·max(1, t_K − t_0), an absolute 1e-9 for spans below 1, so in seconds every pair was refused as
+    "closer than the tolerance".  It is 1e-9 of the span now: both records are accepted, and the
+    estimates (of the same observer in the two units) agree; a pair closer than 1e-9 of the span is
+    refused in both units."""
+    rng = np.random.default_rng(0)
+    t_ns = np.cumsum(rng.uniform(0.5, 1.5, 40))
+    t_ns -= t_ns[0]
+    out = []
+    for scale in (1.0, 1e-9):
+        plant = obsjax.LTI([[-1.0 / scale, 1.0 / scale], [0.0, -1.0 / scale]], C=[[1.0, 0.0]])
+        obs = obsjax.Luenberger.from_poles(plant, [-3.0 / scale, -4.0 / scale])
+        y = (np.exp(-0.05 * t_ns) * np.cos(t_ns))[:, None]
+        est = obsjax.estimate(obs, obsjax.Measurements(t_ns * scale, y), jnp.zeros(2), rtol=1e-10, atol=1e-12)
+        assert int(est.status) == 0
+        out.append(np.asarray(est.xhat))
+        close = t_ns * scale
+        close[5] = close[4] + 0.5e-9 * (close[-1] - close[0])
+        with pytest.raises(ValueError, match="two samples closer than"):
+            obsjax.Measurements(close, y)
+    np.testing.assert_allclose(out[1], out[0], rtol=1e-7, atol=1e-9)
+
+
 def test_no_valid_sample_is_refused_or_nan(truth):
     """A mask with no sample is refused at construction; an estimate with no valid row (the mask
     traced, or padding only) scores NaN, not the zero loss it used to (which reads as a perfect fit)."""
@@ -295,6 +338,10 @@ def test_from_csv_and_from_dataframe(tmp_path):
     _write_csv(p, ["time", "theta", "volts", "omega"], rows.tolist())
     with pytest.raises(ValueError, match=r"line 5, column 'volts' is not a number: 'n/a'"):
         obsjax.Measurements.from_csv(p, t="time", y=["theta"], u=["volts"])
+    # a spreadsheet's "CSV UTF-8" starts with a byte-order mark: its first column was named '\ufefftime'
+    p.write_bytes("\ufefftime,theta\n0.0,1.0\n0.5,2.0\n".encode("utf-8"))
+    d = obsjax.Measurements.from_csv(p, t="time", y="theta")
+    np.testing.assert_array_equal(np.asarray(d.ts), [0.0, 0.5])
     # a column named twice: reading it by name would take one of the two silently
     _write_csv(p, ["time", "theta", "theta", "omega"], [[0.0, 1.0, 10.0, 0.0], [0.1, 2.0, 20.0, 0.0]])
     with pytest.raises(ValueError, match=r"names a column more than once: 'theta' \(columns \[1, 2\]\)"):

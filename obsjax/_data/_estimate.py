@@ -247,7 +247,7 @@ def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
     sched = dataclasses.replace(sched, window=window)
     hold = _Hold.of(data)
     t0 = save_ts[0]
-    tol = 1e-9 * jnp.maximum(1.0, save_ts[-1] - t0)
+    tol = _schedule.tolerance_of(t0, save_ts[-1])
     k0 = jnp.searchsorted(data.ts, t0 - tol, side="left").astype(jnp.int32) - 1
     y0u0 = hold(t0, jnp.maximum(k0, 0))
     z0 = observer.init(t0, xhat0, y0u0[: data.m])

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value, real_array
+from .._integrate import _schedule
 
 #: how the continuous-time observer sees the samples between two sampling instants
 HOLDS = ("zoh", "linear", "cubic")
@@ -21,13 +22,14 @@ def _check_choice(value, name, choices):
     return value
 
 
-#: Spacing of the padding samples of :meth:`Measurements.stack`, relative to max(1, t_K − t_0): a thousand
+#: Spacing of the padding samples of :meth:`Measurements.stack`, relative to the span t_K − t_0: a thousand
 #: times the update schedule's tolerance, and short enough that the observer does not run past the data.
 PAD_STEP = 1e-6
 
 
 def _check_separated(ts):
-    """Sample times farther apart than the update schedule's tolerance, 1e-9·max(1, t_K − t_0).
+    """Sample times farther apart than the update schedule's tolerance, 1e-9·(t_K − t_0) plus four ulp of
+    max(|t_0|, |t_K|) (relative to the span: a change of time unit changes nothing).
 
     ``estimate`` applies the updates of the samples at the breakpoints of its schedule, and breakpoints
     closer than that tolerance are one instant: of two such samples one update was lost and a row of the
@@ -35,19 +37,19 @@ def _check_separated(ts):
     naming the two samples; traced, ``eqx.error_if``)."""
     v = concrete_value(ts)
     if v is None:
-        tol = 1e-9 * jnp.maximum(1.0, ts[-1] - ts[0])
+        tol = _schedule.tolerance_of(ts[0], ts[-1])
         return eqx.error_if(
             ts, jnp.any(jnp.diff(ts) <= tol),
-            "`ts` holds two samples closer than 1e-9·max(1, t_K − t_0), which the observer's update "
+            "`ts` holds two samples closer than 1e-9·(t_K − t_0), which the observer's update "
             "schedule takes as one instant: merge them (e.g. average the two samples) or drop one.",
         )
     v = np.asarray(v, dtype=np.float64)
-    tol = 1e-9 * max(1.0, float(v[-1] - v[0]))
+    tol = _schedule.horizon_tolerance(v)
     close = np.flatnonzero(np.diff(v) <= tol)
     if close.size:
         i = int(close[0])
         raise ValueError(
-            f"`ts` holds two samples closer than the update schedule's time tolerance 1e-9·max(1, t_K − t_0) "
+            f"`ts` holds two samples closer than the update schedule's time tolerance 1e-9·(t_K − t_0) "
             f"= {tol:.3g}: ts[{i}] = {float(v[i])!r}, ts[{i + 1}] = {float(v[i + 1])!r} "
             f"(Δ = {float(v[i + 1] - v[i]):.3g}). The observer would take them as one instant (one update lost); "
             "merge them (e.g. average the two samples) or drop one."
@@ -174,7 +176,7 @@ class Measurements(eqx.Module):
     **Arguments:**
 
     - `ts`: (K,) sample times, K ≥ 2, finite and strictly increasing (a duplicate time is refused, and so
-      are two samples closer than 1e-9·max(1, t_K − t_0), which the update schedule would take as one).
+      are two samples closer than 1e-9·(t_K − t_0), which the update schedule would take as one).
     - `y`: (K, m) sampled outputs ((K,) for one output).
     - `u`: (K, p) sampled inputs, or ``None`` (p = 0).
     - `hold`: ``"zoh"`` (default), ``"linear"`` or ``"cubic"``.
@@ -374,7 +376,8 @@ class Measurements(eqx.Module):
         """
         import csv
 
-        with open(path, newline="") as fh:
+        # UTF-8, with or without the byte-order mark that spreadsheet programs write ("CSV UTF-8")
+        with open(path, newline="", encoding="utf-8-sig") as fh:
             rows = list(csv.reader(fh, delimiter=delimiter))
         if not rows:
             raise ValueError(f"`path` {path!r} is empty: expected a header row and samples.")
@@ -438,7 +441,7 @@ class Measurements(eqx.Module):
     def stack(cls, datasets) -> Measurements:
         """A batch of experiments of possibly different lengths, padded to the longest.
 
-        Each experiment is padded at its end by repeating its last sample at times 1e-6·max(1, t_K − t_0)
+        Each experiment is padded at its end by repeating its last sample at times 1e-6·(t_K − t_0)
         apart after its last sample, so that the observer runs no further than the experiment's data (an
         unstable model run open loop over the longest experiment's duration would overflow and fail a good
         short experiment); ``mask`` is False on the padding.  Every array gains a leading axis of
@@ -466,7 +469,10 @@ class Measurements(eqx.Module):
 
     def _padded(self, K):
         extra = K - self.K
-        dt = PAD_STEP * jnp.maximum(1.0, self.ts[-1] - self.ts[0])
+        # relative to the span (a change of time unit changes nothing), and never within the schedule's
+        # tolerance, which includes a few ulp of the times (e.g. of an epoch time stamp)
+        scale = jnp.maximum(jnp.abs(self.ts[0]), jnp.abs(self.ts[-1]))
+        dt = PAD_STEP * (self.ts[-1] - self.ts[0]) + 100 * _schedule.TIME_ULPS * jnp.finfo(self.ts.dtype).eps * scale
         ts = jnp.concatenate([self.ts, self.ts[-1] + dt * jnp.arange(1, extra + 1)])
 
         def rep(a):

@@ -37,7 +37,7 @@ def integrate(args: Args, state0, plan: Plan):
     if opt.white_noise is None and not opt.adaptive:
         tab = _fixed_step.tableau_of(opt.solver)
         if tab is not None and plan.ts_np is not None:
-            tol = _schedule.tolerance(plan.ts_np[-1] - plan.ts_np[0])
+            tol = _schedule.horizon_tolerance(plan.ts_np)
             g = _fixed_step.grid(plan.ts_np, opt.dt0, sched.concrete, tol)
             if g is not None:
                 return _fixed_step.integrate(args, state0, sched, g, tab)

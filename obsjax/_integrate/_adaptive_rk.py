@@ -59,8 +59,8 @@ pytree of one member.
 
 **Saving.**  A save time inside an accepted step is evaluated with the solver's dense interpolant
 (diffrax's interpolation class); a save time at a reset time records the state after the reset
-(right-continuous, like ``obsjax.simulate``; a save time within a relative 1e-9 of a reset time
-counts as on it); save times at t1 record the final state.  Steps are
+(right-continuous, like ``obsjax.simulate``; a save time within the schedule's tolerance of a reset
+time, 1e-9·(t1 − t0) plus four ulp of the times, counts as on it); save times at t1 record the final state.  Steps are
 never shortened for saving.
 
 **Status** per member: 0 success; 1 not finished (``max_steps`` attempts, or the step size
@@ -102,6 +102,7 @@ import numpy as np
 import optimistix as optx
 
 # the status codes of every back-end (SOLVER_FAILED here: max_steps attempts, or step-size underflow)
+from . import _schedule
 from ._status import NONFINITE, SOLVER_FAILED, SUCCESS
 _RUNNING = -1
 
@@ -332,6 +333,7 @@ class _Targets(NamedTuple):
     reset: jax.Array
     final: jax.Array
     motion: jax.Array  # 0 in value; the derivative of a reset or jump time (not of t1)
+    tol: jax.Array  # (B,) the schedule's time tolerance of the member's horizon
 
 
 def _targets(t0, t1, reset_ts, jump_ts, B, dtype) -> tuple[_Targets, jax.Array]:
@@ -350,7 +352,8 @@ def _targets(t0, t1, reset_ts, jump_ts, B, dtype) -> tuple[_Targets, jax.Array]:
     value = jnp.take_along_axis(value, order, axis=1)
     reset = jnp.take_along_axis(jnp.concatenate(flags, axis=1), order, axis=1)
     jump = jnp.take_along_axis(jnp.concatenate(jumps, axis=1), order, axis=1)
-    tol = 1e-9 * jnp.maximum(1.0, jnp.abs(t1 - t0))[:, None]
+    tol_b = jax.lax.stop_gradient(_schedule.tolerance_of(t0, t1))  # as simulate's schedule
+    tol = tol_b[:, None]
     fixed = jax.lax.stop_gradient(value)
     final = fixed >= (t1[:, None] - tol)
     # The steps do not move with a reset or jump time: its derivative enters through the jump
@@ -364,7 +367,7 @@ def _targets(t0, t1, reset_ts, jump_ts, B, dtype) -> tuple[_Targets, jax.Array]:
     floor = _prevbefore(end, 100)
     first = jnp.sum(fixed <= (t0[:, None] + tol), axis=1).astype(jnp.int32)
     first = jnp.minimum(first, value.shape[1] - 1)
-    return _Targets(value, end, floor, reset, final, motion), first
+    return _Targets(value, end, floor, reset, final, motion, tol_b), first
 
 
 def _pick(arr, k):
@@ -691,7 +694,7 @@ def _make_body(F, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, ki
         do_reset = _pick(targets.reset, cr.seg)
         nt0 = jnp.minimum(jnp.where(keep, tnext, tprev), end)
         nt1 = _clip_to_end(nt0, nt0 + dt_next, end, _pick(targets.floor, cr.seg), keep)
-        limit = jnp.where(arrive, value - 1e-9 * jnp.maximum(1.0, jnp.abs(value)), tnext)
+        limit = jnp.where(arrive, value - targets.tol, tnext)
         ys, save_idx = _save(cr, acc, limit, tprev, tnext, y, y1, ks, ts, rows, S, solver, kind)
         y_arr = _arrival(
             _pick(targets.motion, cr.seg), value, do_reset, arrive, y1, fs[-1] if fsal else None,

@@ -11,7 +11,9 @@ Three sources, merged into one sorted list:
 The back-ends integrate segment by segment between consecutive breakpoints, so no solve ever steps across a
 discontinuity.  Segment k ≥ 1 starts at breakpoint k − 1 and applies its jump there (reset first, then
 update).  A save time belongs to the segment that starts at or before it, with a tolerance of
-1e-9·max(1, t1 − t0): a save time at a breakpoint sees the state after the jump (right-continuous).
+1e-9·(t1 − t0) (plus four units in the last place of max(|t0|, |t1|)): a save time at a breakpoint sees the
+state after the jump (right-continuous).  The tolerance is relative to the horizon, so a change of time
+unit changes nothing.
 
 Number of segments.  The reset count is ⌈(t1 − t0)/T⌉ when T and the horizon are concrete, else
 ``max_segments``; more than :data:`MAX_RESET_SEGMENTS` is refused (a reset period far below the horizon
@@ -33,9 +35,34 @@ from .._checks import concrete_value, static_value
 MAX_RESET_SEGMENTS = 100_000
 
 
-def tolerance(span) -> float:
-    """Time tolerance of the schedule: save times this close to a breakpoint are taken at it."""
-    return 1e-9 * max(1.0, abs(float(span)))
+#: relative time tolerance of the schedule (of the horizon t1 − t0)
+TIME_RTOL = 1e-9
+#: and the units in the last place of max(|t0|, |t1|) added to it, so that it never falls below rounding
+TIME_ULPS = 4
+
+
+def tolerance(span, scale=0.0) -> float:
+    """Time tolerance of the schedule: save times this close to a breakpoint are taken at it.
+
+    ``1e-9·|span| + 4 ulp(scale)``, `span` the horizon t1 − t0 and `scale` max(|t0|, |t1|): relative to the
+    horizon, so that it scales with the time unit (an absolute floor would merge the samples of a
+    nanosecond-sampled record given in seconds), and never below the rounding of the times themselves."""
+    eps = float(np.finfo(np.float64).eps)
+    return TIME_RTOL * abs(float(span)) + TIME_ULPS * eps * abs(float(scale))
+
+
+def tolerance_of(t0, t1):
+    """:func:`tolerance` of the horizon [t0, t1], traced or not (a JAX scalar; elementwise for arrays)."""
+    t0, t1 = jnp.asarray(t0), jnp.asarray(t1)
+    dtype = jnp.result_type(t0, t1)
+    eps = jnp.finfo(dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.float64).eps
+    return TIME_RTOL * jnp.abs(t1 - t0) + TIME_ULPS * eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
+
+
+def horizon_tolerance(ts_np) -> float:
+    """:func:`tolerance` of the horizon of concrete save times `ts_np`."""
+    a, b = float(ts_np[0]), float(ts_np[-1])
+    return tolerance(b - a, max(abs(a), abs(b)))
 
 
 def num_segments(T, t0, t1) -> int | None:
@@ -150,8 +177,8 @@ class _Part:
 
 def build(ts, ts_np, T, n_reset, jumps, event_times) -> Schedule:
     """Merge resets (n_reset − 1 of them), plant jumps and observer events into a :class:`Schedule`."""
-    tol = tolerance(ts_np[-1] - ts_np[0]) if ts_np is not None else None
-    tol_rt = tol if tol is not None else 1e-9 * jnp.maximum(1.0, ts[-1] - ts[0])
+    tol = horizon_tolerance(ts_np) if ts_np is not None else None
+    tol_rt = tol if tol is not None else tolerance_of(ts[0], ts[-1])
     if T is not None and (ts_np is None or static_value(T) is None):
         # A traced period must be covered by the bound (n_reset segments of length T reach t1), or the last
         # resets would silently be dropped: checked under jit.
