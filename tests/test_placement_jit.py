@@ -294,6 +294,32 @@ def test_canonical_form_structure_3_1c(seed, n, m):
     )
 
 
+@pytest.mark.parametrize("time_unit, out_units", [(1.0, (1.0, 1.0)), (1e-6, (1.0, 1.0)), (1.0, (1e6, 1e-6))])
+def test_canonical_form_is_exact_after_a_change_of_units(time_unit, out_units):
+    """A → 1e-6 A (microseconds) or outputs in units 1e12 apart: the returned A_z = P A P⁻¹ and
+    C_z = C P⁻¹ were formed with P⁻¹, whose rows differ in scale by powers of ‖A‖: C_z came back as
+    [[−48, 0, 0, 1, −6e-5, …], …] instead of R E (every structural zero lost), while P, α, R, Γ were
+    right.  Checked here without P⁻¹: C_z P = C and A_z P = P A to rounding relative to each row's
+    scale, and the structure exact."""
+    rng = np.random.default_rng(7)
+    n, m = 7, 2
+    A = time_unit * rng.standard_normal((n, n))
+    C = np.diag(out_units) @ rng.standard_normal((m, n))
+    cf = observable_canonical_form(A, C)
+    Az, Cz, P = (np.asarray(v) for v in (cf.A, cf.C, cf.P))
+    ends = np.cumsum(cf.indices) - 1
+    np.testing.assert_array_equal(Cz, np.asarray(cf.R) @ np.eye(n)[ends])
+    res_c = np.abs(Cz @ P - C).max(axis=1) / np.abs(C).max(axis=1)
+    assert res_c.max() < 1e-10, res_c
+    rows = np.abs(P @ A).max(axis=1) + np.abs(Az).max(axis=1) * np.abs(P).max(axis=1)
+    res_a = np.abs(Az @ P - P @ A).max(axis=1) / rows
+    assert res_a.max() < 1e-10, res_a
+    np.testing.assert_allclose(
+        np.sort_complex(np.linalg.eigvals(Az)), np.sort_complex(np.linalg.eigvals(A)),
+        rtol=1e-6, atol=1e-9 * time_unit,
+    )
+
+
 @pytest.mark.extended
 def test_canonical_placement_and_section_3_2_example():
     """place(..., method='canonical') = m single-output designs (Fig. 3.4); on the fourth-order

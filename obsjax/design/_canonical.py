@@ -89,13 +89,31 @@ def _form(A, C, indices, scale):
             block.append(q)
         rows.extend(block[::-1])
     P = jnp.stack(rows)
-    Pinv = jnp.linalg.inv(P)
     Atil = jnp.zeros((m, m), A.dtype)
     for k in range(m):
         Atil = Atil.at[k, :k].set(alphas[k][indices[k], :k])
     R = jnp.linalg.inv(jnp.eye(m, dtype=A.dtype) - Atil)
     Gamma = jnp.concatenate([alphas[k][: indices[k]] for k in range(m)], axis=0)
-    return ObservableCanonicalForm(P, P @ A @ Pinv, C @ Pinv, tuple(indices), tuple(alphas), R, Gamma)
+    # C P⁻¹ = R E and P A P⁻¹ = S + Γ C P⁻¹ exactly (module docstring): from the structure, not from P⁻¹,
+    # whose rows differ in scale by powers of ‖A‖ (after a change of time or output units the products
+    # with P⁻¹ lost every digit of the structural zeros and ones)
+    S, E = _shift_and_pick(indices, A.dtype)
+    Cz = R @ E
+    return ObservableCanonicalForm(P, S + Gamma @ Cz, Cz, tuple(indices), tuple(alphas), R, Gamma)
+
+
+def _shift_and_pick(indices, dtype):
+    """S (n, n): ones on the sub-diagonal of each block (ż_{k,l} ∋ z_{k,l−1}); E (m, n): the last state
+    of each block."""
+    n, m = sum(indices), len(indices)
+    S, E = np.zeros((n, n)), np.zeros((m, n))
+    off = 0
+    for k, nu in enumerate(indices):
+        for i in range(1, nu):
+            S[off + i, off + i - 1] = 1.0
+        E[k, off + nu - 1] = 1.0
+        off += nu
+    return jnp.asarray(S, dtype), jnp.asarray(E, dtype)
 
 
 def _indices_and_scale(A, C, tol, who):
