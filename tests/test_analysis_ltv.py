@@ -140,6 +140,24 @@ def test_is_persistently_exciting_closed_form():
     assert not flat and abs(flat.eta1) < 1e-12 and abs(flat.eta2 - 1.0) < 1e-9
 
 
+@pytest.mark.parametrize("s", [1e-6, 1e-3, 1e4])
+def test_persistent_excitation_does_not_depend_on_units(s):
+    """w = s [sin t, cos t]: η1 = η2 = π s².  The verdict compared η1 with tol·max(1, η2), an absolute
+    floor (False for s ≤ 1e-5 although η1/η2 = 1), and the gramian's atol was absolute (η1 1.1 % off at
+    s = 1e-6).  Both are relative now; a regressor without excitation stays non-exciting at any scale;
+    a plant's output map in other units scales the gramians by s² and keeps the verdict."""
+    pe = an.is_persistently_exciting(lambda t: s * jnp.array([jnp.sin(t), jnp.cos(t)]), 2 * np.pi, 13.0)
+    assert pe
+    np.testing.assert_allclose([pe.eta1, pe.eta2], [np.pi * s**2] * 2, rtol=1e-8)
+    flat = an.is_persistently_exciting(lambda t: s * jnp.array([1.0, 0.0]), 1.0, 3.0)
+    assert not flat and abs(flat.eta2 - s**2) < 1e-9 * s**2
+    scaled = obsjax.LTV(SW.A_of, lambda t: s * SW.C_of(t))
+    for T, H, verdict in ((0.35, 7.0, False), (0.93, 9.3, True)):
+        ref, got = an.is_persistently_exciting(SW, T, H), an.is_persistently_exciting(scaled, T, H)
+        assert bool(got) == bool(ref) == verdict
+        np.testing.assert_allclose(got.eta2, s**2 * ref.eta2, rtol=1e-6)
+
+
 @pytest.mark.extended
 def test_chen_yen_bound_formula_and_small_T():
     c = an.uniform_observability_constants(CY, 2.0, 10.0)

@@ -17,7 +17,7 @@ Lemma, and so the Theorem's per-period contraction factor, a valid bound.
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -374,7 +374,9 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
     - `w`: a callable t -> (n, m) (or (n,)) regressor, or an LTV/LTI plant, in which case the observer's
       regressor w_o = Φᵀ(t, kT) Cᵀ(t) of (12) is used (the Lemma: uniform observability ⇒ PE).
     - `T`: window length (> 0); `horizon`: total time (K = ⌊horizon / T⌋ windows); `t0`: origin.
-    - `tol`: η1 must exceed `tol` (relative to max(1, η2)) for the regressor to count as exciting.
+    - `tol`: η1 must exceed `tol`·η2 for the regressor to count as exciting (relative: the verdict does not
+      depend on the regressor's units).  The gramians are integrated for the regressor divided by its
+      largest entry on a probe grid (and multiplied back), so `atol` is relative to that scale too.
 
     **Returns:** :class:`PersistentExcitation` (truthy when exciting) with η1, η2 and per-window values.
 
@@ -391,8 +393,11 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
     t0 = _finite_float(t0, "t0")
     K = _n_periods(T, horizon)
     starts = t0 + T * jnp.arange(K, dtype=float)
+    probe = t0 + (K * T) * np.linspace(0.0, 1.0, 33)
     if hasattr(w, "A_of") and hasattr(w, "C_of"):
-        Gs = _periods(w, _pad(starts), jnp.asarray(T), 2, rtol, atol)[2][:K]
+        sigma = _probe_scale(lambda t: w.C_of(t), probe)
+        Gs = _periods(_ScaledOutput(w, sigma), _pad(starts), jnp.asarray(T), 2, rtol, atol)[2][:K]
+        Gs = Gs * sigma**2
 
     elif callable(w):
         try:
@@ -406,9 +411,10 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
                 f"`w(t)` must return an (n,) or (n, m) array, got shape {tuple(w0.shape)}."
             )
         n = w0.shape[0]
+        sigma = _probe_scale(w, probe)
 
         def wm(t):
-            return jnp.asarray(w(t)).reshape(n, -1)
+            return jnp.asarray(w(t)).reshape(n, -1) / sigma
 
         def gram(a):
             def rhs(s, G, args):
@@ -420,7 +426,7 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
             )[0]
             return 0.5 * (G + G.T)
 
-        Gs = jax.jit(jax.vmap(gram))(starts)
+        Gs = jax.jit(jax.vmap(gram))(starts) * sigma**2
     else:
         raise ValueError(
             f"`w` must be a callable of t or an LTV/LTI plant, got {type(w).__name__}."
@@ -429,7 +435,32 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
     eig = np.asarray(jnp.linalg.eigvalsh(Gs))
     per = np.stack([eig[:, 0], eig[:, -1]], axis=1)
     eta1, eta2 = float(per[:, 0].min()), float(per[:, 1].max())
-    return PersistentExcitation(eta1 > tol * max(1.0, eta2), eta1, eta2, per)
+    return PersistentExcitation(bool(eta2 > 0.0 and eta1 > tol * eta2), eta1, eta2, per)
+
+
+class _ScaledOutput(eqx.Module):
+    """A plant whose output map is divided by `scale` (the gramian scales by 1/scale²)."""
+
+    plant: Any
+    scale: float = eqx.field(static=True)
+
+    @property
+    def n(self):
+        return self.plant.n
+
+    def A_of(self, t):
+        return self.plant.A_of(t)
+
+    def C_of(self, t):
+        return self.plant.C_of(t) / self.scale
+
+
+def _probe_scale(fn, times) -> float:
+    """The largest |entry| of fn(t) over `times` (a regressor's or an output map's units); 1 when that is
+    0 or not finite."""
+    vals = [np.max(np.abs(np.asarray(fn(jnp.asarray(float(t)))))) for t in times]
+    big = float(np.max(vals)) if vals else 0.0
+    return big if np.isfinite(big) and big > 0.0 else 1.0
 
 
 def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
