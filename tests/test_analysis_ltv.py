@@ -2,6 +2,7 @@
 
 import itertools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -179,6 +180,27 @@ def test_decay_rate_exact_exponential():
     # samples below `floor` (round-off) and outside the window are left out
     err2 = err.at[40:].set(0.0).at[:5].set(100.0)
     assert abs(float(an.decay_rate((ts, err2), t_min=0.5)) - 0.7) < 1e-12
+
+
+@pytest.mark.parametrize("units", [1.0, 1e-13, 1e9])
+def test_decay_rate_is_relative_and_refuses_a_failed_trajectory(units):
+    """The floor was an absolute 1e-12: an error in units 1e-13 was refused as "at round-off".  A NaN
+    tail (a solve that failed at t = 6) was dropped by the floor test and the clean rate returned, as if
+    the trajectory had converged; all samples at one time gave NaN eagerly.  Now: the floor is relative
+    to the largest error in the window; a non-finite sample in the window raises eagerly and gives NaN
+    traced (also under vmap, member by member)."""
+    ts = np.linspace(0.0, 10.0, 101)
+    err = units * np.exp(-ts)[:, None] * np.array([[1.0, 2.0]])
+    assert abs(float(an.decay_rate((ts, err))) - 1.0) < 1e-10
+    bad = err.copy()
+    bad[60:] = np.nan
+    with pytest.raises(ValueError, match=r"not finite at t = 6 .*failed trajectory"):
+        an.decay_rate((ts, bad))
+    assert abs(float(an.decay_rate((ts, bad), t_max=5.5)) - 1.0) < 1e-10  # a window before the failure
+    rates = jax.vmap(lambda e: an.decay_rate((jnp.asarray(ts), e)))(jnp.stack([jnp.asarray(err), jnp.asarray(bad)]))
+    assert abs(float(rates[0]) - 1.0) < 1e-10 and np.isnan(float(rates[1]))
+    with pytest.raises(ValueError, match="distinct times"):
+        an.decay_rate((np.ones(5), units * np.exp(-np.arange(5.0))))
 
 
 def test_error_transition_matrix_bad_plant():

@@ -471,10 +471,12 @@ def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
     - `trajectory`: an :class:`obsjax.Trajectory` (uses ``ts`` and ``error``) or a pair ``(ts, error)``
       with error of shape (T, n) (or (T,) of norms already).
     - `t_min`, `t_max`: fit window (default: the whole trajectory).
-    - `floor`: samples with ‖x̃‖ ≤ floor (converged to round-off) are left out of the fit.
+    - `floor`: samples with ‖x̃‖ ≤ floor · max ‖x̃‖ (the largest in the window: converged to round-off)
+      are left out of the fit.  Relative, so the error's units do not matter.
 
-    **Returns:** scalar λ (positive for a decaying error); jit/vmap compatible (traced, a window with fewer
-    than two usable samples gives NaN; eagerly it raises ``ValueError``).
+    **Returns:** scalar λ (positive for a decaying error); jit/vmap compatible.  A window with fewer than
+    two usable samples at distinct times, or with a non-finite error sample (a failed trajectory: its
+    rate is not known), raises ``ValueError`` eagerly and gives NaN traced.
 
     **Example:**
 
@@ -495,22 +497,36 @@ def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
     if t_min is not None and t_max is not None and not float(t_min) < float(t_max):
         raise ValueError(f"`t_min` must be < `t_max`, got t_min = {t_min}, t_max = {t_max}.")
     nrm = jnp.linalg.norm(err, axis=-1) if err.ndim == 2 else jnp.abs(err)
-    mask = nrm > floor
+    window = jnp.ones(ts.shape, bool)
     if t_min is not None:
-        mask = mask & (ts >= t_min)
+        window = window & (ts >= t_min)
     if t_max is not None:
-        mask = mask & (ts <= t_max)
-    used = concrete_value(mask)
-    if used is not None and int(np.sum(used)) < 2:
+        window = window & (ts <= t_max)
+    finite = jnp.isfinite(nrm)
+    bad = jnp.any(window & ~finite)
+    top = jnp.max(jnp.where(window & finite, nrm, 0.0))
+    mask = window & finite & (nrm > floor * top)
+    used, bad_c = concrete_value(mask), concrete_value(bad)
+    if bad_c is not None and bool(bad_c):
+        where_bad = np.flatnonzero(np.asarray(concrete_value(window & ~finite)))
         raise ValueError(
-            f"decay_rate needs at least 2 samples with ‖x̃‖ > floor = {floor:g} in the fit window "
-            f"[t_min, t_max] = [{t_min}, {t_max}], got {int(np.sum(used))} (an error already at round-off, "
-            "or a window outside the trajectory)."
+            f"decay_rate: the error is not finite at t = {float(np.asarray(ts)[where_bad[0]]):g} (sample "
+            f"{int(where_bad[0])}) in the fit window: a failed trajectory (check its status), whose decay "
+            "rate is not known; fit a window before it, or drop the trajectory."
         )
+    if used is not None:
+        t_used = np.asarray(ts)[np.asarray(used)]
+        if np.unique(t_used).size < 2:
+            raise ValueError(
+                f"decay_rate needs at least 2 samples at distinct times with ‖x̃‖ > floor·max ‖x̃‖ "
+                f"(floor = {floor:g}) in the fit window [t_min, t_max] = [{t_min}, {t_max}], got "
+                f"{t_used.size} sample(s) at {np.unique(t_used).size} time(s) (an error already at "
+                "round-off, or a window outside the trajectory)."
+            )
     wgt = mask.astype(float)
     logn = jnp.log(jnp.where(mask, nrm, 1.0))
     sw = jnp.sum(wgt)
     tbar = jnp.sum(wgt * ts) / sw
     lbar = jnp.sum(wgt * logn) / sw
     slope = jnp.sum(wgt * (ts - tbar) * (logn - lbar)) / jnp.sum(wgt * (ts - tbar) ** 2)
-    return -slope
+    return jnp.where(bad, jnp.nan, -slope)
