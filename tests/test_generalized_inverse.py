@@ -112,6 +112,19 @@ def test_one_inverse_family(shape, rank):
         assert not obsjax.design.is_one_inverse(rng.normal(size=(n, m)), C)
 
 
+@pytest.mark.parametrize("scale", [1.0, 1e-6, 1e-10, 1e8])
+def test_is_one_inverse_is_relative_to_C(scale):
+    """The test was ‖CXC − C‖ ≤ rtol·max(1, ‖C‖): for C ~ 1e-10 (a sensor in other units) X = 0 passed
+    with a 100 % relative residual.  Relative now: the {1}-inverses of s C are X / s at any scale."""
+    C = scale * np.array([[1.0, 0.0, 2.0], [0.0, 1.0, 1.0]])
+    assert not obsjax.design.is_one_inverse(np.zeros((3, 2)), C)
+    assert obsjax.design.is_one_inverse(np.linalg.pinv(C), C)
+    X = np.asarray(one_inverse(C, np.ones((3, 2)) / scale, np.ones((3, 2)) / scale))
+    assert obsjax.design.is_one_inverse(X, C)
+    assert not obsjax.design.is_one_inverse(X + 1e-3 / scale, C)
+    assert obsjax.design.is_one_inverse(np.ones((3, 2)), np.zeros((2, 3)))  # every X, for C = 0
+
+
 def test_solvability_residual_does_not_depend_on_the_one_inverse():
     """I − XC projects onto null(C) for every {1}-inverse X: solvability of GC = M is choice-free; the
     solution G = M X does depend on X, but all of them satisfy G C = M."""

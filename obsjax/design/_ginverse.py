@@ -99,11 +99,17 @@ def one_inverse(C, Y=None, Z=None) -> jax.Array:
 
 
 def is_one_inverse(X, C, rtol: float = 1e-9) -> bool:
-    """True when ‖C X C − C‖ ≤ rtol · max(1, ‖C‖) (Frobenius norms; concrete inputs)."""
+    """True when ‖C X C − C‖ ≤ rtol · ‖C‖ · max(1, ‖C‖ ‖X‖) (Frobenius norms; concrete inputs).
+
+    Relative to ‖C‖ (the test does not depend on C's units: a {1}-inverse of s C is X / s), with the
+    rounding of the product C X C (of order ‖C‖² ‖X‖) allowed for.  Every X is a {1}-inverse of C = 0."""
     C = matrix(C, "C", (None, None))
     X = matrix(X, "X", (C.shape[1], C.shape[0]))
     err = float(jnp.linalg.norm(C @ X @ C - C))
-    return err <= rtol * max(1.0, float(jnp.linalg.norm(C)))
+    nc, nx = float(jnp.linalg.norm(C)), float(jnp.linalg.norm(X))
+    if not np.isfinite(err):
+        return False
+    return err <= rtol * nc * max(1.0, nc * nx)
 
 
 def solvability_residual(M, C, C1=None) -> jax.Array:
