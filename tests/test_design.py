@@ -503,6 +503,36 @@ def test_reduced_order_with_more_outputs_than_unmeasured_states():
     np.testing.assert_allclose(jax.grad(J)(p0), (J(p0 + h) - J(p0 - h)) / (2 * h), rtol=1e-5)
 
 
+@pytest.mark.parametrize("units", [1.0, 1e6])
+def test_reduced_order_with_dependent_rows_of_A12(units):
+    """Two sensors that see the unmeasured states through the same combination (x1' = x3, x2' = x3): A12
+    has dependent rows with m ≤ n − m.  The observer was accepted and its gain came back NaN ("a
+    posteriori error nan"); the rows were compressed only for m > n − m.  Now the poles are placed on
+    the independent rows (a rank decided on row-normalised A12, so in any output units), eagerly and
+    under jit: eig(A22 − G A12) = the poles, and the gradient of the ISE in the poles matches central
+    differences."""
+    import equinox as eqx
+
+    A = np.array([[0, 0, 1, 0], [0, 0, 1, 0], [0, 0, 0, 1], [0, 0, -1, -1.0]])
+    C = np.diag([1.0, units, 1.0, 1.0])[:2] @ np.eye(4)
+    plant = obsjax.LTI(A, np.array([[0.0], [0.0], [0.0], [1.0]]), C)
+    ro = obsjax.ReducedOrder.from_poles(plant, [-2.0, -3.0])
+    M = np.vstack([C, np.asarray(ro.Dc)])
+    Ab = M @ A @ np.linalg.inv(M)
+    G = np.asarray(ro.gain)
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(Ab[2:, 2:] - G @ Ab[:2, 2:]).real), [-3.0, -2.0], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(jax.jit(lambda o: o.gain)(ro)), G, rtol=1e-10, atol=1e-12)
+    ts = jnp.linspace(0.0, 2.0, 11)
+
+    def J(p):
+        o = eqx.tree_at(lambda o: o.poles, ro, p)
+        return obsjax.losses.ise(obsjax.simulate(plant, o, jnp.ones(4), jnp.zeros(4), ts, rtol=1e-10, atol=1e-12))
+
+    p0, h = ro.poles, 1e-5
+    fd = [(J(p0.at[i].add(h)) - J(p0.at[i].add(-h))) / (2 * h) for i in range(2)]
+    np.testing.assert_allclose(jax.grad(J)(p0), fd, rtol=1e-5, atol=1e-9)
+
+
 @pytest.mark.extended
 def test_square_output_placement_is_the_real_form_and_differentiable():
     """m = n: L = (A − F) C⁻¹ with F the real form of the poles (A − LC = F exactly, T = I).  The robust

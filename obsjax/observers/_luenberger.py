@@ -226,41 +226,52 @@ def _complement(C, tol=None, A=None):
 
 
 def _a12_rank(A12):
-    """The rank of a concrete A12 with more rows than columns (``None`` otherwise)."""
-    m, k = A12.shape
+    """The rank of a concrete A12 (rows normalised: in any units of the outputs); ``None`` when traced."""
     v = concrete_value(A12)
-    if m <= k or v is None:
+    if v is None:
         return None
-    return _numerical_rank(np.linalg.svd(np.asarray(v, float), compute_uv=False))
+    return _numerical_rank(np.linalg.svd(_rows_normalised(np.asarray(v, float))[0], compute_uv=False))
 
 
 def _numerical_rank(sv):
-    return int(np.sum(sv > 1e-12 * sv[0])) if sv[0] > 0 else 0
+    return int(np.sum(sv > 1e-12 * sv[0])) if sv.size and sv[0] > 0 else 0
+
+
+def _rows_normalised(a, xp=np):
+    """(N a, N) with N = diag(1/‖row‖) (zero rows left as they are)."""
+    norms = xp.linalg.norm(a, axis=1)
+    inv = xp.where(norms > 0, 1.0 / xp.where(norms > 0, norms, 1.0), 1.0)
+    return a * inv[:, None], inv
 
 
 def _compress_rows(A12, rank=None):
-    """(R, Q) with A12 = Q R (reduced QR, Q orthonormal m × (n − m)) when A12 has more rows than
-    columns (m > n − m: more outputs than unmeasured states), else (A12, None).  Then
-    A22 − G A12 = A22 − G_r R for G = G_r Qᵀ, and (A22, R) is observable exactly when (A22, A12) is
-    (A12 v = 0 ⟺ R v = 0): the poles are placed on the square pair (on r rows, R = Qᵀ A12 with Q the
-    leading left singular vectors, when A12 has rank r < n − m: decided on the concrete A12, or
-    `rank`, the rank decided at construction, when it is traced)."""
+    """(R, Q) with R = Qᵀ A12 and Q (m × r) of full column rank when the rows of A12 are dependent (more
+    outputs than unmeasured states, m > n − m, or outputs that see the unmeasured states through the
+    same combination), else (A12, None).  Then A22 − G A12 = A22 − G_r R for G = G_r Qᵀ, and (A22, R) is
+    observable exactly when (A22, A12) is (A12 v = 0 ⟺ R v = 0): the poles are placed on r independent
+    rows.  With full column rank and m > n − m, A12 = Q R is the reduced QR; with rank r, Q = N U_r, U_r
+    the leading left singular vectors of N A12, N = diag(1/‖row‖) (so that the rank does not depend on
+    the outputs' units).  The rank is decided on the concrete A12, or is `rank`, the rank decided at
+    construction, when A12 is traced."""
     m, k = A12.shape
-    if m <= k:
-        return A12, None
     v = concrete_value(A12)
     if v is not None:  # one SVD in NumPy gives the rank and the basis
-        U, sv, _ = np.linalg.svd(np.asarray(v, float), full_matrices=False)
+        An, inv = _rows_normalised(np.asarray(v, float))
+        U, sv, _ = np.linalg.svd(An, full_matrices=False)
         r = _numerical_rank(sv)
-        U = jnp.asarray(U)
+        Qr = (jnp.asarray(inv)[:, None] * jnp.asarray(U[:, :r])) if 0 < r else None
     else:
         r = rank
-        U = jnp.linalg.svd(A12, full_matrices=False)[0] if r is not None and 0 < r < k else None
-    if r is not None and 0 < r < k:  # keep r rows (an orthonormal basis of the range of A12)
-        Q = U[:, :r]
-        return Q.T @ A12, Q
-    Q, R = jnp.linalg.qr(A12, mode="reduced")
-    return R, Q
+        Qr = None
+        if r is not None and 0 < r < min(m, k + 1) and not (m > k and r == k):
+            An, inv = _rows_normalised(A12, jnp)
+            Qr = inv[:, None] * jnp.linalg.svd(An, full_matrices=False)[0][:, :r]
+    if r is None or r == 0 or (m <= k and r == m):
+        return A12, None  # independent rows (or nothing to keep): the pair as it is
+    if m > k and r == k:
+        Q, R = jnp.linalg.qr(A12, mode="reduced")
+        return R, Q
+    return Qr.T @ A12, Qr
 
 
 class ReducedOrder(AbstractObserver):
@@ -289,7 +300,7 @@ class ReducedOrder(AbstractObserver):
     Dc: jax.Array
     structure: PoleStructure | None = eqx.field(static=True, default=None)
     chains: tuple | None = eqx.field(static=True, default=None)
-    a12_rank: int | None = eqx.field(static=True, default=None)  # decided at construction (m > n − m)
+    a12_rank: int | None = eqx.field(static=True, default=None)  # decided at construction
 
     def __init__(self, model, G=None, poles=None, Dc=None, *, structure=None, tol=None):
         _require_lti(model, "ReducedOrder")
