@@ -378,3 +378,22 @@ def test_functional_observer_does_not_depend_on_the_time_unit(c):
     lhs = T @ (c * A) - F @ T
     assert np.abs(lhs - G @ C).max() <= 1e-10 * max(np.abs(lhs).max(), np.abs(G @ C).max())
     np.testing.assert_allclose(k @ T + e @ C, a, rtol=1e-10, atol=1e-12 * np.abs(a).max())
+
+
+@pytest.mark.parametrize("c", [1.0, 1e3, 1e5])
+@pytest.mark.parametrize("small", [0.0, -1e-12, -1e-20])
+def test_functional_observer_with_a_pole_at_or_near_zero(c, small):
+    """Poles [small, −2, −3] (n = 7, two outputs, order 3): the time unit was the poles' geometric mean,
+    1 for a pole at 0 (refused after A → 1e3 A: residual 1.1e-7) and tiny for −1e-12 (refused in any
+    unit).  It is their RMS magnitude now: accepted in every unit, with TA − FT = GC and
+    aᵀ = kᵀT + eᵀC to rounding."""
+    rng = np.random.default_rng(11)
+    n, m = 7, 2
+    A, B, C, a = rng.standard_normal((n, n)), rng.standard_normal((n, 1)), rng.standard_normal((m, n)), rng.standard_normal(n)
+    poles = c * np.array([small, -2.0, -3.0])
+    obs = obsjax.FunctionalObserver(obsjax.LTI(c * A, B, C), a, poles)
+    F, T, G, k, e = (np.asarray(x) for x in (obs.F, obs.T, obs.G, obs.k, obs.e))
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(F).real), np.sort(poles), rtol=1e-6, atol=1e-9 * c)
+    lhs = T @ (c * A) - F @ T
+    assert np.abs(lhs - G @ C).max() <= 1e-10 * max(np.abs(lhs).max(), np.abs(G @ C).max())
+    np.testing.assert_allclose(k @ T + e @ C, a, rtol=1e-10, atol=1e-12 * np.abs(a).max())

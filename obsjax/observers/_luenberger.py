@@ -441,8 +441,9 @@ class FunctionalObserver(AbstractObserver):
         ż = F z + G y + T B u,      ŝ = kᵀ z + eᵀ y,
 
     with T A − F T = G C (Theorem 1, (2.4)) and aᵀ = kᵀ T + eᵀ C, so that ŝ − s = kᵀ e^{Ft}(z(0) − T x(0)).
-    F = σ F_σ, F_σ the observer-companion matrix of the poles divided by σ, the geometric mean of their
-    magnitudes (the companion form in the poles' own time unit: its eigenvalues are the requested poles),
+    F = σ F_σ, F_σ the observer-companion matrix of the poles divided by σ, the root mean square of their
+    magnitudes (‖A‖₂ when every pole is 0: the companion form in the poles' own time unit; its eigenvalues
+    are the requested poles),
     and k = e_r; the linear conditions are solved for (T, G, e) by least squares with unit-norm columns,
     in that time unit (so the test does not depend on the units of time, A, C and a), and a relative
     residual above ``rtol`` raises ``ValueError`` (the functional is not observable with that order).  When ν = 1 (r = 0) the functional is a static map of y.
@@ -484,16 +485,18 @@ class FunctionalObserver(AbstractObserver):
                 f"`poles` must hold ν − 1 = {r} poles (observability index ν = {nu}), got "
                 f"{pv.shape[0] if pv.ndim == 1 else pv.shape}."
             )
-        # The conditions are solved in the time unit of the poles, s their geometric mean |p|: with
+        # The conditions are solved in the time unit of the poles, s their RMS magnitude: with
         # A_s = A/s and F_s the companion matrix of p/s, T A_s − F_s T = G_s C is T A − F T = G C for
         # F = s F_s, G = s G_s.  The companion matrix of p itself has entries up to |p|^r, so the test
-        # refused well-posed designs after a change of time unit (A → 1e4 A, p → 1e4 p, r = 3).
+        # refused well-posed designs after a change of time unit (A → 1e4 A, p → 1e4 p, r = 3).  (The
+        # geometric mean, used before, is 0 or tiny for a pole at or near 0, which refused designs
+        # accepted in another time unit.)
         scale = 1.0
         if r > 0:
             pole_structure(pv)  # finite, conjugate-closed
-            mags = np.abs(pv)
-            if np.all(mags > 0):
-                scale = float(np.exp(np.mean(np.log(mags))))
+            rms = float(np.sqrt(np.mean(np.abs(pv) ** 2)))
+            a_norm = float(np.linalg.norm(np.asarray(A, float), 2))
+            scale = rms if rms > 0 else (a_norm if a_norm > 0 else 1.0)
             F = _companion(np.real(np.poly(pv / scale)))
         else:
             F = np.zeros((0, 0))
