@@ -184,3 +184,21 @@ def test_agrees_with_40_digit_eigenvalues_on_random_gains():
         ref = _mp_eigvals(A, C, L)
         lam = closed_loop_eigvals(A, C, L)
         assert np.max(np.abs(_nearest(ref, lam) - ref) / np.abs(ref)) < 1e-14
+
+
+def test_placement_error_matches_poles_to_eigenvalues_at_the_smallest_worst_error():
+    """Eigenvalues {−1.04, −0.9}, requested {−1, −1.05}: the greedy matching paired −1 with −1.04 and left
+    −1.05 with −0.9 (0.143); the best one-to-one matching has a worst error of 0.1 (−1 ↔ −0.9)."""
+    A, C, L = np.diag([-1.04, -0.9]), np.eye(2), np.zeros((2, 2))
+    err, acc = placement_error(A, C, L, [-1.0, -1.05], return_accuracy=True)
+    assert abs(err - 0.1) < 1e-12 and acc < 1e-14
+    brute = min(max(abs(e - q) / abs(q) for e, q in zip(perm, [-1.0, -1.05])) for perm in ((-1.04, -0.9), (-0.9, -1.04)))
+    assert abs(err - brute) < 1e-12
+
+
+def test_one_output_as_a_vector():
+    """`place` takes C of one output as a vector; placement_error and closed_loop_eigvals refused it."""
+    A, c = np.array([[-2.0, 1.0], [0.0, -1.0]]), np.array([1.0, 0.0])
+    L = np.asarray(obsjax.design.place(A, c, [-3.0, -4.0]))
+    assert placement_error(A, c, L, [-3.0, -4.0]) < 1e-14
+    np.testing.assert_allclose(np.sort(closed_loop_eigvals(A, c, L.ravel()).real), [-4.0, -3.0], atol=1e-14)

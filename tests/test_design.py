@@ -591,3 +591,14 @@ def test_tiny_output_row_is_named_in_a_warning():
     with pytest.warns(UserWarning, match="row 1 of C is 1.0e-14 of the largest"):
         st = observability_staircase(A, C)
     assert st.observable and st.indices == (2, 1)
+
+
+@pytest.mark.parametrize("maxiter", [0, -1, 2.5, True])
+def test_place_refuses_a_bad_maxiter(maxiter):
+    with pytest.raises(ValueError, match="`maxiter` must be a positive integer"):
+        place(np.eye(2), np.eye(2)[:1], [-1.0, -2.0], maxiter=maxiter)
+
+
+def test_place_refuses_an_empty_system():
+    with pytest.raises(ValueError, match="`A` has no states"):
+        place(np.zeros((0, 0)), np.zeros((0, 0)), [])

@@ -42,6 +42,8 @@ def design_pair(A, C, who: str):
     require_x64(who)
     A, C = _pair(A, C)
     A, C = as_design_matrix(A, "A"), as_design_matrix(C, "C")
+    if A.shape[0] == 0:
+        raise ValueError(f"{who}: `A` has no states (shape {tuple(A.shape)}): nothing to observe.")
     if C.shape[0] > A.shape[0]:
         raise ValueError(
             f"`C` has m = {C.shape[0]} rows for n = {A.shape[0]} states: at most n independent outputs."
@@ -501,6 +503,8 @@ def place(
             rtol_ok = False
     if not rtol_ok:
         raise ValueError(f"place: `rtol` must be a positive number (or numpy.inf), got {rtol!r}.")
+    if isinstance(maxiter, bool) or not isinstance(maxiter, (int, np.integer)) or maxiter < 1:
+        raise ValueError(f"place: `maxiter` must be a positive integer, got {maxiter!r}.")
     A, C = design_pair(A, C, "place")
     n = A.shape[0]
     p = pole_vector(poles, n)
