@@ -319,6 +319,40 @@ def test_traced_reset_on_a_plant_jump_gives_the_derivative_from_below():
     np.testing.assert_allclose(jax.jit(jax.jacfwd(loss))(0.7), g, rtol=1e-12)
 
 
+@pytest.mark.extended
+@pytest.mark.parametrize("backend", ["simulate", "lockstep", "masked"])
+def test_adaptive_reset_on_a_plant_jump_gives_the_derivative_from_below(backend):
+    """Resets at 0.5, 1.0, 1.5 on jumps of a plant switching every 0.25 (T = 0.5): the loss has a kink in
+    T.  The fixed-step back-end returned the derivative from below (−0.513), the adaptive ones the one
+    from above (−2.78), a factor 5 apart: the segmented back-end read f⁻ at the end of the zero-length
+    segment between the jump and the reset (after the jump) and f⁺ at the reset; the masked loop landed
+    its step on the reset itself (stages in the mode after the jump).  All read the vector field one
+    float below the reset now, and the masked loop takes a reset on a jump as one target, landing one
+    float before it."""
+    import equinox as eqx
+
+    plant = obsjax.switching_ltv_example(period=0.25, horizon=3.0)
+    ts = jnp.asarray([0.0, 0.3, 0.62, 1.13, 1.37, 1.9])  # no save time on a reset
+    x0, xh0 = jnp.array([1.0, -0.5, 0.3]), jnp.array([2.0, 1.0, -1.0])
+    obs0 = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=1.0, T=0.5)
+    kw = dict(rtol=1e-10, atol=1e-12, max_segments=8)
+
+    def loss(T):
+        obs = eqx.tree_at(lambda o: o.T, obs0, T)
+        if backend == "simulate":
+            tr = obsjax.simulate(plant, obs, x0, xh0, ts, **kw)
+        else:
+            tr = obsjax.simulate_batch(plant, obs, x0[None], xh0[None], ts, lockstep=backend == "lockstep", **kw)
+        return jnp.sum(tr.error**2)
+
+    lj = jax.jit(loss)
+    h = 1e-5  # one-sided differences of second order
+    left = (3 * lj(0.5) - 4 * lj(0.5 - h) + lj(0.5 - 2 * h)) / (2 * h)
+    right = -(3 * lj(0.5) - 4 * lj(0.5 + h) + lj(0.5 + 2 * h)) / (2 * h)
+    assert abs(left - right) > 1.0  # a real kink
+    np.testing.assert_allclose(jax.jit(jax.grad(loss))(0.5), left, rtol=1e-4)
+
+
 def test_fixed_step_euler_is_forward_euler():
     plant = obsjax.LTI([[-1.0]], None, [[1.0]])
     obs = obsjax.Luenberger(plant, [[1.0]])

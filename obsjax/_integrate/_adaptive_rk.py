@@ -337,13 +337,26 @@ class _Targets(NamedTuple):
 
 
 def _targets(t0, t1, reset_ts, jump_ts, B, dtype) -> tuple[_Targets, jax.Array]:
+    tol_b = jax.lax.stop_gradient(_schedule.tolerance_of(t0, t1))  # as simulate's schedule
+    rv = None if reset_ts is None else _per_member(reset_ts, B, "reset_ts", dtype, trailing=1)
+    jv = None if jump_ts is None else _per_member(jump_ts, B, "jump_ts", dtype, trailing=1)
+    reset_on_jump = None
+    if rv is not None and jv is not None:
+        # A reset at a jump time is one target: the step lands one float before it (the vector field
+        # there is the one before the jump), the reset is applied at it, the next segment starts there;
+        # its derivative in the reset time is the one from below, as in the other back-ends.  The jump
+        # entry itself is moved past t1 (ignored).
+        near = jnp.abs(
+            jax.lax.stop_gradient(rv)[:, :, None] - jax.lax.stop_gradient(jv)[:, None, :]
+        ) <= tol_b[:, None, None]
+        reset_on_jump = jnp.any(near, axis=2)
+        jv = jnp.where(jnp.any(near, axis=1), jnp.maximum(t1[:, None], jv) + 1.0, jv)
     parts, flags, jumps = [], [], []
-    for ts_, is_reset in ((reset_ts, True), (jump_ts, False)):
-        if ts_ is not None:
-            v = _per_member(ts_, B, "reset_ts" if is_reset else "jump_ts", dtype, trailing=1)
+    for v, is_reset in ((rv, True), (jv, False)):
+        if v is not None:
             parts.append(v)
             flags.append(jnp.full(v.shape, is_reset))
-            jumps.append(jnp.full(v.shape, not is_reset))
+            jumps.append(reset_on_jump if is_reset and reset_on_jump is not None else jnp.full(v.shape, not is_reset))
     parts.append(t1[:, None])
     flags.append(jnp.zeros((B, 1), bool))
     jumps.append(jnp.zeros((B, 1), bool))
@@ -352,7 +365,6 @@ def _targets(t0, t1, reset_ts, jump_ts, B, dtype) -> tuple[_Targets, jax.Array]:
     value = jnp.take_along_axis(value, order, axis=1)
     reset = jnp.take_along_axis(jnp.concatenate(flags, axis=1), order, axis=1)
     jump = jnp.take_along_axis(jnp.concatenate(jumps, axis=1), order, axis=1)
-    tol_b = jax.lax.stop_gradient(_schedule.tolerance_of(t0, t1))  # as simulate's schedule
     tol = tol_b[:, None]
     fixed = jax.lax.stop_gradient(value)
     final = fixed >= (t1[:, None] - tol)
@@ -362,7 +374,8 @@ def _targets(t0, t1, reset_ts, jump_ts, B, dtype) -> tuple[_Targets, jax.Array]:
     value = jnp.where(final, t1[:, None], fixed)
     reset = reset & ~final
     jump = jump & ~final
-    # a jump: land on the float before it (the vector field there is the left one)
+    # a jump (or a reset at a jump time): land on the float before it (the vector field there is the
+    # left one)
     end = jnp.where(jump, _prevbefore(value), value)
     floor = _prevbefore(end, 100)
     first = jnp.sum(fixed <= (t0[:, None] + tol), axis=1).astype(jnp.int32)
@@ -392,6 +405,7 @@ class _Carry(NamedTuple):
     status: jax.Array
     num_steps: jax.Array
     num_accepted: jax.Array
+    seg_steps: jax.Array  # (B,) step attempts in the current segment
     ys: Any  # buffers (B, S + 1, ...): column S absorbs the writes of members that do not save
 
 
@@ -411,6 +425,7 @@ def adaptive_rk_solve(
     reset_ts=None,
     jump_ts=None,
     max_steps: int = 4096,
+    max_steps_per_segment: int | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
     block_size: int | None = None,
 ) -> AdaptiveRKSolution:
@@ -437,6 +452,8 @@ def adaptive_rk_solve(
     - `reset_ts`: (K,) or (B, K) sorted reset times; those at or beyond t1 (or at t0) are ignored.
     - `jump_ts`: (J,) or (B, J) sorted times where `vector_field` is discontinuous in t.
     - `max_steps`: the most step attempts of one member over [t0, t1] (all segments).
+    - `max_steps_per_segment`: the most step attempts of one member in one segment (``None``: no
+      bound besides `max_steps`), as ``diffeqsolve``'s `max_steps` bounds each segment's solve.
     - `adjoint`: ``diffrax.RecursiveCheckpointAdjoint()`` (default), ``diffrax.ForwardMode()`` or
       ``diffrax.DirectAdjoint()``: which modes of differentiation the loop supports.
     - `block_size`: the most members one loop integrates together; a larger batch is split into
@@ -465,6 +482,12 @@ def adaptive_rk_solve(
     kind, checkpoints = _loop_kind(adjoint)
     if not (isinstance(max_steps, int) and max_steps > 0):
         raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
+    if max_steps_per_segment is not None and not (
+        isinstance(max_steps_per_segment, int) and max_steps_per_segment > 0
+    ):
+        raise ValueError(
+            f"`max_steps_per_segment` must be a positive int or None, got {max_steps_per_segment!r}."
+        )
     if reset_ts is not None and reset is None:
         raise ValueError("`reset_ts` needs `reset` (the map applied to the state at those times).")
     B = _batch_size(y0)
@@ -492,7 +515,8 @@ def adaptive_rk_solve(
     def loop(flat0, t0, seg0, ts, targets, dt0, args):
         Bk = flat0.shape[0]
         step = _make_body(
-            F, R, args, method, ctrl, norm, dt0, targets, ts, max_steps, kind, Bk, solver
+            F, R, args, method, ctrl, norm, dt0, targets, ts, (max_steps, max_steps_per_segment),
+            kind, Bk, solver,
         )
         return eqxi.while_loop(
             lambda c: jnp.any(c.status == _RUNNING),
@@ -636,6 +660,7 @@ def _initial_carry(y0, t0, seg0, ts, B, dtype):
         status=jnp.where(finite, _RUNNING, NONFINITE).astype(jnp.int32),
         num_steps=zeros_i,
         num_accepted=zeros_i,
+        seg_steps=zeros_i,
         ys=tmap(lambda x: jnp.zeros((B, S + 1) + x.shape[1:], x.dtype), y0),
     )
 
@@ -731,6 +756,7 @@ def _make_body(F, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, ki
             save_idx=save_idx,
             status=status,
             num_steps=cr.num_steps + stepping.astype(jnp.int32),
+            seg_steps=jnp.where(arrive, 0, cr.seg_steps + stepping.astype(jnp.int32)),
             num_accepted=cr.num_accepted + acc.astype(jnp.int32),
             ys=ys,
         )
@@ -782,7 +808,9 @@ def _arrival_jvp(primals, tangents, *, F, R):
         _, r_t = jax.jvp(lambda s: R(s, y1, args), (tau,), (jnp.ones_like(tau),))
         r_t = coefficient(arrive & do_reset, r_t)
         t_out = tmap(lambda t_, g: t_ + _scale_member(t_d, g), t_out, r_t)
-    f_plus = coefficient(arrive, F(tau, out, args))
+    # f⁺ of a reset read one float below τ, as f⁻ (the same field unless a plant jump falls on τ: then
+    # the derivative from below); at a jump time (no reset) f⁺ is the field after the jump
+    f_plus = coefficient(arrive, F(jnp.where(do_reset, _prevbefore(tau), tau), out, args))
     return out, tmap(lambda t_, g: t_ - _scale_member(t_d, g), t_out, f_plus)
 
 
@@ -878,7 +906,10 @@ def _new_status(
     # the step size underflowed on a candidate that is not finite: the solution left the domain of
     # the vector field (it diverged), not a tolerance too tight to meet
     status = jnp.where(underflow & ~y1_finite & (status == _RUNNING), NONFINITE, status)
-    out_of_steps = stepping & (cr.num_steps + 1 >= max_steps)
+    total, per_segment = max_steps
+    out_of_steps = stepping & (cr.num_steps + 1 >= total)
+    if per_segment is not None:  # the segment's solve ran out of steps before reaching its end
+        out_of_steps = out_of_steps | (stepping & ~arrive & (cr.seg_steps + 1 >= per_segment))
     failed = (underflow | out_of_steps) & (status == _RUNNING)
     return jnp.where(failed, SOLVER_FAILED, status).astype(jnp.int32)
 

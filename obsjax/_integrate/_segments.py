@@ -81,7 +81,10 @@ def integrate(solve, act, carry0, ts, sched: Schedule, row, drift=None):
     if moving:
         times = sched.times
         motion = jnp.concatenate([jnp.zeros(1, times.dtype), times - jax.lax.stop_gradient(times)])
-        xs = xs + (motion, jnp.concatenate([starts[:1], ends[:-1]]))
+        # the vector field on both sides of a moving breakpoint is read one float below it: where a plant
+        # jump falls on the same instant (a zero-length segment between the two), that is the vector
+        # field before the jump, i.e. the derivative from below, as the fixed-step back-end gives
+        xs = xs + (motion, jnp.nextafter(starts, jnp.asarray(-jnp.inf, starts.dtype)))
     buf0 = tmap(lambda s: jnp.zeros((N + W,) + tuple(s.shape), s.dtype), row)
 
     def body(carry, x):
@@ -110,13 +113,15 @@ def integrate(solve, act, carry0, ts, sched: Schedule, row, drift=None):
 
 def moving_act(act, drift, t, d, t_left, state, do_reset, do_event):
     """The jump at breakpoint `t`, plus its first-order motion when t moves by δt = `d` (value 0):
-    act(t + δt, y⁻ + δt f⁻) − δt f⁺, f⁻ = drift(t_left, y⁻) the vector field at the end of the previous
-    segment (one float below t at a plant jump), f⁺ = drift(t, y⁺), on the floating leaves of the carry
-    (others, such as an eviction mask, pass through).  Non-finite values of the drift count as 0 (the zero
-    motion must not turn into NaN; the next solve reports the failure itself)."""
+    act(t + δt, y⁻ + δt f⁻) − δt f⁺, f⁻ = drift(t_left, y⁻) and f⁺ = drift(t_left, y⁺), `t_left` one float
+    below t: where a plant jump falls on t too, both are the vector field before it (the derivative from
+    below, the reset just before the plant's jump; elsewhere the float makes no difference), on the
+    floating leaves of the carry (others, such as an eviction mask, pass through).  Non-finite values of
+    the drift count as 0 (the zero motion must not turn into NaN; the next solve reports the failure
+    itself)."""
     f_minus = finite_or_zero(drift(t_left, state))
     out = act(t + d, tmap(lambda v, g: _moved(v, d, g), state, f_minus), do_reset, do_event)
-    f_plus = finite_or_zero(drift(t, out))
+    f_plus = finite_or_zero(drift(t_left, out))
     return tmap(lambda v, g: _moved(v, -d, g), out, f_plus)
 
 

@@ -603,7 +603,9 @@ def tune(
     grid over [0, 10] at T = 2.3: autodiff −11.84, the left derivative, against −13.97 from the
     right).  tune detects such coincidences at every accepted point and warns
     (:class:`obsjax.TuneWarning`); move T or the save times off each other's grid.  See
-    :func:`reset_coincidences`.
+    :func:`reset_coincidences`.  A reset instant on a plant's jump time (a switching plant with T a
+    multiple of its period) is a kink too; every back-end returns the derivative from below there
+    (the reset just before the jump).
 
     **Band-limited noise and a tuned T.**  The noise path is piecewise linear, with a kink every
     ``noise.dt``, and adaptive steps cross those kinks.  A step that crosses one is not
