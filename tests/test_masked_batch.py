@@ -289,3 +289,27 @@ def test_monte_carlo_with_a_param_sampler_takes_the_masked_loop(spy):
     x0s = jax.vmap(lambda k: jr.normal(k, (2,)))(ks[:, 0])
     ref = _vmap_plants(plants, LIN_OBS, x0s, jnp.zeros((10, 2)), ts)
     np.testing.assert_allclose(res.error_norm, ref.error_norm, rtol=0, atol=1e-11)
+
+
+def test_masked_batch_counts_max_steps_per_segment_as_simulate():
+    """An oscillator (ω = 20) on [0, 3] with a plant jump at 0.001 (two segments): `simulate` bounds each
+    segment's solve by max_steps; the masked loop shared max_steps × (segments) among them, so a member
+    whose long segment needed more than max_steps came back with status 0 where simulate says 1.  At the
+    smallest max_steps simulate accepts, and one below it, both back-ends now agree."""
+    A, C = np.array([[0.0, 1.0], [-400.0, 0.0]]), np.array([[1.0, 0.0]])
+    plant = obsjax.LTI(A, np.zeros((2, 0)), C, jump_ts=(0.001,))
+    obs = obsjax.Luenberger(plant, L=[[3.0], [4.0]])
+    ts, x0, xh0 = jnp.linspace(0.0, 3.0, 4), jnp.array([1.0, 0.0]), jnp.zeros(2)
+
+    def status(max_steps, masked):
+        kw = dict(max_steps=max_steps, throw=False, dt0=0.01)
+        if masked:
+            return int(obsjax.simulate_batch(plant, obs, x0[None], xh0[None], ts, lockstep=False, **kw).status[0])
+        return int(obsjax.simulate(plant, obs, x0, xh0, ts, **kw).status)
+
+    lo, hi = 16, 4096  # simulate fails at lo, succeeds at hi
+    assert status(lo, False) == 1 and status(hi, False) == 0
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if status(mid, False) else (lo, mid)
+    assert (status(hi, True), status(lo, True)) == (0, 1)

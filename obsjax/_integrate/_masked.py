@@ -13,8 +13,9 @@ its own segments, resets applied inside the loop.  Member by member it is the so
   takes when it is given ``dt0=None``, see ``_adaptive_rk``'s docstring);
 - segments between the same breakpoints (the observer's resets at t0 + kT, stepped onto exactly; the
   plant's jumps, stepped onto the float below);
-- ``max_steps`` per segment, as in ``simulate``: the loop's bound is ``max_steps`` × the number of
-  segments (at most 2³⁰), shared by the member's segments;
+- ``max_steps`` per segment, as in ``simulate``: a member fails (``SOLVER_FAILED``) when one of its
+  segments takes ``max_steps`` attempts without reaching its end (the loop's bound is ``max_steps`` × the
+  number of segments, at most 2³⁰);
 - the same step floor (64 ulp of the horizon's end, ``_status.GuardedController``), where a step is
   accepted whatever its error (diffrax's ``dtmin``), so a solution escaping in finite time is followed
   until it overflows;
@@ -131,6 +132,7 @@ def integrate(args_b: _system.Args, state0_b, plan: Plan, plant_batched: bool = 
         reset_ts=reset_ts,
         jump_ts=jump_ts,
         max_steps=min(int(opt.max_steps) * (sched.size + 1), MAX_LOOP_STEPS),
+        max_steps_per_segment=int(opt.max_steps),
         adjoint=opt.adjoint,
     )
     return sol.ys, sol.status.astype(jnp.int32)
