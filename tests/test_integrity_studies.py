@@ -577,3 +577,25 @@ def test_fingerprint_is_the_same_in_another_process():
     assert out.returncode == 0, out.stderr[-2000:]
     line = next(ln for ln in out.stdout.splitlines() if ln.startswith("FP "))
     assert line.split()[1] == fingerprint(_fp_parts())[0]
+
+
+def test_a_deeply_nested_sampler_is_fingerprinted():
+    """A sampler whose closures nest 3000 functions deep: the walk recursed beyond Python's default
+    limit of 1000 frames and monte_carlo failed with a RecursionError (seen in a test session, where a
+    runtime type checker multiplies the frames).  It is hashed now, and a change at the bottom of the
+    chain changes the fingerprint."""
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    def chain(depth, scale):
+        def f0(k):
+            return scale * jr.normal(k, (2,))
+
+        f = f0
+        for _ in range(depth):
+            f = (lambda g: (lambda k: g(k)))(f)
+        return f
+
+    a, opaque = fingerprint({"x0_sampler": chain(3000, 1.0)})
+    assert not opaque
+    assert fingerprint({"x0_sampler": chain(3000, 2.0)})[0] != a
+    assert fingerprint({"x0_sampler": chain(3000, 1.0)})[0] == a

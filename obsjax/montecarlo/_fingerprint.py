@@ -506,10 +506,32 @@ def fingerprint(parts: dict, *, strict_modules: bool = False) -> tuple[str, list
     hashed; the trace cache sets it."""
     h = _Hasher(strict_modules)
     h.put("header", header())
-    for name in sorted(parts):
-        h.put("part", name)
-        h.visit(parts[name], name)
+    with _deep_recursion():
+        for name in sorted(parts):
+            h.put("part", name)
+            try:
+                h.visit(parts[name], name)
+            except RecursionError:  # an object graph nested beyond any limit: not hashed by content
+                h.opaque.append(f"{name} (an object graph nested too deeply to hash)")
     return h.h.hexdigest(), h.opaque
+
+
+#: the recursion limit while hashing: the walk recurses once per level of the object graph (a function,
+#: the globals it reads, their attributes, ...), several frames per level, and more under a runtime
+#: type checker; Python's default of 1000 was reached by the graph of a test session's functions
+_HASH_RECURSION_LIMIT = 50_000
+
+
+class _deep_recursion:
+    """Raise the interpreter's recursion limit to :data:`_HASH_RECURSION_LIMIT` for the walk."""
+
+    def __enter__(self):
+        self.old = sys.getrecursionlimit()
+        sys.setrecursionlimit(max(self.old, _HASH_RECURSION_LIMIT))
+
+    def __exit__(self, *exc):
+        sys.setrecursionlimit(self.old)
+        return False
 
 
 def content_key(tree) -> str:
@@ -528,7 +550,8 @@ def content_key(tree) -> str:
     try:
         _, static = eqx.partition(tree, eqx.is_array)
         h = _Hasher(False)
-        h.visit(static, "static")
+        with _deep_recursion():
+            h.visit(static, "static")
         return h.h.hexdigest()
     except Exception:  # noqa: BLE001 - an object the hasher cannot walk: keyed by identity as before
         return ""
