@@ -225,3 +225,24 @@ def segment_ends(T, t1):
     for _ in range(100):
         floors = np.nextafter(floors, -np.inf)
     return ends, floors
+
+
+@numba.njit(cache=False)
+def rhs_repeat(n, s, out):
+    """Evaluate :func:`rhs` `n` times at times 0.1, 0.1 + 1e-5, … feeding a little of each result back
+    into the state (so that no evaluation can be skipped): the vector field's own cost, for benchmark
+    (g)'s breakdown."""
+    t = 0.1
+    acc = 0.0
+    for _ in range(n):
+        rhs(t, s, out)
+        for j in range(N):
+            s[j] += 1e-9 * out[j]
+        acc += out[0]
+        t += 1e-5
+    return acc
+
+
+def start_state_for_breakdown():
+    """x = (0.3, -0.2), x̂ = (5, -5), Φ = I, Q = I / (γ p0) with γ p0 = 2: a state of the example."""
+    return [0.3, -0.2, 5.0, -5.0, 1.0, 0.0, 0.0, 1.0, 0.5, 0.0, 0.0, 0.5]

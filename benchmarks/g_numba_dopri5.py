@@ -71,6 +71,10 @@ def main(batches=(4096,), repeat=5, threads="one"):
     # every contender at the first batch size; at the others (an accelerator's scaling) the back-end's
     # default and the masked loop as users reach it
     sections = [_measure(b, repeat, threads, C, full=(i == 0)) for i, b in enumerate(batches)]
+    import jax
+
+    if jax.default_backend() == "cpu":
+        sections.append(_breakdown(C, repeat))
     name, title = "g_numba_dopri5", "Benchmark (g): adaptive batches against a hand-written numba Dormand–Prince"
     notes = [" ".join(p.split("\n")) for p in _NOTES.strip().split("\n\n")]
     body = "\n\n".join(sections + notes)
@@ -187,6 +191,131 @@ def _measure(batch, repeat, threads, C, full=True):
     check = [C.scipy_chen_yen(x0s[i], xh0s[i], ts, rtol=1e-12, atol=1e-14) for i in range(4)]
     ref_gap = max(float(np.max(np.abs(ref[i] - check[i]) / check[i][0])) for i in range(4))
     return _report(rows, times, first, ref, ref_gap, batch, repeat, threads, jax, np)
+
+
+def _breakdown(C, repeat):
+    """Where the masked loop's time goes on the CPU, beside numba's: per member and loop iteration
+    (one step attempt, or one initial step selection, per member and iteration), one block of the
+    default size."""
+    import _numba_chen_yen as NB
+    import diffrax
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax.flatten_util import ravel_pytree
+
+    from obsjax._integrate._adaptive_rk import adaptive_rk_solve, default_block_size
+    from obsjax._simulate import _Args, _drift
+
+    plant, obs = C.chen_yen()
+    obs = obs.prepare()
+    B = int(default_block_size(12))
+    x0s, xh0s = C.chen_yen_batch(B)
+    ends, floors = NB.segment_ends(C.T_RESET, C.T1)
+    gp, rtol, atol = C.GAMMA * C.P0, 1e-6, 1e-8
+    ts = np.linspace(0.0, C.T1, 41)
+    nseg = len(ends)
+
+    # numba: the whole solve per step attempt, and its vector field alone per evaluation
+    nb = lambda: NB.solve_batch(x0s, xh0s, ends, floors, gp, rtol, atol, 0.0, 16384)  # noqa: E731
+    _, acc, rej, _ = nb()
+    nb_attempt = _best(nb, repeat)[1] / float(np.sum(acc + rej))
+    n_eval = 200_000
+    s0, out = np.array(NB.start_state_for_breakdown()), np.empty(NB.N)
+    NB.rhs_repeat(10, s0.copy(), out)
+    nb_rhs = _best(lambda: NB.rhs_repeat(n_eval, s0.copy(), out), repeat)[1] / n_eval
+
+    # the masked loop on one block: Chen & Yen, and the same loop (resets, save times, 12 states)
+    # with a vector field of next to no cost (y' = -y)
+    args = _Args(plant, obs, None, None, None)
+    ctrl = diffrax.PIDController(rtol=rtol, atol=atol)
+    reset_ts = C.T_RESET * jnp.arange(1, nseg)
+
+    def loop(vf, y0, reset):
+        @jax.jit
+        def run(y0):
+            sol = adaptive_rk_solve(vf, y0, 0.0, C.T1, args=args, ts=ts, solver=diffrax.Dopri5(),
+                                    stepsize_controller=ctrl, reset=reset, reset_ts=reset_ts,
+                                    max_steps=16384, block_size=B)  # fmt: skip
+            return sol.num_steps, sol.status
+
+        steps, status = jax.block_until_ready(run(y0))
+        assert np.all(np.asarray(status) == 0)
+        iters = int(np.max(np.asarray(steps))) + nseg  # every segment opens with a step selection
+        cpu = _best(lambda: jax.block_until_ready(run(y0)), repeat)[1]
+        return cpu / (B * iters), float(np.sum(steps)) / (B * iters)
+
+    z0 = jax.vmap(lambda x, xh: obs.init(0.0, xh, plant.h(0.0, x, jnp.zeros(0))))(x0s, xh0s)
+    y0 = (jnp.asarray(x0s), z0)
+    cy_iter, cy_busy = loop(_drift, y0, lambda t, y, a: (y[0], a.observer.reset(t, y[1])))
+    flat = jax.vmap(lambda x, z: ravel_pytree((x, z))[0])(*y0)
+    bk_iter, bk_busy = loop(lambda t, y, a: -y, flat, lambda t, y, a: y)
+
+    # the joint vector field alone, jax.vmap-ed over the block as the loop evaluates it: each member at
+    # its own time, and (for comparison) all at one time
+    _, unravel = ravel_pytree(jax.tree_util.tree_map(lambda v: v[0], y0))
+    n_rep = 400
+
+    def vf_cost(t_axis):
+        F = jax.vmap(lambda t, u: ravel_pytree(_drift(t, unravel(u), args))[0], in_axes=(t_axis, 0))
+
+        @jax.jit
+        def run(t, Y):
+            body = lambda i, c: (c[0] + 1e-5, c[1] + 1e-9 * F(c[0], c[1]))  # noqa: E731
+            return jax.lax.fori_loop(0, n_rep, body, (t, Y))
+
+        t = jnp.full((B,), 0.1) if t_axis == 0 else jnp.asarray(0.1)
+        jax.block_until_ready(run(t, flat))
+        return _best(lambda: jax.block_until_ready(run(t, flat)), repeat)[1] / (n_rep * B)
+
+    vf_own, vf_shared = vf_cost(0), vf_cost(None)
+    ns = lambda s: f"{s * 1e9:.0f} ns"  # noqa: E731
+    rows = [
+        ("numba: one step attempt (six evaluations of the vector field, the error norm, the control)",
+         ns(nb_attempt), "1.00"),
+        ("numba: the vector field alone, one evaluation", ns(nb_rhs), f"{nb_rhs / nb_attempt:.2f}"),
+        (f"masked loop, Chen & Yen: one iteration ({100 * cy_busy:.0f} % of member-iterations are "
+         "step attempts, the rest initial step selections and finished members)",
+         ns(cy_iter), f"{cy_iter / nb_attempt:.2f}"),
+        (f"masked loop, y' = -y on the same 12 states, resets and save times: one iteration "
+         f"(its bookkeeping; {100 * bk_busy:.0f} % step attempts)", ns(bk_iter), f"{bk_iter / nb_attempt:.2f}"),
+        ("the joint vector field alone under XLA (jax.vmap over the block, each member at its own "
+         "time), one evaluation", ns(vf_own), f"{vf_own / nb_attempt:.2f}"),
+        ("the same, six evaluations (one Dormand–Prince attempt)", ns(6 * vf_own), f"{6 * vf_own / nb_attempt:.2f}"),
+        ("the same vector field with all members at one time (as in lock step), one evaluation",
+         ns(vf_shared), f"{vf_shared / nb_attempt:.2f}"),
+    ]  # fmt: skip
+    lines = [
+        "## Where the time goes (CPU)",
+        "",
+        f"CPU time per member, one block of {B} members (the loop's default on this machine), best of "
+        f"{repeat}; the last column divides by numba's cost of one step attempt.",
+        "",
+        "| what | per member | against one numba attempt |",
+        "|---|---|---|",
+    ] + [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    evals = 6 * vf_own / nb_attempt  # per member-iteration
+    floor = evals / cy_busy  # per step attempt: every member evaluates, attempting or not
+    per_attempt = cy_iter / cy_busy / nb_attempt
+    lines += [
+        "",
+        f"Per step attempt the masked loop costs {per_attempt:.2f} numba attempts (one iteration / "
+        f"{cy_busy:.2f}, the share of member-iterations that attempt a step: the others select an "
+        "initial step, once per reset segment, or wait for the block's slowest member). Of one "
+        f"iteration, the six evaluations of the vector field cost {evals:.2f} numba attempts and the "
+        f"bookkeeping (the loop with a vector field of next to no cost) {bk_iter / nb_attempt:.2f}. "
+        f"Every member of a block evaluates the vector field at every iteration, so per attempt the "
+        f"evaluations alone cost {floor:.2f} numba attempts: "
+        + ("with this loop's share of attempting members the target of 1.0× is out of reach on this "
+           "CPU whatever the bookkeeping costs, unless the vector field itself gets cheaper under XLA. "
+           if floor >= 1.0 else
+           f"1.0× needs the bookkeeping per attempt below {1.0 - floor:.2f} numba attempts. ")
+        + f"One evaluation costs {vf_own / nb_rhs:.2f}× numba's. Each member steps at its own time, so "
+        "the time-dependent coefficients of Chen & Yen's A(t), C(t) (sines, cosines, square roots) are "
+        "evaluated per member, as in numba; with all members at one time (as in lock step) the vector "
+        f"field costs {vf_shared / vf_own:.2f} of that.",
+    ]
+    return "\n".join(lines)
 
 
 _NOTES = """
