@@ -360,6 +360,7 @@ def test_the_versions_of_every_numerical_library_are_in_the_key():
     from obsjax.montecarlo import _fingerprint
 
     head = _fingerprint.header()
+    assert f"results{_fingerprint.RESULTS_REVISION}" in head  # what the integrators compute
     for pkg in ("jax=", "jaxlib=", "diffrax=", "equinox=", "lineax=", "optax=", "optimistix=",
                 "jaxtyping=", "obsjax="):  # fmt: skip
         assert pkg in head, pkg

@@ -40,6 +40,11 @@ import jax.random as jr
 import numpy as np
 
 FORMAT = 2  # checkpoint format: content fingerprints and per-file checksums
+#: Revision of what the integrators compute from the same inputs, in the header: a study checkpointed
+#: before a change of the results (not only of their rounding) is another study.  2: the schedule's time
+#: tolerance relative to the horizon, max_steps per segment in the masked loop, a reset on a plant jump
+#: as one target there.
+RESULTS_REVISION = 2
 
 # Top-level packages hashed by name (their version is part of the fingerprint header).
 _LIBRARIES = frozenset(
@@ -106,7 +111,11 @@ def header() -> str:
     other versions or under other settings is another study."""
     py = f"python{sys.version_info.major}.{sys.version_info.minor}"
     flags = [f"{f}={getattr(jax.config, f, '?')}" for f in _CONFIG_FLAGS]
-    return ";".join([f"format{FORMAT}", py] + [f"{p}={_version(p)}" for p in _VERSIONED] + flags)
+    return ";".join(
+        [f"format{FORMAT}", f"results{RESULTS_REVISION}", py]
+        + [f"{p}={_version(p)}" for p in _VERSIONED]
+        + flags
+    )
 
 
 def _canonical_node_data(data):

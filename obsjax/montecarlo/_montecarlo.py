@@ -1070,8 +1070,8 @@ def monte_carlo(
             raise ValueError(
                 f"checkpoint directory {ckpt!r} holds a different study (its fingerprint differs: "
                 "gains, plant, samplers (code, closures, globals), noise, ts, key, n, chunk size, "
-                "simulate_kwargs, study_id, the number of devices of a lock-step study or library "
-                "versions changed): delete it or choose another path."
+                "simulate_kwargs, study_id, the number of devices of a lock-step study, library "
+                "versions or the revision of obsjax's results changed): delete it or choose another path."
             )
         if n_proc > 1:
             for c in np.flatnonzero(done):
