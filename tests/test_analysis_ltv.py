@@ -141,7 +141,7 @@ def test_is_persistently_exciting_closed_form():
     assert not flat and abs(flat.eta1) < 1e-12 and abs(flat.eta2 - 1.0) < 1e-9
 
 
-@pytest.mark.parametrize("s", [1e-6, 1e-3, 1e4])
+@pytest.mark.parametrize("s", [pytest.param(1e-6, marks=pytest.mark.extended), 1e-3, 1e4])
 def test_persistent_excitation_does_not_depend_on_units(s):
     """w = s [sin t, cos t]: η1 = η2 = π s².  The verdict compared η1 with tol·max(1, η2), an absolute
     floor (False for s ≤ 1e-5 although η1/η2 = 1), and the gramian's atol was absolute (η1 1.1 % off at

@@ -291,6 +291,7 @@ def test_monte_carlo_with_a_param_sampler_takes_the_masked_loop(spy):
     np.testing.assert_allclose(res.error_norm, ref.error_norm, rtol=0, atol=1e-11)
 
 
+@pytest.mark.extended
 def test_masked_batch_counts_max_steps_per_segment_as_simulate():
     """An oscillator (ω = 20) on [0, 3] with a plant jump at 0.001 (two segments): `simulate` bounds each
     segment's solve by max_steps; the masked loop shared max_steps × (segments) among them, so a member

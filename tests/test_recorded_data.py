@@ -114,7 +114,7 @@ def test_padding_does_not_run_an_unstable_model_past_the_data():
         np.testing.assert_allclose(np.asarray(both.xhat[i, : d.K]), np.asarray(one.xhat), rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.parametrize("scale", [1.0, 1e-6])
+@pytest.mark.parametrize("scale", [pytest.param(1.0, marks=pytest.mark.extended), 1e-6])
 def test_padding_is_relative_to_the_span(scale):
     """The same two experiments (an unstable filter, 10 and 800 samples) in a time unit 1e6 times
     smaller: the padding followed the last sample by an absolute 1e-6 for spans below 1, i.e. 880 spans
