@@ -88,8 +88,49 @@ _WRAPPER_SKIP = frozenset(
 )  # fmt: skip
 
 
+#: Python's standard library, hashed by name too (its version is the header's Python version): a user
+#: function that imports ``sys``, ``os`` or ``warnings`` must not walk ``sys.modules`` or ``os.environ``
+_STDLIB = frozenset(getattr(sys, "stdlib_module_names", ()))
+
+
 def _is_library(module_name) -> bool:
-    return isinstance(module_name, str) and module_name.split(".")[0] in _LIBRARIES
+    """A module hashed by name: the numerical libraries, the standard library, and any package installed
+    in site-packages (beartype, pytest, ...: installed code, not a user's; walking its module graph from
+    a function that imports it cost seconds per call).  A user's own modules (and editable installs)
+    live elsewhere and are hashed by content."""
+    if not isinstance(module_name, str):
+        return False
+    top = module_name.split(".")[0]
+    return top in _LIBRARIES or top in _STDLIB or _installed(top)
+
+
+_INSTALLED: dict = {}
+
+
+def _installed(top: str) -> bool:
+    """Whether the imported top-level package `top` lives in site-packages (cached once imported)."""
+    if top in _INSTALLED:
+        return _INSTALLED[top]
+    mod = sys.modules.get(top)
+    f = getattr(mod, "__file__", None)
+    if not f:
+        return False
+    _INSTALLED[top] = _in_site_packages(f)
+    return _INSTALLED[top]
+
+
+def _in_site_packages(f: str) -> bool:
+    import os
+    import site
+    import sysconfig
+
+    roots = set()
+    for r in [*getattr(site, "getsitepackages", list)(), site.getusersitepackages(),
+              sysconfig.get_paths().get("purelib"), sysconfig.get_paths().get("platlib")]:  # fmt: skip
+        if r:
+            roots.add(os.path.realpath(r))
+    path = os.path.realpath(f)
+    return any(path.startswith(r + os.sep) for r in roots)
 
 
 def _version(pkg: str) -> str:
