@@ -263,7 +263,7 @@ def _compress_rows(A12, rank=None):
     else:
         r = rank
         Qr = None
-        if r is not None and 0 < r < min(m, k + 1) and not (m > k and r == k):
+        if r is not None and 0 < r < min(m, k):  # dependent rows: keep r of them
             An, inv = _rows_normalised(A12, jnp)
             Qr = inv[:, None] * jnp.linalg.svd(An, full_matrices=False)[0][:, :r]
     if r is None or r == 0 or (m <= k and r == m):
