@@ -482,3 +482,43 @@ def test_blocks_cut_args_along_their_mapped_axis():
     np.testing.assert_allclose(run(2, -1), whole, rtol=1e-13)
     with pytest.raises(ValueError, match="args"):  # a mapped leaf with another number of members
         adaptive_rk_solve(f, y0, 0.0, 1.0, args=rates[:, :4], args_axes=1, block_size=2)
+
+
+def test_reset_on_jump_matching_agrees_with_the_outer_comparison_and_scales():
+    """Which resets fall on a jump time (and which jumps on a reset) is decided against the nearest
+    neighbours in the other sorted list; it agrees with the all-pairs comparison (duplicates, NaN,
+    distances of exactly the tolerance, unsorted input), and the trace of the targets holds no
+    (B, R, J) array: with thousands of resets on a plant switching thousands of times the all-pairs
+    comparison needed gigabytes."""
+    from obsjax._integrate._adaptive_rk import _has_neighbour, _targets
+
+    rng = np.random.default_rng(0)
+    tol = np.array([1e-3, 0.0, 0.05])
+    a = np.round(rng.uniform(0, 1, (3, 40)), 2)
+    b = np.round(rng.uniform(0, 1, (3, 25)), 2)
+    a[0, :5] = b[0, :5] + 1e-3  # exactly the tolerance away
+    a[1, :3] = b[1, 3:6]  # equal
+    a[2, 0], b[2, 1] = np.nan, np.nan
+    a[2, 1] = np.inf
+    for x, y in ((a, b), (b, a)):
+        outer = np.any(np.abs(x[:, :, None] - y[:, None, :]) <= tol[:, None, None], axis=2)
+        got = np.asarray(jax.jit(_has_neighbour)(jnp.asarray(x), jnp.asarray(y), jnp.asarray(tol)))
+        np.testing.assert_array_equal(got, outer)
+    assert _has_neighbour(jnp.zeros((2, 3)), jnp.zeros((2, 0)), jnp.ones(2)).shape == (2, 3)
+
+    B, R, J = 2, 20_000, 30_000
+    jaxpr = jax.make_jaxpr(
+        lambda r, j: _targets(jnp.zeros(B), jnp.full(B, 10.0), r, j, B, jnp.float64)
+    )(jnp.zeros((B, R)), jnp.zeros((B, J)))
+
+    def sizes(jx):
+        for eqn in jx.eqns:
+            for v in eqn.outvars:
+                yield int(np.prod(v.aval.shape)) if hasattr(v.aval, "shape") else 0
+            for p in eqn.params.values():
+                for sub in p if isinstance(p, (tuple, list)) else (p,):
+                    sub = getattr(sub, "jaxpr", sub)
+                    if hasattr(sub, "eqns"):
+                        yield from sizes(sub)
+
+    assert max(sizes(jaxpr.jaxpr)) <= 4 * B * (R + J)

@@ -346,11 +346,13 @@ def _targets(t0, t1, reset_ts, jump_ts, B, dtype) -> tuple[_Targets, jax.Array]:
         # there is the one before the jump), the reset is applied at it, the next segment starts there;
         # its derivative in the reset time is the one from below, as in the other back-ends.  The jump
         # entry itself is moved past t1 (ignored).
-        near = jnp.abs(
-            jax.lax.stop_gradient(rv)[:, :, None] - jax.lax.stop_gradient(jv)[:, None, :]
-        ) <= tol_b[:, None, None]
-        reset_on_jump = jnp.any(near, axis=2)
-        jv = jnp.where(jnp.any(near, axis=1), jnp.maximum(t1[:, None], jv) + 1.0, jv)
+        # Each time is compared with its nearest neighbours in the other sorted list: memory and
+        # work O(B (R + J) log), not the O(B R J) of an outer comparison (thousands of resets on a
+        # plant switching thousands of times would need gigabytes).
+        rs, js = jax.lax.stop_gradient(rv), jax.lax.stop_gradient(jv)
+        reset_on_jump = _has_neighbour(rs, js, tol_b)
+        jump_on_reset = _has_neighbour(js, rs, tol_b)
+        jv = jnp.where(jump_on_reset, jnp.maximum(t1[:, None], jv) + 1.0, jv)
     parts, flags, jumps = [], [], []
     for v, is_reset in ((rv, True), (jv, False)):
         if v is not None:
@@ -381,6 +383,24 @@ def _targets(t0, t1, reset_ts, jump_ts, B, dtype) -> tuple[_Targets, jax.Array]:
     first = jnp.sum(fixed <= (t0[:, None] + tol), axis=1).astype(jnp.int32)
     first = jnp.minimum(first, value.shape[1] - 1)
     return _Targets(value, end, floor, reset, final, motion, tol_b), first
+
+
+def _has_neighbour(a, b, tol):
+    """(B, Ra) bool: a[i, r] is within tol[i] of some b[i, :] (NaN is near nothing).
+
+    The nearest entries of the sorted b bracket a[i, r] (searchsorted); if any entry is within tol,
+    one of those two is."""
+    if b.shape[1] == 0 or a.shape[1] == 0:
+        return jnp.zeros(a.shape, bool)
+
+    def one(ai, bi, ti):
+        bs = jnp.sort(bi)  # NaNs last
+        k = jnp.searchsorted(bs, ai)
+        lo = bs[jnp.clip(k - 1, 0, bs.shape[0] - 1)]
+        hi = bs[jnp.clip(k, 0, bs.shape[0] - 1)]
+        return (jnp.abs(ai - lo) <= ti) | (jnp.abs(ai - hi) <= ti)
+
+    return jax.vmap(one)(a, b, tol)
 
 
 def _pick(arr, k):
