@@ -141,6 +141,30 @@ def test_is_persistently_exciting_closed_form():
     assert not flat and abs(flat.eta1) < 1e-12 and abs(flat.eta2 - 1.0) < 1e-9
 
 
+def test_short_pulses_in_a_callable_regressor_are_integrated_at_their_declared_jump_times():
+    """w = [p(t), 1] with p a pulse of width 1e-4 in each window of length 1: ∫ w wᵀ = [[δ, δ], [δ, 1]]
+    per window, δ = 1e-4.  Without its jump times the integrator stepped over every pulse and both tests
+    called the regressor not exciting (η1 = 0); with `jump_ts` they give the closed form."""
+    width = 1e-4
+
+    def w(t):
+        r = jnp.mod(t, 1.0)
+        return jnp.array([jnp.where((r >= 0.5) & (r < 0.5 + width), 1.0, 0.0), 1.0 + 0.0 * t])
+
+    jumps = np.concatenate([np.arange(5) + 0.5 + width, np.arange(5) + 0.5])  # unsorted on purpose
+    exact = np.linalg.eigvalsh(np.array([[width, width], [width, 1.0]]))
+    pe = an.is_persistently_exciting(w, 1.0, 5.0, jump_ts=jumps)
+    assert pe
+    np.testing.assert_allclose([pe.eta1, pe.eta2], exact, rtol=1e-8)
+    mn = an.morgan_narendra(w, 1.0, 5.0, jump_ts=jumps)
+    assert mn
+    np.testing.assert_allclose([mn.eta1, mn.eta2], exact, rtol=1e-8)
+    with pytest.raises(ValueError, match="jump_ts"):
+        an.is_persistently_exciting(w, 1.0, 5.0, jump_ts=[0.5, np.nan])
+    with pytest.raises(ValueError, match="plant declares"):
+        an.is_persistently_exciting(SW, 0.93, 9.3, jump_ts=[1.0])
+
+
 @pytest.mark.parametrize("s", [pytest.param(1e-6, marks=pytest.mark.extended), 1e-3, 1e4])
 def test_persistent_excitation_does_not_depend_on_units(s):
     """w = s [sin t, cos t]: η1 = η2 = π s².  The verdict compared η1 with tol·max(1, η2), an absolute

@@ -34,7 +34,7 @@ _SOLVER = diffrax.Dopri8
 def _controller(plant, rtol, atol):
     pid = diffrax.PIDController(rtol=rtol, atol=atol)
     jumps = getattr(plant, "jump_ts", None) if plant is not None else None
-    if jumps:
+    if jumps is not None and jnp.size(jnp.asarray(jumps)) > 0:
         return diffrax.ClipStepSizeController(pid, jump_ts=jnp.asarray(jumps, dtype=float))
     return pid
 
@@ -350,7 +350,7 @@ def chen_yen_bound(plant, gamma, p0, T, horizon, *, t0=0.0, n_grid=129) -> jax.A
 class PersistentExcitation:
     """Result of :func:`is_persistently_exciting`: ``bool(result)`` is `excited`.
 
-    - `excited`: η1 > tol, i.e. (7) holds on every window of the horizon.
+    - `excited`: η1 > tol·η2, i.e. (7) holds on every window of the horizon.
     - `eta1`, `eta2`: smallest and largest eigenvalue of ∫ w wᵀ over the windows (7).
     - `per_window`: (K, 2) array of (λ_min, λ_max) per window.
     """
@@ -364,7 +364,7 @@ class PersistentExcitation:
         return bool(self.excited)
 
 
-def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, atol=_ATOL):
+def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, jump_ts=None, rtol=_RTOL, atol=_ATOL):
     """Persistent excitation (Chen & Yen Definition 2, (7)) of a regressor over a horizon.
 
         η1 I ≤ ∫_{kT-T}^{kT} w(τ) wᵀ(τ) dτ ≤ η2 I     for every window in [t0, t0 + horizon].
@@ -377,6 +377,10 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
     - `tol`: η1 must exceed `tol`·η2 for the regressor to count as exciting (relative: the verdict does not
       depend on the regressor's units).  The gramians are integrated for the regressor divided by its
       largest entry on a probe grid (and multiplied back), so `atol` is relative to that scale too.
+    - `jump_ts`: for a callable `w`, the times where it is discontinuous (pulses, switches, a sampled
+      signal's knots).  The integrator steps onto each, so a pulse shorter than its steps is not stepped
+      over: without them, a regressor that is zero but for pulses of width 1e-4 was called not exciting
+      (η1 = 0).  A plant declares its own ``jump_ts``.
 
     **Returns:** :class:`PersistentExcitation` (truthy when exciting) with η1, η2 and per-window values.
 
@@ -394,7 +398,17 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
     K = _n_periods(T, horizon)
     starts = t0 + T * jnp.arange(K, dtype=float)
     probe = t0 + (K * T) * np.linspace(0.0, 1.0, 33)
+    breaks = _jump_times(jump_ts, "jump_ts")
+    if breaks is not None:
+        inside = np.sort(breaks[(breaks >= t0) & (breaks <= t0 + K * T)])
+        # the value at each break and between consecutive ones (a pulse's height enters the scale)
+        probe = np.concatenate([probe, inside, 0.5 * (inside[1:] + inside[:-1])])
     if hasattr(w, "A_of") and hasattr(w, "C_of"):
+        if breaks is not None:
+            raise ValueError(
+                "`jump_ts` is for a callable regressor; a plant declares its discontinuities as its own "
+                "`jump_ts` (e.g. obsjax.LTV(A, C, jump_ts=...))."
+            )
         sigma = _probe_scale(lambda t: w.C_of(t), probe)
         Gs = _periods(_ScaledOutput(w, sigma), _pad(starts), jnp.asarray(T), 2, rtol, atol)[2][:K]
         Gs = Gs * sigma**2
@@ -422,7 +436,8 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
                 return ws @ ws.T
 
             G = _solve(
-                rhs, None, a, a + T, jnp.zeros((n, n)), diffrax.SaveAt(t1=True), rtol, atol, 65536
+                rhs, _Breaks(breaks), a, a + T, jnp.zeros((n, n)), diffrax.SaveAt(t1=True), rtol, atol,
+                65536,
             )[0]
             return 0.5 * (G + G.T)
 
@@ -436,6 +451,25 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, rtol=_RTOL, ato
     per = np.stack([eig[:, 0], eig[:, -1]], axis=1)
     eta1, eta2 = float(per[:, 0].min()), float(per[:, 1].max())
     return PersistentExcitation(bool(eta2 > 0.0 and eta1 > tol * eta2), eta1, eta2, per)
+
+
+class _Breaks(NamedTuple):
+    """Declared discontinuities of a callable (read by :func:`_controller` as a plant's ``jump_ts``)."""
+
+    jump_ts: Any
+
+
+def _jump_times(jump_ts, name):
+    """`jump_ts` as a finite 1-D float64 numpy array, or None."""
+    if jump_ts is None:
+        return None
+    v = concrete_value(jnp.asarray(jump_ts, dtype=float))
+    if v is None:
+        raise ValueError(f"`{name}` must be concrete times (not traced), got a tracer.")
+    v = np.asarray(v, dtype=float).reshape(-1) if np.ndim(v) <= 1 else None
+    if v is None or not np.all(np.isfinite(v)):
+        raise ValueError(f"`{name}` must be a 1-D sequence of finite times, got {np.asarray(jump_ts).tolist()}.")
+    return np.sort(v) if v.size else None
 
 
 class _ScaledOutput(eqx.Module):

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._ltv import _ATOL, _RTOL, _finite_float, _n_periods, _pos_float, _solve, _solver_tolerances, _threshold
+from ._ltv import _ATOL, _RTOL, _Breaks, _finite_float, _jump_times, _n_periods, _pos_float, _solve, _solver_tolerances, _threshold
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,7 +69,7 @@ class MorganNarendra:
 
 
 def morgan_narendra(
-    B, T, horizon, *, delta0=None, t0=0.0, tol=1e-9, rtol=_RTOL, atol=_ATOL
+    B, T, horizon, *, delta0=None, t0=0.0, tol=1e-9, jump_ts=None, rtol=_RTOL, atol=_ATOL
 ) -> MorganNarendra:
     """Morgan–Narendra richness of a regressor B(t) over a horizon (thesis (4.20)-(4.21)).
 
@@ -99,6 +99,9 @@ def morgan_narendra(
     - `T`: window length (> 0); `horizon`: analysed time (K = ⌊horizon / T⌋ ≥ 1 windows); `t0`: origin.
     - `delta0`: δ_0 of (ii) (default T / 4).
     - `tol`: relative threshold of the verdict (and of ε_0 > 0).
+    - `jump_ts`: the times where B is discontinuous (pulses, switches, a sampled signal's knots); the
+      integrator steps onto each (and onto each less δ0, for the moving integral), so a pulse shorter than
+      its steps is not stepped over.
 
     **Returns:** a :class:`MorganNarendra`.
 
@@ -118,7 +121,12 @@ def morgan_narendra(
     K = _n_periods(T, horizon)
     n, m = _signal_shape(B, float(t0))
     starts = float(t0) + T * jnp.arange(K, dtype=float)
-    Gs, Hs, contraction = _windows(B, starts, jnp.asarray(T), jnp.asarray(delta0), n, m, rtol, atol)
+    breaks = _jump_times(jump_ts, "jump_ts")
+    if breaks is not None:
+        breaks = jnp.asarray(np.unique(np.concatenate([breaks, breaks - delta0])))
+    Gs, Hs, contraction = _windows(
+        B, starts, jnp.asarray(T), jnp.asarray(delta0), n, m, rtol, atol, breaks
+    )
     evals, evecs = np.linalg.eigh(np.asarray(Gs))
     lam_min, lam_max = evals[:, 0], evals[:, -1]
     h = np.linalg.eigvalsh(np.asarray(Hs))
@@ -152,14 +160,14 @@ def _matrix(B, t, n, m):
 
 
 @eqx.filter_jit
-def _windows(B, starts, T, delta0, n, m, rtol, atol):
+def _windows(B, starts, T, delta0, n, m, rtol, atol, breaks=None):
     """Per window: ∫ B Bᵀ, ∫ M Mᵀ (M(τ) = ∫_τ^{τ+δ0} B) and ‖Φ‖₂ of ẋ = −B Bᵀ x (one compilation per
     structure of B: a module with array leaves is traced once)."""
 
     def window(s):
         lead0 = _solve(
             lambda tau, c, args: _matrix(B, tau, n, m),
-            None,
+            _Breaks(breaks),
             s,
             s + delta0,
             jnp.zeros((n, m)),
@@ -178,7 +186,7 @@ def _windows(B, starts, T, delta0, n, m, rtol, atol):
 
         y0 = (jnp.zeros((n, m)), lead0, jnp.zeros((n, n)), jnp.zeros((n, n)), jnp.eye(n))
         _, _, G, H, Phi = _solve(
-            rhs, None, s, s + T, y0, diffrax.SaveAt(t1=True), rtol, atol, 65536
+            rhs, _Breaks(breaks), s, s + T, y0, diffrax.SaveAt(t1=True), rtol, atol, 65536
         )
         return 0.5 * (G[0] + G[0].T), 0.5 * (H[0] + H[0].T), jnp.linalg.norm(Phi[0], 2)
 
