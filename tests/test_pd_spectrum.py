@@ -170,3 +170,60 @@ def test_matrix_rho_bar_is_refused():
 def test_ramp_bandwidth_must_be_positive():
     with pytest.raises(ValueError, match="tau.*> 0"):
         RampBandwidth(1.0, 2.0, 0.0)
+
+
+# ------------------------------------------------------------------ bad bandwidths, ε and ρ̄
+
+_A3 = lambda t: jnp.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -0.5]]) + 0.0 * t
+_C3 = lambda t: jnp.array([[1.0, 0.0, 0.0]]) + 0.0 * t
+_RHO3 = jnp.array([-1.0, -2.0, -3.0])
+
+
+def test_a_bandwidth_that_is_not_positive_where_it_is_used_is_refused():
+    """A callable ω was never checked: ω(t) = −2 placed eig(A + KC) = {+2, +4, +6} (an unstable observer)
+    and ω(t) = t − 0.5 at t = 0.5 gave a NaN gain, both without a word; a TLO with ω = −2 ran with status
+    0 while its error grew to 1e12.  Now ValueError eagerly, eqx.error_if traced; the constant ω and ε are
+    checked for finiteness too (ε = ∞ gave NaN)."""
+    from obsjax.design import pd_controller_gain, pd_coefficients, pd_observer_gain
+
+    K = pd_observer_gain(_A3, _C3, _RHO3, 2.0, 0.0).Ko  # the reference: eig = ρ̄ω
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(_A3(0.0) + K @ _C3(0.0)).real), [-6, -4, -2], rtol=1e-10)
+    for omega, t in ((lambda t: -2.0 + 0 * t, 0.0), (lambda t: t - 0.5, 0.5), (float("inf"), 0.0)):
+        with pytest.raises(ValueError, match="omega"):
+            pd_observer_gain(_A3, _C3, _RHO3, omega, t)
+    with pytest.raises(ValueError, match="omega"):
+        pd_coefficients(_RHO3, obsjax.design.RampBandwidth(0.5, 4.0, 1.0), -1.0)  # the ramp is < 0 there
+    with pytest.raises(ValueError, match="omega"):
+        pd_controller_gain(_A3, lambda t: jnp.array([[0.0], [0.0], [1.0]]), _RHO3, lambda t: -2.0 + 0 * t, 0.0)
+    for eps, what in ((float("inf"), "finite"), (0.0, "> 0"), (jnp.array([0.5, 1.0]), "scalar")):
+        with pytest.raises(ValueError, match="eps"):
+            pd_observer_gain(_A3, _C3, _RHO3, 2.0, 0.0, eps=eps)
+    gj = jax.jit(lambda e, w: pd_observer_gain(_A3, _C3, _RHO3, lambda t: w + 0 * t, 0.0, eps=e, indices=(3,)).Ko)
+    np.testing.assert_allclose(gj(1.0, 2.0), K, rtol=1e-12)
+    for e, w in ((-1.0, 2.0), (1.0, -2.0), (0.0, 2.0), (1.0, float("nan"))):
+        with pytest.raises(Exception, match="eps|bandwidth"):
+            jax.block_until_ready(gj(e, w))
+
+
+def test_tlo_with_a_negative_bandwidth_stops_instead_of_diverging():
+    model = obsjax.LTV(lambda t: _A3(t), _C3)
+    ok = obsjax.TrajectoryLinearization(model, rho_bar=_RHO3, omega=lambda t: 2.0 + 0 * t, eps=1.0)
+    bad = obsjax.TrajectoryLinearization(model, rho_bar=_RHO3, omega=lambda t: 2.0 - 2.0 * t, eps=1.0)
+    ts = jnp.linspace(0.0, 2.0, 5)
+    x0, xh0 = jnp.array([1.0, 0.5, -0.5]), jnp.zeros(3)
+    tr = obsjax.simulate(model, ok, x0, xh0, ts, rtol=1e-8, atol=1e-10)
+    assert int(tr.status) == 0 and float(jnp.linalg.norm(tr.error[-1])) < float(jnp.linalg.norm(tr.error[0]))
+    with pytest.raises(Exception, match="bandwidth"):  # ω crosses 0 at t = 1
+        obsjax.simulate(model, bad, x0, xh0, ts, rtol=1e-8, atol=1e-10)
+
+
+def test_nearly_repeated_nominal_pd_eigenvalues_are_refused():
+    """ρ̄ = (−1, −1 − 1e-14, −2) passed the exact distinctness test and gave coefficients 6 % off (the
+    Vandermonde solve); values closer than 1e-8·max|ρ̄| are refused now, and 1e-4 apart stay exact."""
+    from obsjax.design import pd_coefficients
+
+    with pytest.raises(ValueError, match="distinct"):
+        pd_coefficients(jnp.array([-1.0, -1.0 - 1e-14, -2.0]), 3.0, 0.0)
+    rb = np.array([-1.0, -1.0 - 1e-4, -2.0])
+    exact = np.poly(rb * 3.0)[1:][::-1]  # α_1 … α_n of Π(s − ρ̄ω)
+    np.testing.assert_allclose(pd_coefficients(jnp.asarray(rb), 3.0, 0.0), exact, rtol=1e-9)

@@ -522,7 +522,7 @@ def test_nonpositive_eps_is_refused():
 
 
 def test_nonpositive_omega_is_refused():
-    with pytest.raises(ValueError, match="`omega` must be > 0"):
+    with pytest.raises(ValueError, match="`omega` must be finite and > 0"):
         obsjax.TrajectoryLinearization(_vdp_model(), [-1.0, -2.0], -1.0, 1.0)
 
 

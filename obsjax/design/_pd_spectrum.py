@@ -90,9 +90,38 @@ def omega_function(omega, name: str = "omega") -> Callable:
             f"`{name}` must be a positive scalar or a callable of t, got shape {tuple(w.shape)}."
         )
     c = concrete_value(w)
-    if c is not None and not c > 0:
-        raise ValueError(f"`{name}` must be > 0 (a bandwidth), got {float(c)}.")
+    if c is not None and not (np.isfinite(c) and c > 0):
+        raise ValueError(f"`{name}` must be finite and > 0 (a bandwidth), got {float(c)}.")
     return lambda t: w + jnp.zeros_like(t)
+
+
+#: the smallest relative gap min|ρ̄_i − ρ̄_j| / max|ρ̄| of nominal PD-eigenvalues (the synthesis solves the
+#: Vandermonde system V̄(ρ̄), whose error grows like the rounding unit over the gap)
+RHO_BAR_MIN_GAP = 1e-8
+
+
+def guard_bandwidth(omega_fn: Callable, t, result, name: str = "omega"):
+    """`result`, refused unless the bandwidth ω(t) is a finite positive scalar: ``ValueError`` when ω(t)
+    is concrete, ``eqx.error_if`` when it is traced (a callable ω is not checked at construction: a ramp
+    that turns negative before t = 0, or a tuned leaf, would otherwise place ρ̄ω with the wrong sign,
+    an unstable observer reported as a success)."""
+    wt = jnp.asarray(omega_fn(t))
+    if wt.ndim != 0:
+        raise ValueError(f"`{name}(t)` must be a scalar (a bandwidth), got shape {tuple(wt.shape)}.")
+    c = concrete_value(wt)
+    if c is not None:
+        if not (np.isfinite(c) and c > 0):
+            raise ValueError(
+                f"`{name}` must be a finite bandwidth > 0 wherever it is used, got {float(c)} at "
+                f"t = {float(concrete_value(jnp.asarray(t)))}."
+            )
+        return result
+    return eqx.error_if(
+        result,
+        ~(jnp.isfinite(wt) & (wt > 0)),
+        f"`{name}` (the bandwidth) must be finite and > 0 wherever it is used: the PD-spectrum ρ̄_k·ω(t) "
+        "would have the wrong sign or be undefined.",
+    )
 
 
 def check_rho_bar(
@@ -112,11 +141,14 @@ def check_rho_bar(
     if c is not None:
         if negative and not np.all(c < 0):
             raise ValueError(f"`{name}` must be < 0 for a stable observer, got {c.tolist()}.")
-        if distinct and len(np.unique(c)) != len(c):
-            raise ValueError(
-                f"`{name}` must hold distinct values (the Vandermonde matrix V̄(ρ̄) of (21) must be "
-                f"invertible), got {c.tolist()}."
-            )
+        if distinct and len(c) > 1:
+            gaps = np.abs(c[:, None] - c[None, :])[~np.eye(len(c), dtype=bool)]
+            if not np.min(gaps) > RHO_BAR_MIN_GAP * np.max(np.abs(c)):
+                raise ValueError(
+                    f"`{name}` must hold distinct values, at least {RHO_BAR_MIN_GAP:g}·max|ρ̄| apart (the "
+                    "Vandermonde matrix V̄(ρ̄) of (21) is solved: with values 1e-14 apart the coefficients "
+                    f"were 6 % off), got {c.tolist()}."
+                )
     return r
 
 
@@ -160,7 +192,7 @@ def pd_modal_matrix(rho_bar, omega, t) -> jax.Array:
     """
     require_x64("pd_modal_matrix")
     M = _modal(rho_bar, omega, t)
-    return M[:-1]
+    return guard_bandwidth(omega_function(omega), _as_time(t), M[:-1])
 
 
 def pd_coefficients(rho_bar, omega, t) -> jax.Array:
@@ -188,7 +220,7 @@ def pd_coefficients(rho_bar, omega, t) -> jax.Array:
     require_x64("pd_coefficients")
     M = _modal(rho_bar, omega, t)
     V, last = M[:-1], M[-1]
-    return -jnp.linalg.solve(V.T, last)
+    return guard_bandwidth(omega_function(omega), _as_time(t), -jnp.linalg.solve(V.T, last))
 
 
 def _rpdo_map(n: int) -> np.ndarray:
@@ -284,9 +316,15 @@ def pd_observer_gain(
         )
     w = omega_function(omega)
     eps = as_float_array(eps, "eps")
+    if eps.ndim != 0:
+        raise ValueError(f"`eps` (the high-gain factor) must be a scalar, got shape {tuple(eps.shape)}.")
     ce = concrete_value(eps)
-    if ce is not None and not np.all(ce > 0):
-        raise ValueError(f"`eps` must be > 0, got {ce.tolist()}.")
+    if ce is not None and not (np.isfinite(ce) and ce > 0):
+        raise ValueError(f"`eps` (the high-gain factor) must be finite and > 0, got {float(ce)}.")
+    if ce is None:
+        eps = eqx.error_if(
+            eps, ~(jnp.isfinite(eps) & (eps > 0)), "`eps` (the high-gain factor) must be finite and > 0."
+        )
 
     def omega_H(s):
         return w(s) / eps

@@ -110,7 +110,9 @@ class TrajectoryLinearization(AbstractObserver):
     - `rho_bar`: (n,) nominal PD-eigenvalues ρ̄_k < 0, distinct within each output block, listed block by
       block (p_1 values for output 1, then p_2 for output 2, …).
     - `omega`: the bandwidth ω > 0: a constant or a callable of t (e.g. :class:`obsjax.design.RampBandwidth`;
-      its array leaves are tunable).
+      its array leaves are tunable).  A callable is checked where the gain is evaluated: ω(t) ≤ 0 or
+      not finite there raises (``ValueError`` eagerly, ``eqx.error_if`` in a simulation), since the
+      PD-spectrum ρ̄_k ω(t) would have the wrong sign (an unstable observer).
     - `eps`: the high-gain factor ε > 0 (ω_H = ω/ε).
     - `nominal`: ``None`` or a callable t ↦ (ξ̄(t), μ̄(t)).
     - `indices`: the observability indices (p_1, …, p_m) of (A_o, C_o); computed at t = 0 along the nominal
@@ -123,8 +125,8 @@ class TrajectoryLinearization(AbstractObserver):
       (:func:`obsjax.design.strong_observability`).  A margin of the rows of Q_0 at or below it stops
       the simulation (``eqx.error_if``), and a margin of Q below it fails the `check_ts` check.
     - `stiff_rate`: see Stiffness.
-    - `on_unobservable`: ``"error"`` (default) raises at run time (``eqx.error_if``) when |det Q_0ᵀQ_0|
-      falls to `threshold` along the trajectory; ``"nan"`` makes the gain NaN instead, so that in a
+    - `on_unobservable`: ``"error"`` (default) raises at run time (``eqx.error_if``) when the staircase
+      margin of Q_0 (see `threshold`) falls to `threshold` along the trajectory; ``"nan"`` makes the gain NaN instead, so that in a
       vmapped study only that trajectory fails (``simulate(..., throw=False)`` reports status 2).
 
     **Example:** Van der Pol oscillator, y = x₁::
