@@ -732,3 +732,72 @@ def test_kreisselmeier_order_must_be_a_positive_integer(n):
     """n = 2.5 was truncated to 2 without a word."""
     with pytest.raises(ValueError, match=r"`n` \(the plant order\) must be an integer >= 1"):
         obsjax.Kreisselmeier(n, [-1.0, -2.0], np.ones(4))
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: obsjax.MinimalAdaptiveObserver(2, filter_poles=[-1.0], lam=1.0, Gamma=20.0),
+        lambda: obsjax.NonMinimalAdaptiveObserver(2, filter_poles=[-1.0], lam0=1.0, Gamma=20.0),
+        lambda: obsjax.Kreisselmeier(2, [-2.0, -2.0], 10.0, "integral", q=0.2),
+        lambda: obsjax.LudersNarendra(2, lambdas=[1.0, 0.5], c=[28.0, 21.0], d=[5.0, 5.0]),
+    ],
+    ids=["minimal", "non-minimal", "Kreisselmeier", "Luders-Narendra"],
+)
+def test_siso_adaptive_observers_refuse_plants_with_several_inputs_or_outputs(make):
+    """The plant forms (4.12), (5.1), (6.1) are single-input single-output.  A plant with two inputs was
+    accepted and its second input silently dropped: status 0 and (â, b̂) = (−0.67, 0.82), (1.46, 0.02)
+    for (2, 2), (1, 1) (the minimal observer); now a ValueError naming the signal."""
+    A = np.asarray(obsjax.kreisselmeier_form(np.array([2.0, 2.0]), np.array([1.0, 1.0])).A)
+    b = np.array([[1.0], [1.0]])
+    ts = jnp.linspace(0.0, 1.0, 3)
+    two_in = obsjax.LTI(A, np.c_[b, [0.5, -1.0]], np.eye(1, 2))
+    two_out = obsjax.LTI(A, b, np.array([[0.0, 1.0], [1.0, 0.0]]))
+    for plant, sig, u in ((two_in, "`u`", jnp.ones(2)), (two_out, "`y`", jnp.ones(1))):
+        with pytest.raises(ValueError, match=f"single-input single-output.*{sig}"):
+            obsjax.simulate(plant, make(), jnp.ones(2), jnp.zeros(2), ts, u=lambda t, u=u: u)
+    one = obsjax.LTI(A, b, np.eye(1, 2))
+    tr = obsjax.simulate(one, make(), jnp.ones(2), jnp.zeros(2), ts, u=lambda t: jnp.ones(1))
+    assert int(tr.status) == 0
+
+
+def test_morgan_narendra_refuses_a_non_finite_regressor_at_once():
+    """A regressor that is NaN used up the integrator's whole step budget (7 s) before failing with
+    'maximum number of solver steps'; it is refused before integrating now, at t0 and later."""
+    with pytest.raises(ValueError, match="finite"):
+        obsjax.analysis.morgan_narendra(lambda t: jnp.array([jnp.nan, 1.0]), T=1.0, horizon=5.0)
+    with pytest.raises(ValueError, match=r"t = 2\.4"):
+        obsjax.analysis.morgan_narendra(
+            lambda t: jnp.array([jnp.where(t > 2.4, jnp.nan, 1.0), jnp.sin(t)]), T=1.0, horizon=5.0
+        )
+
+
+def test_traced_adaptive_gains_and_poles_keep_the_eager_checks():
+    """Under jit the guards tested only Re < 0 and the eigenvalues of the symmetric part: a
+    non-symmetric Γ was used as it is, filter poles (−1 + j, −1 + 2j) (not closed under conjugation)
+    became the filter s² + 2s − 1 with a root at +0.41, and Γ = ∞ reached the generic non-finite error.
+    Each is refused by name now; valid traced values still run."""
+    import equinox as eqx
+
+    ts = jnp.linspace(0.0, 5.0, 11)
+    plant = obsjax.kreisselmeier_form([3.0, 4.0, 2.5], [1.0, 0.5, 2.0])
+    u = obsjax.signals.multisine([1.0, 0.8, 0.6], [0.5, 1.3, 2.7])
+    x0 = jnp.array([0.3, -0.2, 0.5])
+
+    def run(G, fp):
+        obs = obsjax.MinimalAdaptiveObserver(3, fp, 1.5, G)
+        return obsjax.simulate(plant, obs, x0, jnp.zeros(3), ts, u=u).xhat[-1]
+
+    run_j = eqx.filter_jit(run)
+    good = np.asarray(run_j(jnp.asarray(2.0 * np.eye(6)), jnp.array([-1.0, -2.0])))
+    np.testing.assert_allclose(good, run(2.0 * np.eye(6), [-1.0, -2.0]), rtol=1e-10, atol=1e-12)
+    for G, fp, what in (
+        (np.eye(6) + 0.3 * np.triu(np.ones((6, 6)), 1), np.array([-1.0, -2.0]), "Gamma"),
+        (np.asarray(np.inf), np.array([-1.0, -2.0]), "Gamma"),
+        (2.0 * np.eye(6), np.array([-1 + 1j, -1 + 2j]), "filter_poles"),
+        (2.0 * np.eye(6), np.array([np.nan, -2.0]), "filter_poles"),
+    ):
+        with pytest.raises(Exception, match=f"`{what}` must be finite"):
+            jax.block_until_ready(run_j(jnp.asarray(G), jnp.asarray(fp)))
+    pair = jnp.array([-1 + 1j, -1 - 1j])  # a conjugate pair passes traced too
+    assert np.all(np.isfinite(np.asarray(run_j(jnp.asarray(2.0 * np.eye(6)), pair))))

@@ -120,6 +120,14 @@ def morgan_narendra(
     delta0 = T / 4.0 if delta0 is None else _pos_float(delta0, "delta0")
     K = _n_periods(T, horizon)
     n, m = _signal_shape(B, float(t0))
+    probe = float(t0) + K * T * np.linspace(0.0, 1.0, 65)
+    vals = np.asarray(jax.vmap(lambda s: _matrix(B, s, n, m))(jnp.asarray(probe)))
+    bad = ~np.all(np.isfinite(vals), axis=(1, 2))
+    if bad.any():
+        raise ValueError(
+            f"`B(t)` must be finite over the horizon; it is not at t = {probe[np.argmax(bad)]:g} (a non-finite "
+            "regressor would exhaust the integrator's step budget before failing)."
+        )
     starts = float(t0) + T * jnp.arange(K, dtype=float)
     breaks = _jump_times(jump_ts, "jump_ts")
     if breaks is not None:
@@ -208,5 +216,10 @@ def _signal_shape(B, t0):
     if b0.ndim not in (1, 2):
         raise ValueError(
             f"`B(t)` must return an (n,) or (n, m) array, got shape {tuple(b0.shape)}."
+        )
+    if not bool(jnp.all(jnp.isfinite(b0))):
+        raise ValueError(
+            f"`B(t)` must be finite: B({float(t0)}) = {np.asarray(b0).tolist()} (a non-finite regressor "
+            "would exhaust the integrator's step budget before failing)."
         )
     return b0.shape[0], 1 if b0.ndim == 1 else b0.shape[1]

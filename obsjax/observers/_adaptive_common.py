@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -93,15 +94,20 @@ def lyapunov(K, Q) -> jnp.ndarray:
     return 0.5 * (P + P.T)
 
 
-def poly_from_roots(roots) -> jnp.ndarray:
-    """Real coefficients (c1, ..., cn) of Π (s − r_i) = s^n + c1 s^{n−1} + ... + cn."""
+def _poly_coefficients(roots) -> jnp.ndarray:
+    """Coefficients (c1, ..., cn) of Π (s − r_i) (complex for complex roots)."""
     roots = jnp.asarray(roots)
     coeffs = jnp.ones((1,), dtype=jnp.result_type(roots.dtype, jnp.float64))
     for k in range(roots.shape[0]):
         coeffs = jnp.concatenate([coeffs, jnp.zeros((1,), coeffs.dtype)]) - roots[
             k
         ] * jnp.concatenate([jnp.zeros((1,), coeffs.dtype), coeffs])
-    return jnp.real(coeffs[1:])
+    return coeffs[1:]
+
+
+def poly_from_roots(roots) -> jnp.ndarray:
+    """Real coefficients (c1, ..., cn) of Π (s − r_i) = s^n + c1 s^{n−1} + ... + cn."""
+    return jnp.real(_poly_coefficients(roots))
 
 
 def check_stable_roots(roots, name: str, size: int | None = None) -> jnp.ndarray:
@@ -138,15 +144,40 @@ def check_stable_roots(roots, name: str, size: int | None = None) -> jnp.ndarray
 
 
 def traced_positive(arr, name: str):
-    """``eqx.error_if`` guard (survives jit) that a scalar/vector gain is > 0 or a matrix gain is s.p.d."""
+    """``eqx.error_if`` guard (survives jit) that a scalar/vector gain is finite and > 0, or a matrix gain
+    finite, symmetric (to 1e-10 relative, as :func:`check_gain`) and positive definite: the Lyapunov
+    arguments of the adaptive laws need Γ = Γᵀ > 0, and a traced Γ that is not is otherwise used as it is."""
     import equinox as eqx
 
     arr = jnp.asarray(arr)
+    bad = jnp.any(~jnp.isfinite(arr))
     if arr.ndim <= 1:
-        bad = jnp.any(~(arr > 0))
+        bad = bad | jnp.any(~(arr > 0))
+        what = "finite and > 0"
     else:
-        bad = jnp.any(~(jnp.linalg.eigvalsh(0.5 * (arr + arr.T)) > 0))
-    return eqx.error_if(arr, bad, f"`{name}` must be > 0 (positive definite for a matrix).")
+        asym = jnp.max(jnp.abs(arr - arr.T)) > 1e-10 * jnp.max(jnp.abs(arr))
+        bad = bad | asym | jnp.any(~(jnp.linalg.eigvalsh(0.5 * (arr + arr.T)) > 0))
+        what = "finite, symmetric and positive definite"
+    return eqx.error_if(arr, bad, f"`{name}` must be {what}.")
+
+
+def traced_stable_roots(roots, name: str):
+    """``eqx.error_if`` guard (survives jit) that eigenvalues are finite, in the open left half-plane and,
+    when complex, closed under conjugation: the real polynomial Π(s − r_i) is formed from them, and for a
+    set that is not closed its real part has other roots (−1 ± j, −1 + 2j gave s² + 2s − 1, a root at
+    +0.41).  The test is |Im c_k| ≤ 1e-8 · e_k(|r|), e_k the bound of |c_k|, so it does not depend on the
+    time unit."""
+    import equinox as eqx
+
+    r = jnp.asarray(roots)
+    bad = jnp.any(~jnp.isfinite(r)) | jnp.any(~(jnp.real(r) < 0))
+    if jnp.iscomplexobj(r) and r.shape[0] > 0:
+        c = _poly_coefficients(r)
+        bound = jnp.real(_poly_coefficients(-jnp.abs(r)))
+        bad = bad | jnp.any(jnp.abs(jnp.imag(c)) > 1e-8 * bound)
+    return eqx.error_if(
+        r, bad, f"`{name}` must be finite, in the open left half-plane (Re < 0) and closed under conjugation."
+    )
 
 
 # --------------------------------------------------------------------------- chapter 4, section 4.5
@@ -230,3 +261,19 @@ def quadratic_weight(Gamma, mask, theta) -> jnp.ndarray:
     Guu = G[np.ix_(idx, idx)]
     sol = jnp.linalg.solve(Guu, jnp.moveaxis(th, -1, 0).reshape(idx.size, -1))
     return jnp.sum(th * sol.T.reshape(th.shape), axis=-1)
+
+
+def siso_signal(v, name: str, who: str) -> jax.Array:
+    """The scalar of a single-input single-output observer's signal `name` (y or u).
+
+    Hassan's plant forms (4.12), (5.1) and (6.1) have one input and one output (y = x₁); a plant with
+    several was accepted before and every channel but the first silently dropped (status 0, wrong
+    parameter estimates).  Shapes are static, so this refuses eagerly, also under ``jit``."""
+    v = jnp.asarray(v)
+    if v.size != 1:
+        raise ValueError(
+            f"{who} is single-input single-output (the plant forms (4.12), (5.1), (6.1)): `{name}` must have "
+            f"one entry, got shape {tuple(v.shape)}; the plant has {v.size} "
+            f"{'outputs' if name == 'y' else 'inputs'}."
+        )
+    return v.reshape(())

@@ -9,6 +9,7 @@ import numpy as np
 
 from .._checks import as_float_array, vector
 from ._adaptive_common import (
+    siso_signal,
     apply_gain,
     check_gain,
     check_stable_roots,
@@ -16,6 +17,7 @@ from ._adaptive_common import (
     gain_matrix,
     poly_from_roots,
     traced_positive,
+    traced_stable_roots,
 )
 from ._base import AbstractObserver
 from ._validation import positive_scalar, require_finite, traced_finite
@@ -205,11 +207,7 @@ class Kreisselmeier(AbstractObserver):
         )
         if self.q is not None:
             new = eqx.tree_at(lambda o: o.q, new, positive_scalar(self.q, "q"))
-        poles = eqx.error_if(
-            self.poles,
-            jnp.any(~(jnp.real(self.poles) < 0) | ~jnp.isfinite(self.poles)),
-            "`poles` must be finite and satisfy Re < 0.",
-        )
+        poles = traced_stable_roots(self.poles, "poles")
         return eqx.tree_at(lambda o: o.poles, new, poles)
 
     def check(self):
@@ -242,8 +240,8 @@ class Kreisselmeier(AbstractObserver):
     def vector_field(self, t, z: KreisselmeierState, y, u):
         n = self.n
         _, F, _ = self._design()
-        y = jnp.asarray(y).reshape(-1)[0]
-        u = jnp.asarray(u).reshape(-1)[0]
+        y = siso_signal(y, "y", "Kreisselmeier")
+        u = siso_signal(u, "u", "Kreisselmeier")
         e1 = jnp.zeros(n).at[0].set(1.0)
         deta1 = F.T @ z.eta1 + e1 * y  # (6.10a)
         deta2 = F.T @ z.eta2 + e1 * u  # (6.10b)

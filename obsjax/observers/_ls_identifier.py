@@ -32,7 +32,7 @@ class LeastSquaresIdentifier(AbstractObserver):
     K̃ = K̂ − K obeys K̃̇ = −Γ α αᵀ K̃, the first class of (4.21) with B = Γ^{1/2} α: V = ½ K̃ᵀΓ⁻¹K̃ has
     V̇ = −‖αᵀK̃‖² ≤ 0 (:meth:`lyapunov`), and K̂ → K uniformly and exponentially if and only if α is
     persistently exciting (:func:`obsjax.analysis.morgan_narendra` gives the richness constants, the
-    worst-case rate over its windows and a rate guaranteed by the gramians alone).  When α is not, the component of K̃ along every direction w with αᵀ(t) w ≡ 0 stays constant.
+    worst-case rate over its windows and a rate guaranteed by the gramians alone).  When α is not, wᵀΓ⁻¹K̃ stays constant for every direction w with αᵀ(t) w ≡ 0 (d/dt wᵀΓ⁻¹K̃ = −(αᵀw)(αᵀK̃) = 0; the component wᵀK̃ itself is constant only for a scalar Γ).
 
     In ``obsjax.simulate`` the unknown K is the state of the plant ẋ = 0, y = αᵀ(t, u) x
     (:meth:`plant` builds it), the measurement y is b(t), and ``Trajectory.error`` is K̂ − K.

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from .._checks import as_float_array, vector
+from ._adaptive_common import siso_signal
 from ._base import AbstractObserver
 from ._validation import positive_scalar, require_finite
 
@@ -137,8 +138,8 @@ class LudersNarendra(AbstractObserver):
         return LudersNarendraState(xhat0, self.a0, self.b0, zeros, zeros)
 
     def vector_field(self, t, z: LudersNarendraState, y, u):
-        x1 = jnp.asarray(y).reshape(-1)[0]
-        u = jnp.asarray(u).reshape(-1)[0]
+        x1 = siso_signal(y, "y", "LudersNarendra")
+        u = siso_signal(u, "u", "LudersNarendra")
         lam1, lam = self.lambdas[0], self.lambdas[1:]
         c1, cb = self.c[0], self.c[1:]
         d1, db = self.d[0], self.d[1:]

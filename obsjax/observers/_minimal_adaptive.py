@@ -9,6 +9,7 @@ import numpy as np
 
 from .._checks import as_float_array, concrete_value, positive, require_finite, vector
 from ._adaptive_common import (
+    siso_signal,
     adapt_mask,
     auxiliary_matrices,
     check_gain,
@@ -20,6 +21,7 @@ from ._adaptive_common import (
     poly_from_roots,
     quadratic_weight,
     traced_positive,
+    traced_stable_roots,
 )
 from ._base import AbstractObserver
 from ._kreisselmeier import observer_form
@@ -126,11 +128,7 @@ class MinimalAdaptiveObserver(AbstractObserver):
 
     def prepare(self):
         """Guards that survive ``jit`` (``eqx.error_if``): Γ positive (definite), λ > 0, Re(filter poles) < 0."""
-        poles = eqx.error_if(
-            self.filter_poles,
-            jnp.any(jnp.real(self.filter_poles) >= 0),
-            "`filter_poles` must satisfy Re < 0.",
-        )
+        poles = traced_stable_roots(self.filter_poles, "filter_poles")
         new = eqx.tree_at(
             lambda o: (o.Gamma, o.lam, o.filter_poles),
             self,
@@ -169,8 +167,8 @@ class MinimalAdaptiveObserver(AbstractObserver):
 
     def vector_field(self, t, z: MinimalAdaptiveState, y, u):
         n = self.n
-        x1 = jnp.asarray(y).reshape(-1)[0]
-        u = jnp.asarray(u).reshape(-1)[0]
+        x1 = siso_signal(y, "y", "MinimalAdaptiveObserver")
+        u = siso_signal(u, "u", "MinimalAdaptiveObserver")
         k, K, _, delta, C = self._design()
         v = jnp.concatenate(
             [filter_regressor(z.omega_y, x1, delta), filter_regressor(z.omega_u, u, delta)]
@@ -202,7 +200,7 @@ class MinimalAdaptiveObserver(AbstractObserver):
 
         def one(zz, yy, uu):
             delta = self.design()[3]
-            yy, uu = jnp.asarray(yy).reshape(-1)[0], jnp.asarray(uu).reshape(-1)[0]
+            yy, uu = siso_signal(yy, "y", "MinimalAdaptiveObserver"), siso_signal(uu, "u", "MinimalAdaptiveObserver")
             return jnp.concatenate(
                 [filter_regressor(zz.omega_y, yy, delta), filter_regressor(zz.omega_u, uu, delta)]
             )

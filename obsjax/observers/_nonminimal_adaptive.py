@@ -8,6 +8,7 @@ import jax.numpy as jnp
 
 from .._checks import positive, require_finite, vector
 from ._adaptive_common import (
+    siso_signal,
     adapt_mask,
     check_gain,
     check_stable_roots,
@@ -18,6 +19,7 @@ from ._adaptive_common import (
     poly_from_roots,
     quadratic_weight,
     traced_positive,
+    traced_stable_roots,
 )
 from ._base import AbstractObserver
 from ._minimal_adaptive import _positive_scalar
@@ -119,11 +121,7 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
 
     def prepare(self):
         """Guards that survive ``jit`` (``eqx.error_if``): Γ positive (definite), λ_0 > 0, Re(filter poles) < 0."""
-        poles = eqx.error_if(
-            self.filter_poles,
-            jnp.any(jnp.real(self.filter_poles) >= 0),
-            "`filter_poles` must satisfy Re < 0.",
-        )
+        poles = traced_stable_roots(self.filter_poles, "filter_poles")
         new = eqx.tree_at(
             lambda o: (o.Gamma, o.lam0, o.filter_poles),
             self,
@@ -166,8 +164,8 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
 
     def vector_field(self, t, z: NonMinimalAdaptiveState, y, u):
         n = self.n
-        y = jnp.asarray(y).reshape(-1)[0]
-        u = jnp.asarray(u).reshape(-1)[0]
+        y = siso_signal(y, "y", "NonMinimalAdaptiveObserver")
+        u = siso_signal(u, "u", "NonMinimalAdaptiveObserver")
         rho = self._rho()
         v1 = filter_regressor(z.omega_y, y, rho)  # s^{n−i}/R y: the plant output fed back
         v2 = filter_regressor(z.omega_u, u, rho)
@@ -183,7 +181,7 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
         )
 
     def estimate(self, t, z: NonMinimalAdaptiveState, y):
-        y = jnp.asarray(y).reshape(-1)[0]
+        y = siso_signal(y, "y", "NonMinimalAdaptiveObserver")
         rho = self._rho()
         alpha = self._base() - z.a
         Ry, Su = _state_map(alpha, z.b, rho)  # (n, n) and (n, n−1) ascending coefficients
@@ -205,7 +203,7 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
 
         def one(zz, yy, uu):
             rho = self._rho()
-            yy, uu = jnp.asarray(yy).reshape(-1)[0], jnp.asarray(uu).reshape(-1)[0]
+            yy, uu = siso_signal(yy, "y", "NonMinimalAdaptiveObserver"), siso_signal(uu, "u", "NonMinimalAdaptiveObserver")
             return jnp.concatenate(
                 [filter_regressor(zz.omega_y, yy, rho), filter_regressor(zz.omega_u, uu, rho)]
             )
