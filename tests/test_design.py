@@ -152,6 +152,44 @@ def _ltv_margins(c, d):
     return strong, form, ctrl, abs(np.linalg.det(Q.T @ Q))
 
 
+def _a31(t):  # observability indices (3, 1) with a non-trivial R
+    return jnp.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0],
+                      [-1.0 - 0.4 * jnp.sin(t), -0.5, -0.8, 1.0], [0.5 * jnp.cos(t), 0.3, 0.0, -0.4]])
+
+
+def _c31(t):
+    return jnp.array([[1.0, 0.0, 0.0, 0.0], [0.3 * jnp.sin(t), 0.0, 0.0, 1.0]])
+
+
+def test_ltv_rank_decisions_do_not_depend_on_state_units():
+    """x → S x, S = diag(1, 30, 900, 1) (or 1e3, 1e6): the same observer (K' = S K).  The level scales of
+    the search were built on ‖A‖, which moves with the state units: the margin fell to 5e-10 and the
+    well-conditioned pair was refused as "rank < 4" by the indices, the canonical form and the TLO.
+    The decisions run in balanced state units now: indices, margins (eager and under jit) and the gain
+    are those of the unscaled pair."""
+    from obsjax.design import ltv_observability_indices, pd_observer_gain, strong_observability
+
+    rho, t, w = jnp.array([-1.0, -2.0, -3.0, -1.5]), 0.7, lambda s: 2.0 + jnp.sin(s)
+    ref = pd_observer_gain(_a31, _c31, rho, w, t)
+    ref_strong = strong_observability(_a31, _c31, [0.0, t])
+    assert float(ref.form.margin) > 0.1
+    for sv in ([1.0, 30.0, 900.0, 1.0], [1.0, 1e3, 1e6, 1.0], [1e-4, 1.0, 1e5, 3.0]):
+        S, Si = jnp.diag(jnp.array(sv)), jnp.diag(1.0 / jnp.array(sv))
+        A, C = (lambda s, S=S, Si=Si: S @ _a31(s) @ Si), (lambda s, Si=Si: _c31(s) @ Si)
+        assert ltv_observability_indices(A, C, [0.0, t]) == (3, 1)
+        np.testing.assert_allclose(strong_observability(A, C, [0.0, t]), ref_strong, rtol=1e-9)
+        g = pd_observer_gain(A, C, rho, w, t)
+        np.testing.assert_allclose(float(g.form.margin), float(ref.form.margin), rtol=1e-9)
+        np.testing.assert_allclose(Si @ g.Ko, ref.Ko, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(ref.Ko))))
+        traced = jax.jit(lambda s, A=A, C=C: pd_observer_gain(A, C, rho, w, s, indices=(3, 1)).form.margin)(t)
+        np.testing.assert_allclose(float(traced), float(ref.form.margin), rtol=1e-9)
+    S, Si = jnp.diag(jnp.array([1.0, 30.0, 900.0, 1.0])), jnp.diag(1.0 / jnp.array([1.0, 30.0, 900.0, 1.0]))
+    plant = obsjax.LTV(lambda s: S @ _a31(s) @ Si, lambda s: _c31(s) @ Si)
+    obs = obsjax.TrajectoryLinearization(plant, rho, 2.0, 1.0, nominal=lambda s: (jnp.zeros(4), jnp.zeros(0)))
+    tr = obsjax.simulate(plant, obs, S @ jnp.array([1.0, -0.5, 0.2, 0.3]), jnp.zeros(4), jnp.linspace(0.0, 3.0, 4))
+    assert int(tr.status) == 0
+
+
 @pytest.mark.parametrize("c", SCALES)
 @pytest.mark.parametrize("d", SCALES)
 @pytest.mark.extended

@@ -41,7 +41,7 @@ import numpy as np
 
 from .._checks import concrete_value
 from .._config import require_x64
-from ..analysis._lti import DEFAULT_TOL, lexicographic_step, relative_residuals
+from ..analysis._lti import DEFAULT_TOL, balancing, lexicographic_step, relative_residuals
 
 __all__ = [
     "LTVCanonicalForm",
@@ -204,17 +204,42 @@ def level_scales(norms, a_norm):
     return xp.stack(rho)
 
 
-def _search(Qs: np.ndarray, tol: float, a_norm: float) -> tuple[tuple[int, ...] | None, float]:
+def balance_levels(levels, A0):
+    """The Lie stack and A in balanced state units: (levels·D, D⁻¹A D), D = diag(d) the state scaling of
+    :func:`obsjax.analysis.balancing` of the pair (A(t), C(t)) (log-magnitude scaling, then Osborne).
+
+    A change of state units x → S x (S diagonal) maps the rows 𝓛ᵏc_i to 𝓛ᵏc_i S⁻¹ and A to S A S⁻¹; the
+    balanced pair does not change, so neither do the rank decisions and the margin taken on it.  Without
+    it the level scales ρ_k (built on ‖A‖) moved with the state units: states in units 30 and 900 apart
+    made a well-conditioned 4-state pair "rank < 4".  NumPy in, NumPy out; otherwise traced (not
+    differentiated: the decisions are not).  Non-finite input is returned as it is."""
+    if isinstance(levels, np.ndarray):
+        if not (np.all(np.isfinite(levels)) and np.all(np.isfinite(A0))):
+            return levels, A0
+        d, _ = balancing(np.asarray(A0, dtype=float), np.asarray(levels[0], dtype=float))
+        d = np.asarray(d, dtype=float)
+        return levels * d[None, None, :], A0 * (d[None, :] / d[:, None])
+    levels, A0 = jax.lax.stop_gradient(levels), jax.lax.stop_gradient(A0)
+    finite = jnp.all(jnp.isfinite(levels)) & jnp.all(jnp.isfinite(A0))
+    d, _ = balancing(jnp.where(finite, A0, 0.0), jnp.where(finite, levels[0], 1.0))
+    d = jnp.where(finite & jnp.all(jnp.isfinite(d)) & jnp.all(d > 0), d, 1.0)
+    return levels * d[None, None, :], A0 * (d[None, :] / d[:, None])
+
+
+def _search(Qs: np.ndarray, tol: float, A0: np.ndarray) -> tuple[tuple[int, ...] | None, float]:
     """Lexicographic search c_1, …, c_m, 𝓛c_1, …, 𝓛c_m, … keeping independent rows.
 
     The rank decisions are those of the LTI staircase (:func:`obsjax.analysis._lti.lexicographic_step`):
     a row is independent when its component outside the rows kept so far exceeds ``tol`` times the
     scale ρ_k of its level (:func:`level_scales`).  Every threshold is relative to its own level, so the
     decisions do not change when time is rescaled (A → cA, 𝓛 → c𝓛) or the outputs are (C → SC, S
-    diagonal: each output's rows are first divided by :func:`output_scales`).
+    diagonal: each output's rows are first divided by :func:`output_scales`), and the search runs in
+    balanced state units (:func:`balance_levels`), so a change of state units does not change them either.
 
     Returns the indices (``None`` when fewer than n rows are independent) and the staircase margin: the
     smallest kept residual relative to its level's scale (0 when the rank is short)."""
+    Qs, A0 = balance_levels(np.asarray(Qs, dtype=float), np.asarray(A0, dtype=float))
+    a_norm = float(np.linalg.norm(A0, 2)) if np.all(np.isfinite(A0)) else np.nan
     depth1, m, n = Qs.shape
     Qs = Qs / output_scales(np.linalg.norm(Qs, axis=2))[None, :, None]
     rho = level_scales(np.linalg.norm(Qs, axis=2), a_norm)
@@ -244,12 +269,13 @@ def staircase_margin(levels: jax.Array, A0: jax.Array, indices) -> jax.Array:
     (j < p_i) are taken in the lexicographic order of the search and each one's residual outside those
     before it is divided by its level's scale ρ_j (:func:`level_scales`) --
     :func:`obsjax.analysis._lti.relative_residuals`, the traced twin of the search's decisions.  The
-    minimum is 0 where the rows are dependent, and does not change when A → cA or C → dC.  It is NaN
+    minimum is 0 where the rows are dependent, and does not change when A → cA, C → dC or the states'
+    units change (:func:`balance_levels`).  It is NaN
     when A or the rows are not finite (a non-finite estimate, not a loss of observability)."""
     pmax = max(indices)
-    levels = jax.lax.stop_gradient(levels)
+    levels, A0 = balance_levels(levels, A0)  # state units (stop_gradient inside)
     levels = (levels / output_scales(jnp.linalg.norm(levels, axis=2))[None, :, None])[:pmax]
-    rho = level_scales(jnp.linalg.norm(levels, axis=2), jnp.linalg.norm(jax.lax.stop_gradient(A0), 2))
+    rho = level_scales(jnp.linalg.norm(levels, axis=2), jnp.linalg.norm(A0, 2))
     order = [(j, i) for j in range(pmax) for i in range(len(indices)) if j < indices[i]]
     rows = jnp.stack([levels[j, i] for j, i in order])
     scales = jnp.stack([rho[j] for j, _ in order])
@@ -292,8 +318,7 @@ def ltv_observability_indices(
     stack = jax.jit(_lie_stack(A, C, n - 1))
     found = None
     for tk in tsv:
-        a_norm = float(np.linalg.norm(np.asarray(A(_as_time(tk))), 2))
-        p, _ = _search(np.asarray(stack(_as_time(tk))), tol, a_norm)
+        p, _ = _search(np.asarray(stack(_as_time(tk))), tol, np.asarray(A(_as_time(tk)), dtype=float))
         if p is None:
             raise ValueError(
                 f"The pair (A, C) is not observable at t = {float(tk):.6g}: the observability matrix "
@@ -347,13 +372,13 @@ def strong_observability(
     tsv = _concrete_times(ts, "the strong-observability check runs before tracing")
     n, _ = _dims(A, C, tsv[0])
     stack = jax.jit(_lie_stack(A, C, n - 1))
-    anorm = jax.jit(lambda s: jnp.linalg.norm(jnp.asarray(A(s)), 2))
+    a_of = jax.jit(lambda s: jnp.asarray(A(s), dtype=float))
     margins = np.empty(tsv.shape[0])
     for k, tk in enumerate(tsv):
         Qs = np.asarray(stack(_as_time(tk)))
-        a_norm = float(anorm(_as_time(tk)))
-        ok = np.all(np.isfinite(Qs)) and np.isfinite(a_norm)
-        margins[k] = _search(Qs, threshold, a_norm)[1] if ok else np.nan
+        A0 = np.asarray(a_of(_as_time(tk)))
+        ok = np.all(np.isfinite(Qs)) and np.all(np.isfinite(A0))
+        margins[k] = _search(Qs, threshold, A0)[1] if ok else np.nan
         if not margins[k] >= threshold:
             raise ValueError(
                 f"The pair (A, C) is not strongly observable: the staircase margin of Q(t) = [C; 𝓛C; …] "
