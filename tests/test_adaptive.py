@@ -713,7 +713,7 @@ def test_guards_survive_jit():
     ln = obsjax.LudersNarendra(2, [1.0, 1.0], 1.0, 1.0)
     kn = obsjax.KudvaNarendra(2, 1, -jnp.eye(2), 1.0, 1.0, jnp.eye(2))
     cases = [
-        (lambda v: eqx.tree_at(lambda o: o.G, k, v * jnp.ones(4)).prepare().G, "`G` must be > 0"),
+        (lambda v: eqx.tree_at(lambda o: o.G, k, v * jnp.ones(4)).prepare().G, "`G` must be finite and > 0"),
         (lambda v: eqx.tree_at(lambda o: o.q, k, v).prepare().q, "`q` must be > 0"),
         (lambda v: eqx.tree_at(lambda o: o.c, ln, v * jnp.ones(2)).prepare().c, "`c` must be > 0"),
         (

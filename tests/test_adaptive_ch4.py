@@ -624,7 +624,7 @@ def test_guards_survive_jit():
     cases = [
         (
             lambda v: eqx.tree_at(lambda o: o.Gamma, mo, v * jnp.ones(4)).prepare().Gamma,
-            "`Gamma` must be > 0",
+            "`Gamma` must be finite and > 0",
         ),
         (lambda v: eqx.tree_at(lambda o: o.lam0, no, v).prepare().lam0, "`lam0` must be > 0"),
         (
@@ -635,7 +635,7 @@ def test_guards_survive_jit():
         ),
         (
             lambda v: eqx.tree_at(lambda o: o.Gamma, li, v * jnp.ones(2)).prepare().Gamma,
-            "`Gamma` must be > 0",
+            "`Gamma` must be finite and > 0",
         ),
     ]
     for fn, match in cases:
