@@ -660,3 +660,15 @@ def test_built_inside_jit_with_a_traced_eps():
 
     with pytest.raises(ValueError, match="the model is traced here: pass `indices`"):
         jax.jit(traced_model)(1.0)
+
+
+def test_traced_nominal_pd_eigenvalues_keep_the_distinctness_check():
+    """A tuned ρ̄ whose values converge is refused under jit as eagerly (values 1e-14 apart gave
+    coefficients 6 % off); distinct traced values run."""
+    import equinox as eqx
+
+    obs = obsjax.TrajectoryLinearization(_vdp_model(), [-1.0, -2.0], 2.0, 0.5)
+    f = jax.jit(lambda r: eqx.tree_at(lambda o: o.rho_bar, obs, r).prepare().rho_bar)
+    np.testing.assert_allclose(f(jnp.array([-1.0, -2.0])), [-1.0, -2.0])
+    with pytest.raises(Exception, match="distinct"):
+        jax.block_until_ready(f(jnp.array([-1.0, -1.0 - 1e-14])))

@@ -20,7 +20,7 @@ from ..design._ltv_canonical import (
     strong_observability,
     time_derivatives,
 )
-from ..design._pd_spectrum import check_rho_bar, omega_function, pd_observer_gain
+from ..design._pd_spectrum import RHO_BAR_MIN_GAP, check_rho_bar, omega_function, pd_observer_gain
 from ..systems._plants import AbstractSystem
 from ._base import AbstractObserver
 from ._validation import positive_scalar, require_finite
@@ -253,6 +253,19 @@ class TrajectoryLinearization(AbstractObserver):
                 rho,
                 jnp.any(~(rho < 0) | ~jnp.isfinite(rho)),
                 "`rho_bar` (the nominal PD-eigenvalues) must be < 0 and finite.",
+            )
+            close, start = jnp.asarray(False), 0
+            for p in self.indices:  # distinct within each block, as check_rho_bar eagerly
+                blk = rho[start : start + p]
+                if p > 1:
+                    gap = jnp.abs(blk[:, None] - blk[None, :]) + jnp.eye(p) * jnp.inf
+                    close = close | (jnp.min(gap) <= RHO_BAR_MIN_GAP * jnp.max(jnp.abs(blk)))
+                start += p
+            rho = eqx.error_if(
+                rho,
+                close,
+                f"`rho_bar` must hold distinct values within each output block, at least {RHO_BAR_MIN_GAP:g}"
+                "·max|ρ̄| apart (the Vandermonde solve of (21) loses its accuracy near a repeated value).",
             )
         new = eqx.tree_at(lambda o: (o.eps, o.rho_bar), self, (eps, rho))
         if not callable(self.omega):
