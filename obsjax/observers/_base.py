@@ -99,3 +99,32 @@ class AbstractObserver(eqx.Module):
     def check(self) -> "AbstractObserver":
         """Re-validate invariants (``tune`` calls it after updating leaves with ``eqx.tree_at``)."""
         return self
+
+
+def feedthrough(model, u):
+    """D u of a model with a feedthrough matrix ``D`` (an LTI plant), 0 otherwise (LTV plants have none).
+
+    The observers written with y = C x (Kalman–Bucy, the least-squares observer, the continuous-discrete
+    filter) compare y with C x̂ + D u: without it a plant with D ≠ 0 left a constant bias in the estimate
+    (1.40 for D = 1, u = 1 in the Kalman–Bucy filter), reported as a success."""
+    D = getattr(model, "D", None)
+    if D is None or u is None or getattr(model, "p", 0) == 0:
+        return 0.0
+    return D @ u
+
+
+def require_no_feedthrough(model, who):
+    """Refuse an LTI model with feedthrough D ≠ 0 for an observer built on y = C x alone, whose estimate
+    would otherwise carry a bias of D u without a word (the Lovass-Nagy observers and the LTV
+    finite-window observer read y where C x is meant).  A traced D is not checked."""
+    import numpy as np
+
+    from .._checks import concrete_value
+
+    D = getattr(model, "D", None)
+    Dv = None if D is None else concrete_value(D)
+    if Dv is not None and np.any(np.asarray(Dv) != 0):
+        raise ValueError(
+            f"{who} needs a model without feedthrough: `D` must be 0, got max |D| = "
+            f"{float(np.max(np.abs(Dv))):.3g}. Give it the measurement y − D u and a model with D = 0."
+        )

@@ -12,7 +12,7 @@ import numpy as np
 
 from .._checks import concrete_value
 from .._linalg import spd_solve
-from ._base import AbstractObserver
+from ._base import AbstractObserver, feedthrough
 from ._kalman_bucy import _spd
 from ._least_squares import _check_model
 from ._validation import is_concrete, traced_spd
@@ -136,10 +136,7 @@ class ContinuousDiscreteKalman(AbstractObserver):
         return ContinuousDiscreteKalmanState(dx, 0.5 * (dP + dP.T))
 
     def _feedthrough(self, u):
-        D = getattr(self.model, "D", None)
-        if D is None or u is None or self.model.p == 0:
-            return 0.0
-        return D @ u
+        return feedthrough(self.model, u)
 
     def gain(self, t, z):
         """Kalman gain K = P⁻ Cᵀ (C P⁻ Cᵀ + Rv)⁻¹ at a sample, shape (n, m)."""

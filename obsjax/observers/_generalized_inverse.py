@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value, matrix
-from ._base import AbstractObserver
+from ._base import AbstractObserver, require_no_feedthrough
 from ._validation import require_finite
 
 
@@ -141,6 +141,7 @@ class GeneralizedInverse(AbstractObserver):
     rtol: float = eqx.field(static=True)
 
     def __init__(self, model, F, T, C1=None, *, horizon=None, num_checks=201, rtol=1e-7):
+        require_no_feedthrough(model, "GeneralizedInverse")
         n, m = int(model.n), int(model.m)
         self.model = model
         self.F = matrix(F, "F", (n, n))
@@ -277,6 +278,7 @@ class GeneralizedInverseReduced(AbstractObserver):
     rtol: float = eqx.field(static=True)
 
     def __init__(self, model, F, T, C1=None, *, horizon=None, num_checks=201, rtol=1e-7):
+        require_no_feedthrough(model, "GeneralizedInverseReduced")
         n, m = int(model.n), int(model.m)
         q = n - m
         if q <= 0:
@@ -451,6 +453,7 @@ class GeneralizedInverseODE(AbstractObserver):
     rcond_min: float = eqx.field(static=True)
 
     def __init__(self, model, F, G, T0=None, *, horizon=None, num_checks=201, rcond_min=1e-10):
+        require_no_feedthrough(model, "GeneralizedInverseODE")
         n, m = int(model.n), int(model.m)
         self.model = model
         self.F = require_finite(matrix(F, "F", (n, n)), "F")

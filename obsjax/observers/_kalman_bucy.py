@@ -11,7 +11,7 @@ import numpy as np
 
 from .._checks import concrete_value, matrix
 from .._linalg import spd_solve
-from ._base import AbstractObserver
+from ._base import AbstractObserver, feedthrough
 from ._least_squares import _check_model
 from ._validation import is_concrete, require_finite, traced_spd
 
@@ -41,7 +41,7 @@ class KalmanBucy(AbstractObserver):
 
     For the model ẋ = A(t)x + B(t)u + w, y = C(t)x + v with E[w wᵀ] = Qw δ, E[v vᵀ] = Rv δ:
 
-        dx̂/dt = A x̂ + B u + L (y - C x̂),      L(t) = P Cᵀ Rv⁻¹,
+        dx̂/dt = A x̂ + B u + L (y - C x̂ - D u),      L(t) = P Cᵀ Rv⁻¹,     (D: an LTI model's feedthrough)
         dP/dt = A P + P Aᵀ + Qw - P Cᵀ Rv⁻¹ C P,      P(t0) = P0   (differential Riccati equation).
 
     Unlike :class:`obsjax.LeastSquaresReset` the link between (Qw, Rv) and the decay rate of x̃ is not
@@ -105,7 +105,7 @@ class KalmanBucy(AbstractObserver):
     def vector_field(self, t, z, y, u):
         A, C = self.model.A_of(t), self.model.C_of(t)
         L = self.gain(t, z)
-        dxhat = A @ z.xhat + L @ (y - C @ z.xhat)
+        dxhat = A @ z.xhat + L @ (y - C @ z.xhat - feedthrough(self.model, u))
         if u is not None and self.model.p > 0:
             dxhat = dxhat + self.model.B_of(t) @ u
         dP = A @ z.P + z.P @ A.T + self.Qw - L @ (C @ z.P)

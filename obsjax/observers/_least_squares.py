@@ -16,7 +16,7 @@ import numpy as np
 from .._checks import as_float_array, static_value
 from .._linalg import spd_solve
 from ..systems._plants import LTV
-from ._base import AbstractObserver
+from ._base import AbstractObserver, feedthrough
 from ._validation import positive_scalar
 
 
@@ -169,7 +169,7 @@ class LeastSquaresReset(AbstractObserver):
 
     For the LTV model ẋ = A(t)x + B(t)u, y = C(t)x (Chen & Yen (1)), on each interval [kT, (k+1)T):
 
-        dx̂/dt = A(t) x̂ + B(t) u + L(t) (y - C(t) x̂),                          (8)
+        dx̂/dt = A(t) x̂ + B(t) u + L(t) (y - C(t) x̂ - D u),                    (8)  (D: an LTI model's feedthrough)
         L(t)  = γ Φ(t, kT) P(t) Φᵀ(t, kT) Cᵀ(t),                                 (13)
         ∂Φ(t, kT)/∂t = A(t) Φ(t, kT),            Φ(kT, kT) = I,                  (11)
         dP/dt = -γ P w wᵀ P,   w = Φᵀ(t, kT) Cᵀ(t),   P(kT⁺) = p0 I,             (15)
@@ -288,7 +288,7 @@ class LeastSquaresReset(AbstractObserver):
     def vector_field(self, t, z, y, u):
         A = self.model.A_of(t)
         L, w, C = self._injection(t, z)
-        dxhat = A @ z.xhat + L @ (y - C @ z.xhat)
+        dxhat = A @ z.xhat + L @ (y - C @ z.xhat - feedthrough(self.model, u))
         if u is not None and self.model.p > 0:
             dxhat = dxhat + self.model.B_of(t) @ u
         return LeastSquaresState(dxhat, A @ z.Phi, w @ w.T)
