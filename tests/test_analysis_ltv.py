@@ -333,3 +333,15 @@ def test_decay_rate_refuses_a_window_it_cannot_fit():
         an.decay_rate((ts, np.zeros_like(err)))
     with pytest.raises(ValueError, match=r"`ts` must be a 1-D array"):
         an.decay_rate((ts[:, None], err))
+
+
+def test_decay_rate_refuses_a_bad_floor_or_window_bound():
+    """floor < 0 let exact zeros into the log fit (NaN); a NaN floor or t_min was reported as 'needs at
+    least 2 samples'."""
+    ts = jnp.linspace(0.0, 5.0, 11)
+    err = jnp.exp(-2.0 * ts).at[-1].set(0.0)
+    np.testing.assert_allclose(an.decay_rate((ts, err), t_max=4.9), 2.0, rtol=1e-12)
+    for kw, what in (({"floor": -1e-3}, "floor"), ({"floor": float("nan")}, "floor"), ({"floor": 1.0}, "floor"),
+                     ({"t_min": float("nan")}, "t_min"), ({"t_max": float("inf")}, "t_max")):
+        with pytest.raises(ValueError, match=f"`{what}` must be"):
+            an.decay_rate((ts, err), **kw)

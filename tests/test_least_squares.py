@@ -430,3 +430,17 @@ def test_tune_gamma_T_with_noise_lowers_loss():
     loss = res.history["loss"]
     assert np.all(np.isfinite(loss)) and loss.min() < 0.9 * loss[0]
     assert float(res.observer.gamma) > 20.0  # faster injection pays at this noise level
+
+
+def test_switching_example_keeps_switching_after_its_declared_horizon():
+    """The mode came from counting the declared jumps only: after the last one (59.5 s by default) the
+    plant stayed in mode 2, which is not observable (α1 fell from 0.1 to 0).  It follows the period
+    now, as a plant built with a longer horizon does; a horizon ≤ 0 is refused."""
+    short, long_ = obsjax.switching_ltv_example(), obsjax.switching_ltv_example(horizon=200.0)
+    k = np.arange(0, 214)  # away from the switching instants (there the mode is decided to rounding)
+    ts = jnp.asarray((k[:, None] + np.linspace(0.02, 0.98, 7)[None, :]).ravel() * 0.7)
+    for f in (lambda p: p.A_of, lambda p: p.C_of):
+        np.testing.assert_array_equal(jax.vmap(f(short))(ts), jax.vmap(f(long_))(ts))
+    for bad in (0.0, -5.0, float("nan")):
+        with pytest.raises(ValueError, match="horizon"):
+            obsjax.switching_ltv_example(horizon=bad)

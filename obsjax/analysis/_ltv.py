@@ -65,8 +65,8 @@ def _pos_float(x, name):
     v = concrete_value(jnp.asarray(x))
     if v is None:
         raise ValueError(f"`{name}` must be a concrete number (not traced), got a tracer.")
-    if v.ndim != 0 or not np.isfinite(v) or v <= 0:
-        raise ValueError(f"`{name}` must be a positive finite scalar, got {v.tolist()}.")
+    if v.ndim != 0 or np.iscomplexobj(v) or not np.isfinite(v) or v <= 0:
+        raise ValueError(f"`{name}` must be a positive finite real scalar, got {v.tolist()}.")
     return float(v)
 
 
@@ -528,6 +528,16 @@ def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
         raise ValueError(
             f"`error` must have {ts.shape[0]} rows (one per time), shape (T, n) or (T,), got shape {err.shape}."
         )
+    fl = concrete_value(jnp.asarray(floor))
+    if fl is not None and not (np.ndim(fl) == 0 and np.isfinite(fl) and 0.0 <= float(fl) < 1.0):
+        raise ValueError(
+            f"`floor` must be a finite scalar in [0, 1) (relative to the largest error in the window), got "
+            f"{np.asarray(fl).tolist()}."
+        )
+    for v, name in ((t_min, "t_min"), (t_max, "t_max")):
+        c = None if v is None else concrete_value(jnp.asarray(v))
+        if c is not None and not (np.ndim(c) == 0 and np.isfinite(c)):
+            raise ValueError(f"`{name}` must be a finite time, got {np.asarray(c).tolist()}.")
     if t_min is not None and t_max is not None and not float(t_min) < float(t_max):
         raise ValueError(f"`t_min` must be < `t_max`, got t_min = {t_min}, t_max = {t_max}.")
     nrm = jnp.linalg.norm(err, axis=-1) if err.ndim == 2 else jnp.abs(err)

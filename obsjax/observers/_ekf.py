@@ -5,18 +5,17 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from .._checks import as_float_array, concrete_value, vector
+from .._checks import concrete_value, real_array, vector
 from .._linalg import spd_solve
 from ..systems._plants import AbstractSystem
 from ._base import AbstractObserver
-from ._validation import is_concrete, require_finite, traced_spd
+from ._validation import check_covariance_value, is_concrete, require_finite, traced_spd
 
 
 def _covariance(x, name: str, size: int, *, definite: bool) -> jax.Array:
     """A scalar (× I), a vector (diagonal) or a symmetric (size, size) matrix, PSD (or PD if `definite`)."""
-    a = as_float_array(x, name)
+    a = real_array(x, name)
     if a.ndim == 0:
         a = a * jnp.eye(size)
     elif a.ndim == 1:
@@ -30,15 +29,7 @@ def _covariance(x, name: str, size: int, *, definite: bool) -> jax.Array:
     require_finite(a, name)
     v = concrete_value(a)
     if v is not None:
-        if not np.allclose(v, v.T, rtol=1e-10, atol=1e-12):
-            raise ValueError(f"`{name}` must be symmetric, got {v.tolist()}.")
-        ev = np.linalg.eigvalsh(v)
-        if definite and not ev.min() > 0:
-            raise ValueError(f"`{name}` must be positive definite, got eigenvalues {ev.tolist()}.")
-        if not definite and ev.min() < -1e-12 * max(1.0, abs(ev).max()):
-            raise ValueError(
-                f"`{name}` must be positive semidefinite, got eigenvalues {ev.tolist()}."
-            )
+        check_covariance_value(v, name, semi=not definite)
     return a
 
 

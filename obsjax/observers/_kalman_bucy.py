@@ -7,13 +7,12 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from .._checks import concrete_value, matrix
+from .._checks import concrete_value, matrix, real_array
 from .._linalg import spd_solve
 from ._base import AbstractObserver, feedthrough
 from ._least_squares import _check_model
-from ._validation import is_concrete, require_finite, traced_spd
+from ._validation import check_covariance_value, is_concrete, require_finite, traced_spd
 
 
 class KalmanBucyState(NamedTuple):
@@ -24,15 +23,10 @@ class KalmanBucyState(NamedTuple):
 
 
 def _spd(x, name, size, *, semi=False):
-    arr = require_finite(matrix(x, name, (size, size)), name)
+    arr = require_finite(matrix(real_array(x, name), name, (size, size)), name)
     v = concrete_value(arr)
     if v is not None:
-        if not np.allclose(v, v.T, rtol=1e-10, atol=1e-12 * max(1.0, float(np.abs(v).max()))):
-            raise ValueError(f"`{name}` must be symmetric, got {v.tolist()}.")
-        lam = np.linalg.eigvalsh(0.5 * (v + v.T)).min()
-        if (lam < 0) if semi else (lam <= 0):
-            kind = "positive semidefinite" if semi else "positive definite"
-            raise ValueError(f"`{name}` must be {kind}, got smallest eigenvalue {lam:.3g}.")
+        check_covariance_value(v, name, semi=semi)
     return arr
 
 

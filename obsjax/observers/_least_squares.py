@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, static_value
+from .._checks import real_array, static_value
 from .._linalg import spd_solve
 from ..systems._plants import LTV
 from ._base import AbstractObserver, feedthrough
@@ -77,13 +77,22 @@ _SW_C2 = ((0.0, 0.0, 1.0),)
 
 class _Switching(eqx.Module):
     # Mode index from the declared jump times themselves, so that the solver's t = nextafter(jump) is on the
-    # right side of every jump (floor(t / period) can be off by one at t = k * period in floating point).
+    # right side of every jump (floor(t / period) can be off by one at t = k * period in floating point);
+    # past the last declared jump the switching goes on by the period (it stopped there before: the plant
+    # then stayed in mode 2, which is not observable).
     jumps: jax.Array
     first: jax.Array
     second: jax.Array
+    period: float = eqx.field(static=True)
 
     def __call__(self, t):
-        odd = (jnp.sum(t >= self.jumps) % 2) == 1
+        count = jnp.sum(t >= self.jumps)
+        if self.jumps.shape[0]:
+            last = self.jumps[-1]
+            count = jnp.where(t > last, self.jumps.shape[0] + jnp.floor((t - last) / self.period), count)
+        else:
+            count = jnp.maximum(jnp.floor(t / self.period), 0.0)
+        odd = (count % 2) == 1
         return jnp.where(odd, self.second, self.first)
 
 
@@ -97,9 +106,10 @@ def switching_ltv_example(period: float = 0.7, horizon: float = 60.0) -> LTV:
 
     Neither mode is observable alone (rank 2 each), but the switched pair is uniformly observable for
     windows T ≳ τ (α1 > 0), with observability indices that change with time, and no derivative of A or C
-    exists at the switches; mode 1's oscillator is slightly unstable.  The switching instants are declared
-    as ``jump_ts`` (up to `horizon`), so the solver steps onto them and gradients with respect to the reset
-    period T are exact.
+    exists at the switches; mode 1's oscillator is slightly unstable.  The switching instants up to `horizon`
+    are declared as ``jump_ts``, so the solver steps onto them and gradients with respect to the reset
+    period T are exact; the plant goes on switching after `horizon` (t ≥ 0), but there the solver is not
+    told where: build it with a `horizon` that covers the simulation.
 
     **Returns:** an :class:`obsjax.LTV` with n = 3, m = 1.
 
@@ -108,13 +118,15 @@ def switching_ltv_example(period: float = 0.7, horizon: float = 60.0) -> LTV:
         plant = switching_ltv_example()
         obs = LeastSquaresReset(plant, gamma=20.0, p0=1.0, T=0.93)
     """
-    period = float(period)
-    if not period > 0:
-        raise ValueError(f"`period` must be > 0, got {period}.")
+    period, horizon = float(period), float(horizon)
+    if not (np.isfinite(period) and period > 0):
+        raise ValueError(f"`period` must be finite and > 0, got {period}.")
+    if not (np.isfinite(horizon) and horizon > 0):
+        raise ValueError(f"`horizon` must be finite and > 0, got {horizon}.")
     jumps = tuple(float(period * k) for k in range(1, int(horizon / period) + 1))
-    ja = jnp.asarray(jumps)
-    A = _Switching(ja, jnp.asarray(_SW_A1), jnp.asarray(_SW_A2))
-    C = _Switching(ja, jnp.asarray(_SW_C1), jnp.asarray(_SW_C2))
+    ja = jnp.asarray(jumps, dtype=float)
+    A = _Switching(ja, jnp.asarray(_SW_A1), jnp.asarray(_SW_A2), period)
+    C = _Switching(ja, jnp.asarray(_SW_C1), jnp.asarray(_SW_C2), period)
     return LTV(A, C, jump_ts=jumps)
 
 
@@ -142,7 +154,7 @@ def _scalar_gain(x, name, *, keep_constant=False):
             v = np.asarray(v.reshape(()), dtype=jnp.result_type(float))
             positive_scalar(v, name)
             return v
-    arr = as_float_array(x, name)
+    arr = real_array(x, name)
     if arr.ndim != 0:
         if arr.size == 1:
             arr = arr.reshape(())

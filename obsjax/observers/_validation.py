@@ -40,7 +40,9 @@ def positive_scalar(x, name: str, what: str = ""):
 
 
 def _scale(M):
-    return jnp.maximum(1.0, jnp.max(jnp.abs(M)))
+    """The magnitude the symmetry and semidefiniteness tolerances are relative to (no floor: a covariance
+    of 1e-12 km² is checked as strictly as one of 1 m²)."""
+    return jnp.max(jnp.abs(M))
 
 
 def spd_violation(M, *, semi: bool):
@@ -73,3 +75,18 @@ def traced_finite(x, name: str):
         return require_finite(x, name)
     x = jnp.asarray(x)
     return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"`{name}` must be finite (no NaN or inf).")
+
+
+def check_covariance_value(v, name: str, *, semi: bool) -> None:
+    """Eager check of a concrete covariance: symmetric to 1e-10 of its largest entry, and positive
+    definite (or semidefinite to 1e-12 of its largest eigenvalue).  Relative throughout: the checks used
+    absolute floors of 1e-12, so a non-symmetric or indefinite matrix of scale 1e-12 was accepted."""
+    v = np.asarray(v, dtype=float)
+    big = float(np.max(np.abs(v))) if v.size else 0.0
+    if float(np.max(np.abs(v - v.T), initial=0.0)) > 1e-10 * big:
+        raise ValueError(f"`{name}` must be symmetric, got {v.tolist()}.")
+    ev = np.linalg.eigvalsh(0.5 * (v + v.T))
+    if semi and ev.size and ev.min() < -1e-12 * float(np.max(np.abs(ev))):
+        raise ValueError(f"`{name}` must be positive semidefinite, got eigenvalues {ev.tolist()}.")
+    if not semi and not (ev.size and ev.min() > 0):
+        raise ValueError(f"`{name}` must be positive definite, got eigenvalues {ev.tolist()}.")
