@@ -631,7 +631,7 @@ def test_guards_survive_jit():
             lambda v: (
                 eqx.tree_at(lambda o: o.filter_poles, mo, -v * jnp.ones(1)).prepare().filter_poles
             ),
-            "`filter_poles` must satisfy Re < 0",
+            "`filter_poles` must be finite, in the open left half-plane",
         ),
         (
             lambda v: eqx.tree_at(lambda o: o.Gamma, li, v * jnp.ones(2)).prepare().Gamma,
