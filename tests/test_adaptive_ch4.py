@@ -626,7 +626,7 @@ def test_guards_survive_jit():
             lambda v: eqx.tree_at(lambda o: o.Gamma, mo, v * jnp.ones(4)).prepare().Gamma,
             "`Gamma` must be finite and > 0",
         ),
-        (lambda v: eqx.tree_at(lambda o: o.lam0, no, v).prepare().lam0, "`lam0` must be > 0"),
+        (lambda v: eqx.tree_at(lambda o: o.lam0, no, v).prepare().lam0, "`lam0` must be finite and > 0"),
         (
             lambda v: (
                 eqx.tree_at(lambda o: o.filter_poles, mo, -v * jnp.ones(1)).prepare().filter_poles
