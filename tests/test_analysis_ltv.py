@@ -345,3 +345,19 @@ def test_decay_rate_refuses_a_bad_floor_or_window_bound():
                      ({"t_min": float("nan")}, "t_min"), ({"t_max": float("inf")}, "t_max")):
         with pytest.raises(ValueError, match=f"`{what}` must be"):
             an.decay_rate((ts, err), **kw)
+
+
+def test_a_non_finite_plant_or_regressor_is_named_before_integrating():
+    """NaN in A(t) or in a regressor used up the integrator's step budget and was reported as 'maximum
+    number of solver steps ... increase max_steps'; it is refused by name, with the time, now."""
+    bad_plant = obsjax.LTV(lambda t: jnp.where(t > 3, jnp.nan, 1.0) * jnp.eye(2), lambda t: jnp.array([[1.0, 1.0]]))
+    with pytest.raises(ValueError, match=r"not finite at t = 3\.0"):
+        an.transition_matrix(bad_plant, 5.0, 0.0)
+    with pytest.raises(ValueError, match="not finite"):
+        an.observability_gramian(bad_plant, 1, 4.0)
+    with pytest.raises(ValueError, match="not finite"):
+        an.uniform_observability_constants(bad_plant, 1.0, 5.0)
+    w = lambda t: jnp.where((t > 1) & (t < 2), jnp.nan, 1.0) * jnp.array([jnp.sin(t), jnp.cos(t)])  # noqa: E731
+    with pytest.raises(ValueError, match="regressor .* not finite"):
+        an.is_persistently_exciting(w, 2 * np.pi, 20.0)
+    np.testing.assert_allclose(an.transition_matrix(bad_plant, 2.0, 0.0), np.exp(2.0) * np.eye(2), rtol=1e-9)

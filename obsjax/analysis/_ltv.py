@@ -61,6 +61,29 @@ def _check_plant(plant):
         )
 
 
+@eqx.filter_jit
+def _finite_on(plant, ts):
+    return jax.vmap(
+        lambda s: jnp.all(jnp.isfinite(jnp.asarray(plant.A_of(s))))
+        & jnp.all(jnp.isfinite(jnp.asarray(plant.C_of(s))))
+    )(ts)
+
+
+def _probe_plant(plant, a, b, n=65):
+    """ValueError naming the first time in [a, b] (a grid of n points, concrete a, b) where A(t) or C(t)
+    is not finite: the integration would otherwise use up its step budget and report 'max_steps'."""
+    a, b = concrete_value(jnp.asarray(a)), concrete_value(jnp.asarray(b))
+    if a is None or b is None:
+        return
+    ts = jnp.linspace(min(float(a), float(b)), max(float(a), float(b)), n)
+    ok = np.asarray(_finite_on(plant, ts))
+    if not ok.all():
+        raise ValueError(
+            f"A(t) or C(t) of the plant is not finite at t = {float(ts[int(np.argmin(ok))]):.6g}: the "
+            "transition matrix and the gramians are undefined there."
+        )
+
+
 def _pos_float(x, name):
     v = concrete_value(jnp.asarray(x))
     if v is None:
@@ -126,6 +149,7 @@ def transition_matrix(plant, t, tau, *, rtol=_RTOL, atol=_ATOL, max_steps=65536)
         c = concrete_value(v)
         if c is not None and (c.ndim != 0 or not np.isfinite(c)):
             raise ValueError(f"`{name}` must be a finite scalar time, got {c.tolist()}.")
+    _probe_plant(plant, t, tau)
     return _transition(plant, t, tau, rtol, atol, max_steps)
 
 
@@ -210,6 +234,7 @@ def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL,
     if reference not in ("start", "end"):
         raise ValueError(f"`reference` must be 'start' or 'end', got {reference!r}.")
     a = _window(k, T, t0)
+    _probe_plant(plant, a, a + T)
     _, PhiT, G = _periods(plant, _pad(jnp.asarray([a])), jnp.asarray(T), 2, rtol, atol)
     PhiT, G = PhiT[0], G[0]
     if reference == "start":
@@ -311,6 +336,7 @@ def uniform_observability_constants(
     n_grid = _grid_size(n_grid)
     K = _n_periods(T, horizon)
     starts = _finite_float(t0, "t0") + T * jnp.arange(K, dtype=float)
+    _probe_plant(plant, starts[0], starts[0] + K * T, n=max(65, 8 * K + 1))
 
     mu, PhiT, Wz = _periods(plant, _pad(starts), jnp.asarray(T), n_grid, rtol, atol)
     mu, PhiT, Wz = mu[:K], PhiT[:K], Wz[:K]
@@ -404,6 +430,7 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, jump_ts=None, r
         # the value at each break and between consecutive ones (a pulse's height enters the scale)
         probe = np.concatenate([probe, inside, 0.5 * (inside[1:] + inside[:-1])])
     if hasattr(w, "A_of") and hasattr(w, "C_of"):
+        _probe_plant(w, t0, t0 + K * T, n=max(65, 8 * K + 1))
         if breaks is not None:
             raise ValueError(
                 "`jump_ts` is for a callable regressor; a plant declares its discontinuities as its own "
@@ -493,6 +520,11 @@ def _probe_scale(fn, times) -> float:
     """The largest |entry| of fn(t) over `times` (a regressor's or an output map's units); 1 when that is
     0 or not finite."""
     vals = [np.max(np.abs(np.asarray(fn(jnp.asarray(float(t)))))) for t in times]
+    bad = [float(t) for t, v in zip(times, vals) if not np.isfinite(v)]
+    if bad:
+        raise ValueError(
+            f"The regressor (or the plant's C(t)) is not finite at t = {bad[0]:.6g}: its gramians are undefined."
+        )
     big = float(np.max(vals)) if vals else 0.0
     return big if np.isfinite(big) and big > 0.0 else 1.0
 
