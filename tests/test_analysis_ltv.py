@@ -141,6 +141,7 @@ def test_is_persistently_exciting_closed_form():
     assert not flat and abs(flat.eta1) < 1e-12 and abs(flat.eta2 - 1.0) < 1e-9
 
 
+@pytest.mark.extended
 def test_short_pulses_in_a_callable_regressor_are_integrated_at_their_declared_jump_times():
     """w = [p(t), 1] with p a pulse of width 1e-4 in each window of length 1: ∫ w wᵀ = [[δ, δ], [δ, 1]]
     per window, δ = 1e-4.  Without its jump times the integrator stepped over every pulse and both tests

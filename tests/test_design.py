@@ -161,6 +161,7 @@ def _c31(t):
     return jnp.array([[1.0, 0.0, 0.0, 0.0], [0.3 * jnp.sin(t), 0.0, 0.0, 1.0]])
 
 
+@pytest.mark.extended
 def test_ltv_rank_decisions_do_not_depend_on_state_units():
     """x → S x, S = diag(1, 30, 900, 1) (or 1e3, 1e6): the same observer (K' = S K).  The level scales of
     the search were built on ‖A‖, which moves with the state units: the margin fell to 5e-10 and the

@@ -20,7 +20,7 @@ KW = dict(u=U, solver=diffrax.Dopri8(), rtol=1e-10, atol=1e-12)
     "make",
     [
         lambda p: obsjax.KalmanBucy(p, Qw=0.1 * jnp.eye(2), Rv=0.01 * jnp.eye(1), P0=jnp.eye(2)),
-        lambda p: obsjax.LeastSquaresReset(p, 20.0, 1.0, 1.0),
+        pytest.param(lambda p: obsjax.LeastSquaresReset(p, 20.0, 1.0, 1.0), marks=pytest.mark.extended),
     ],
     ids=["Kalman-Bucy", "least squares"],
 )

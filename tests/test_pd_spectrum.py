@@ -179,6 +179,7 @@ _C3 = lambda t: jnp.array([[1.0, 0.0, 0.0]]) + 0.0 * t
 _RHO3 = jnp.array([-1.0, -2.0, -3.0])
 
 
+@pytest.mark.extended
 def test_a_bandwidth_that_is_not_positive_where_it_is_used_is_refused():
     """A callable ω was never checked: ω(t) = −2 placed eig(A + KC) = {+2, +4, +6} (an unstable observer)
     and ω(t) = t − 0.5 at t = 0.5 gave a NaN gain, both without a word; a TLO with ω = −2 ran with status
@@ -205,6 +206,7 @@ def test_a_bandwidth_that_is_not_positive_where_it_is_used_is_refused():
             jax.block_until_ready(gj(e, w))
 
 
+@pytest.mark.extended
 def test_tlo_with_a_negative_bandwidth_stops_instead_of_diverging():
     model = obsjax.LTV(lambda t: _A3(t), _C3)
     ok = obsjax.TrajectoryLinearization(model, rho_bar=_RHO3, omega=lambda t: 2.0 + 0 * t, eps=1.0)
