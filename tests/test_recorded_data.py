@@ -401,3 +401,58 @@ def test_estimate_traces_again_after_a_changed_global():
     fresh = run(lambda t: jnp.array([[-2.0, 5.0], [0.0, -1.0]]))
     assert np.max(np.abs(second - first)) > 1e-2
     np.testing.assert_allclose(second, fresh, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.extended
+@pytest.mark.parametrize("K_short", [2, 3, 12])
+def test_cubic_hold_padding_leaves_the_short_experiments_unchanged(K_short):
+    """Stacked with a longer one, a cubic-hold experiment's last sample became interior and its slope was
+    taken from the repeated padding value (about 0): estimates 1.25e-2 off on its last interval.  The
+    padding value lies on the parabola through the last three samples (the secant for two), so the held
+    signal and the estimates equal those of the experiment alone."""
+    rng = np.random.default_rng(K_short)
+
+    def experiment(K):
+        ts = np.cumsum(np.r_[0.0, rng.uniform(0.05, 0.2, K - 1)])
+        return obsjax.Measurements(ts, np.sin(3 * ts) + 0.1 * rng.normal(size=K), np.cos(2 * ts), hold="cubic")
+
+    short, long_ = experiment(K_short), experiment(40)
+    st = obsjax.Measurements.stack([short, long_])
+    one = jax.tree_util.tree_map(lambda a: a[0], st)
+    tm = np.linspace(short.ts[0], short.ts[-1], 31)
+    np.testing.assert_allclose(np.asarray(one.evaluate(tm)[0]), np.asarray(short.evaluate(tm)[0]), atol=1e-10)  # was 4e-2 off
+    kw = dict(rtol=1e-12, atol=1e-14)
+    both = obsjax.estimate(OBS, st, jnp.zeros(2), **kw)
+    alone = obsjax.estimate(OBS, short, jnp.zeros(2), **kw)
+    np.testing.assert_allclose(np.asarray(both.xhat[0, :K_short]), np.asarray(alone.xhat), atol=1e-10)
+
+
+def test_date_columns_and_an_index_column_are_not_misread():
+    """Datetime and timedelta columns were converted to tick counts (ns, µs) and read as seconds: a 10 ms
+    sampling interval became 1e7; and t='index' took the frame's index even where a column named 'index'
+    (the old index, after reset_index) held the time.  Both are refused now."""
+    base = np.datetime64("2026-01-01T00:00:00", "ns")
+    stamps = base + np.arange(5) * np.timedelta64(10, "ms")
+    y = np.sin(np.arange(5.0))
+    for col in (stamps, stamps - base, (stamps - base).astype("timedelta64[ms]")):
+        with pytest.raises(ValueError, match="dates or durations"):
+            obsjax.Measurements.from_dataframe({"time": col, "y": y}, t="time", y="y")
+    seconds = (stamps - stamps[0]) / np.timedelta64(1, "s")
+    m = obsjax.Measurements.from_dataframe({"time": seconds, "y": y}, t="time", y="y")
+    np.testing.assert_allclose(np.diff(np.asarray(m.ts)), 0.01, rtol=1e-12)
+
+    class Frame(dict):  # a mapping with an index, as a DataFrame after reset_index()
+        index = np.arange(5.0)
+
+    with pytest.raises(ValueError, match="column named 'index'"):
+        obsjax.Measurements.from_dataframe(Frame(index=seconds, y=y), t="index", y="y")
+
+
+def test_evaluate_refuses_times_outside_the_samples():
+    """The linear hold extrapolated without a word (3.32 where the last sample is 0.84)."""
+    ts = np.linspace(0.0, 1.0, 11)
+    m = obsjax.Measurements(ts, np.sin(ts), hold="linear")
+    np.testing.assert_allclose(np.asarray(m.evaluate(ts)[0])[:, 0], np.sin(ts), rtol=1e-14)
+    for t in (1.5, -0.1, [0.5, 2.0], float("nan")):
+        with pytest.raises(ValueError, match="holds the samples on"):
+            m.evaluate(t)

@@ -130,6 +130,22 @@ def _traced_finite(a, name):
     return eqx.error_if(a, ~jnp.all(jnp.isfinite(a)), f"`{name}` must hold finite samples (no NaN or inf).")
 
 
+def _numeric_column(values, name, source):
+    """A 1-D float array from a column; datetime and timedelta columns are refused (their conversion to
+    float gives tick counts: ns or µs, not seconds)."""
+    a = np.asarray(values)
+    if a.dtype.kind in "mM" or str(getattr(values, "dtype", "")).startswith(("datetime", "timedelta")):
+        raise ValueError(
+            f"column {name!r} of {source} holds dates or durations ({a.dtype}): convert it to seconds first, "
+            "e.g. (t - t[0]) / np.timedelta64(1, 's') (or .dt.total_seconds() in pandas).  Read as a float "
+            "it would be a count of nanoseconds or microseconds."
+        )
+    try:
+        return np.asarray(a, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"column {name!r} of {source} is not numeric: {e}") from None
+
+
 def hermite_slopes(ts, v):
     """Slopes at the samples for the cubic hold: the derivative of the parabola through three neighbouring
     samples (second-order accurate on irregular grids; one-sided at the ends, the secant for two samples)."""
@@ -234,7 +250,8 @@ class Measurements(eqx.Module):
             mv = concrete_value(mask)
             if mv is not None and np.asarray(mv).dtype != bool and not np.all(np.isin(np.asarray(mv), (0, 1))):
                 raise ValueError(
-                    "`mask` must hold booleans (True: a sample to use, False: padding or a sample to skip), "
+                    "`mask` must hold booleans (True: a sample the losses use, False: one they ignore, e.g. "
+                    "padding; the observer still sees every sample through the hold), "
                     f"got values {np.unique(np.asarray(mv))[:6].tolist()}."
                 )
             mask = jnp.asarray(mask, bool)
@@ -321,10 +338,20 @@ class Measurements(eqx.Module):
         return None
 
     def evaluate(self, t):
-        """(y(t), u(t)) as the observer sees them (right-continuous for the zero-order hold)."""
+        """(y(t), u(t)) as the observer sees them (right-continuous for the zero-order hold), for t in
+        [t_0, t_{K−1}] (a concrete t outside it raises ``ValueError``: the holds would extrapolate)."""
         if self.batched:
             raise ValueError("`evaluate` works on one experiment: index or vmap a stacked Measurements first.")
         t = jnp.asarray(t, self.ts.dtype)
+        tc, t0c, t1c = concrete_value(t), concrete_value(self.ts[0]), concrete_value(self.ts[-1])
+        if tc is not None and t0c is not None and t1c is not None:
+            tol = _schedule.tolerance(float(t1c) - float(t0c), max(abs(float(t0c)), abs(float(t1c))))
+            out = np.asarray(tc)[(np.asarray(tc) < float(t0c) - tol) | (np.asarray(tc) > float(t1c) + tol)]
+            if out.size or not np.all(np.isfinite(tc)):
+                raise ValueError(
+                    f"`evaluate` holds the samples on [{float(t0c):g}, {float(t1c):g}] only (outside it the "
+                    f"linear and cubic holds would extrapolate), got t = {np.atleast_1d(tc)[~((np.atleast_1d(tc) >= float(t0c) - tol) & (np.atleast_1d(tc) <= float(t1c) + tol))][0]:g}."
+                )
         if t.ndim:
             return jax.vmap(self.evaluate)(t)
         if self.hold == "zoh":
@@ -354,7 +381,7 @@ class Measurements(eqx.Module):
                     raise ValueError(
                         f"column {c!r} (argument `{arg}`) is not in {source}; available columns: {names}."
                     )
-            return np.stack([np.asarray(columns[c], dtype=float) for c in cols], axis=1), tuple(cols)
+            return np.stack([_numeric_column(columns[c], c, source) for c in cols], axis=1), tuple(cols)
 
         tv, _ = take("t", t)
         if tv.shape[1] != 1:
@@ -412,13 +439,21 @@ class Measurements(eqx.Module):
     @classmethod
     def from_dataframe(cls, df, *, t, y, u=None, x=None, x_index=None, hold="zoh", missing="raise"):
         """Build from a pandas ``DataFrame`` (or any mapping of column names to 1-D values); ``t`` may be
-        ``"index"`` to use the frame's index as the time.  pandas itself is not required by obsjax.
+        ``"index"`` to use the frame's index as the time (refused when a column is also named "index").
+        Date and duration columns are refused: convert them to seconds first.  pandas itself is not
+        required by obsjax.
 
         **Returns:** a :class:`Measurements`.
         """
-        cols = {str(c): np.asarray(df[c], dtype=float) for c in list(getattr(df, "columns", df))}
+        cols = {str(c): df[c] for c in list(getattr(df, "columns", df))}
         if t == "index":
-            cols["index"] = np.asarray(df.index, dtype=float)
+            if "index" in cols:
+                raise ValueError(
+                    "`t='index'` names the frame's index, but the frame also has a column named 'index' (as "
+                    "after df.reset_index()): rename that column and pass its new name, or set the index "
+                    "with df.set_index(...)."
+                )
+            cols["index"] = df.index
         return cls.from_columns(cols, t=t, y=y, u=u, x=x, x_index=x_index, hold=hold, missing=missing,
                                 source="the data frame")
 
@@ -472,13 +507,37 @@ class Measurements(eqx.Module):
         # relative to the span (a change of time unit changes nothing), and never within the schedule's
         # tolerance, which includes a few ulp of the times (e.g. of an epoch time stamp)
         scale = jnp.maximum(jnp.abs(self.ts[0]), jnp.abs(self.ts[-1]))
-        dt = PAD_STEP * (self.ts[-1] - self.ts[0]) + 100 * _schedule.TIME_ULPS * jnp.finfo(self.ts.dtype).eps * scale
+        # at most ~1e-3 of the span in all (many padded samples: 1e6 of them spanned the data once more),
+        # never closer than 10 times the schedule's relative tolerance
+        step = max(min(PAD_STEP, 1e-3 / max(extra, 1)), 10 * _schedule.TIME_RTOL) if extra else PAD_STEP
+        dt = step * (self.ts[-1] - self.ts[0]) + 100 * _schedule.TIME_ULPS * jnp.finfo(self.ts.dtype).eps * scale
         ts = jnp.concatenate([self.ts, self.ts[-1] + dt * jnp.arange(1, extra + 1)])
 
-        def rep(a):
-            return None if a is None else jnp.concatenate([a, jnp.broadcast_to(a[-1], (extra,) + a.shape[1:])])
+        def rep(a, first=None):
+            if a is None:
+                return None
+            pad = jnp.broadcast_to(a[-1] if first is None else first, (extra,) + a.shape[1:])
+            return jnp.concatenate([a, pad])
 
+        y, u = rep(self.y), rep(self.u)
+        if self.hold == "cubic" and extra:
+            # The cubic hold's slope at the last real sample is the one-sided end slope (the parabola
+            # through the last three samples); after padding that sample is interior, and its slope comes
+            # from its neighbours.  The padding value is put on that parabola, so the interior slope is the
+            # same one and no real interval changes (repeating the last value gave a slope near 0 there:
+            # estimates 1e-2 off on a short experiment's last interval).
+            v = self._values()
+            nxt = self.ts[-1] + dt
+            if self.K >= 3:
+                t0_, t1_, t2_ = self.ts[-3], self.ts[-2], self.ts[-1]
+                l0 = (nxt - t1_) * (nxt - t2_) / ((t0_ - t1_) * (t0_ - t2_))
+                l1 = (nxt - t0_) * (nxt - t2_) / ((t1_ - t0_) * (t1_ - t2_))
+                l2 = (nxt - t0_) * (nxt - t1_) / ((t2_ - t0_) * (t2_ - t1_))
+                w = l0 * v[-3] + l1 * v[-2] + l2 * v[-1]
+            else:  # two samples: the secant, extended
+                w = v[-1] + (v[-1] - v[-2]) * (dt / (self.ts[-1] - self.ts[-2]))
+            y, u = rep(self.y, w[: self.m]), rep(self.u, w[self.m :])
         mask = jnp.concatenate([self.mask, jnp.zeros(extra, bool)])
         return Measurements(
-            ts, rep(self.y), rep(self.u), hold=self.hold, x_ref=rep(self.x_ref), x_index=self.x_index, mask=mask
+            ts, y, u, hold=self.hold, x_ref=rep(self.x_ref), x_index=self.x_index, mask=mask
         )
