@@ -44,7 +44,8 @@ FORMAT = 2  # checkpoint format: content fingerprints and per-file checksums
 #: before a change of the results (not only of their rounding) is another study.  2: the schedule's time
 #: tolerance relative to the horizon, max_steps per segment in the masked loop, a reset on a plant jump
 #: as one target there.  3: the Kalman–Bucy filter and the least-squares observer subtract an LTI
-#: model's feedthrough D u; switching_ltv_example keeps switching after its declared horizon.
+#: model's feedthrough D u; switching_ltv_example keeps switching after its declared horizon; the
+#: padding of stacked recorded experiments (cubic hold, spacing).
 RESULTS_REVISION = 3
 
 # Top-level packages hashed by name (their version is part of the fingerprint header).
