@@ -456,3 +456,15 @@ def test_evaluate_refuses_times_outside_the_samples():
     for t in (1.5, -0.1, [0.5, 2.0], float("nan")):
         with pytest.raises(ValueError, match="holds the samples on"):
             m.evaluate(t)
+
+
+def test_csv_rows_of_empty_fields_follow_the_missing_mode(tmp_path):
+    """A line of empty fields (",") was dropped silently even with missing="raise", and a sample without
+    its time was refused even with missing="skip".  Empty lines are still no samples."""
+    p = tmp_path / "gaps.csv"
+    p.write_text("t,y\n0,1\n0.1,2\n,\n0.2,3\n\n0.3,4\n,5\n")
+    with pytest.raises(ValueError, match="finite times"):
+        obsjax.Measurements.from_csv(p, t="t", y="y")
+    m = obsjax.Measurements.from_csv(p, t="t", y="y", missing="skip")
+    np.testing.assert_array_equal(np.asarray(m.ts), [0.0, 0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(np.asarray(m.y)[:, 0], [1.0, 2.0, 3.0, 4.0])

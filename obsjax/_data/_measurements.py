@@ -413,7 +413,9 @@ class Measurements(eqx.Module):
         if dup:  # a column read by name would be one of them, and which one the user cannot tell
             where = ", ".join(f"{h!r} (columns {[j for j, g in enumerate(header) if g == h]})" for h in dup)
             raise ValueError(f"`path` {path!r}: the header names a column more than once: {where}; rename them.")
-        body = [r for r in rows[1:] if any(f.strip() for f in r)]
+        # an empty line is no sample; a line of empty fields (",,") is a sample with every value missing,
+        # which `missing` decides about (it was dropped silently, also with missing="raise")
+        body = [r for r in rows[1:] if len(r) > 1 or (r and r[0].strip())]
         for i, r in enumerate(body):
             if len(r) != len(header):
                 raise ValueError(
@@ -432,6 +434,9 @@ class Measurements(eqx.Module):
                 ) from None
 
         cols = {h: np.array([num(r[j], i, j) for i, r in enumerate(body)]) for j, h in enumerate(header)}
+        if missing == "skip" and isinstance(t, str) and t in cols:  # a sample without its time: dropped too
+            keep = np.isfinite(cols[t])
+            cols = {h: v[keep] for h, v in cols.items()}
         return cls.from_columns(
             cols, t=t, y=y, u=u, x=x, x_index=x_index, hold=hold, missing=missing, source=f"{path!r}"
         )
