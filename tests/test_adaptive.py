@@ -772,6 +772,7 @@ def test_morgan_narendra_refuses_a_non_finite_regressor_at_once():
         )
 
 
+@pytest.mark.extended
 def test_traced_adaptive_gains_and_poles_keep_the_eager_checks():
     """Under jit the guards tested only Re < 0 and the eigenvalues of the symmetric part: a
     non-symmetric Γ was used as it is, filter poles (−1 + j, −1 + 2j) (not closed under conjugation)

@@ -204,7 +204,7 @@ def level_scales(norms, a_norm):
     return xp.stack(rho)
 
 
-def balance_levels(levels, A0):
+def balance_levels(levels, A0, state_scale=None):
     """The Lie stack and A in balanced state units: (levels·D, D⁻¹A D), D = diag(d) the state scaling of
     :func:`obsjax.analysis.balancing` of the pair (A(t), C(t)) (log-magnitude scaling, then Osborne).
 
@@ -212,7 +212,13 @@ def balance_levels(levels, A0):
     balanced pair does not change, so neither do the rank decisions and the margin taken on it.  Without
     it the level scales ρ_k (built on ‖A‖) moved with the state units: states in units 30 and 900 apart
     made a well-conditioned 4-state pair "rank < 4".  NumPy in, NumPy out; otherwise traced (not
-    differentiated: the decisions are not).  Non-finite input is returned as it is."""
+    differentiated: the decisions are not).  Non-finite input is returned as it is.  `state_scale` (n,)
+    gives d instead (the state units do not change in time: a caller that evaluates the margin at every
+    step of a simulation computes d once, :class:`obsjax.TrajectoryLinearization` at construction)."""
+    if state_scale is not None:  # the units given (e.g. once per simulation: they do not change in time)
+        d = jax.lax.stop_gradient(jnp.asarray(state_scale, dtype=jnp.result_type(levels)))
+        levels, A0 = jax.lax.stop_gradient(levels), jax.lax.stop_gradient(A0)
+        return levels * d[None, None, :], A0 * (d[None, :] / d[:, None])
     if isinstance(levels, np.ndarray):
         if not (np.all(np.isfinite(levels)) and np.all(np.isfinite(A0))):
             return levels, A0
@@ -262,7 +268,7 @@ def _search(Qs: np.ndarray, tol: float, A0: np.ndarray) -> tuple[tuple[int, ...]
     return tuple(p), float(margin)
 
 
-def staircase_margin(levels: jax.Array, A0: jax.Array, indices) -> jax.Array:
+def staircase_margin(levels: jax.Array, A0: jax.Array, indices, state_scale=None) -> jax.Array:
     """The staircase margin of the rows that the indices select, as a traced value (for ``jit``).
 
     ``levels`` (≥ max p_i, m, n): [C; 𝓛C; …] at one time; ``A0``: A at that time.  The rows 𝓛ʲc_i
@@ -273,7 +279,7 @@ def staircase_margin(levels: jax.Array, A0: jax.Array, indices) -> jax.Array:
     units change (:func:`balance_levels`).  It is NaN
     when A or the rows are not finite (a non-finite estimate, not a loss of observability)."""
     pmax = max(indices)
-    levels, A0 = balance_levels(levels, A0)  # state units (stop_gradient inside)
+    levels, A0 = balance_levels(levels, A0, state_scale)  # state units (stop_gradient inside)
     levels = (levels / output_scales(jnp.linalg.norm(levels, axis=2))[None, :, None])[:pmax]
     rho = level_scales(jnp.linalg.norm(levels, axis=2), jnp.linalg.norm(A0, 2))
     order = [(j, i) for j in range(pmax) for i in range(len(indices)) if j < indices[i]]
@@ -444,7 +450,7 @@ def _check_indices(indices, n: int, m: int) -> tuple[int, ...]:
 
 
 def ltv_observer_canonical_form(
-    A: Callable, C: Callable, t, *, indices=None, threshold: float = DEFAULT_TOL
+    A: Callable, C: Callable, t, *, indices=None, threshold: float = DEFAULT_TOL, state_scale=None
 ) -> LTVCanonicalForm:
     """Transform the LTV pair (8) to the MIMO observer canonical form (9)-(11) at time t (Huang & Zhu).
 
@@ -461,6 +467,8 @@ def ltv_observer_canonical_form(
     - `threshold`: when `t` is concrete, a staircase margin of the rows of Q_0(t) at or below it
       (:func:`staircase_margin`: scale-invariant, 0 for dependent rows) raises ``ValueError`` naming t;
       under ``jit`` the margin is returned in the result for the caller's ``eqx.error_if``.
+    - `state_scale`: optional (n,) state scaling of the balanced pair (:func:`balance_levels`) for the
+      margin; computed from (A(t), C(t)) when ``None``.
 
     **Returns:** an :class:`LTVCanonicalForm` (indices, Q0, Tinv, T, Az, Cz, R, alpha).
 
@@ -496,7 +504,7 @@ def ltv_observer_canonical_form(
     for _ in range(pmax - 1):
         prev = lie[-1]
         lie.append(_sderiv(prev) + _smul(prev[:-1], As[: prev.shape[0] - 1]))
-    margin = staircase_margin(jnp.stack([lv[0] for lv in lie]), As[0], idx)
+    margin = staircase_margin(jnp.stack([lv[0] for lv in lie]), As[0], idx, state_scale)
     mc = concrete_value(margin)
     if tc is not None and mc is not None and not np.isfinite(float(mc)):
         raise ValueError(

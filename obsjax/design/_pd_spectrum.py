@@ -275,7 +275,8 @@ class PDObserverGain(NamedTuple):
 
 
 def pd_observer_gain(
-    A: Callable, C: Callable, rho_bar, omega, t, *, eps=1.0, indices=None, threshold: float = DEFAULT_TOL
+    A: Callable, C: Callable, rho_bar, omega, t, *, eps=1.0, indices=None, threshold: float = DEFAULT_TOL,
+    state_scale=None,
 ) -> PDObserverGain:
     """Observer gain K_o(t) by PD-eigenvalue assignment (Huang & Zhu, Step (b), (12)-(14)).
 
@@ -296,7 +297,7 @@ def pd_observer_gain(
     - `omega`: bandwidth, positive constant or callable of t.
     - `t`: the time (may be traced when `indices` is given).
     - `eps`: high-gain factor, ω_H = ω/ε (22)-(23).
-    - `indices`, `threshold`: as :func:`ltv_observer_canonical_form`.
+    - `indices`, `threshold`, `state_scale`: as :func:`ltv_observer_canonical_form`.
 
     **Returns:** :class:`PDObserverGain` (Ko, Kz, beta, form).
 
@@ -305,7 +306,7 @@ def pd_observer_gain(
         K = pd_observer_gain(A, C, jnp.array([-1., -2., -3.]), 2.0, 0.0).Ko
     """
     require_x64("pd_observer_gain")
-    form = ltv_observer_canonical_form(A, C, t, indices=indices, threshold=threshold)
+    form = ltv_observer_canonical_form(A, C, t, indices=indices, threshold=threshold, state_scale=state_scale)
     idx = form.indices
     n = form.Tinv.shape[0]
     # distinct within each block (checked per block below)

@@ -20,6 +20,7 @@ from ..design._ltv_canonical import (
     strong_observability,
     time_derivatives,
 )
+from ..analysis._lti import balancing
 from ..design._pd_spectrum import RHO_BAR_MIN_GAP, check_rho_bar, omega_function, pd_observer_gain
 from ..systems._plants import AbstractSystem
 from ._base import AbstractObserver
@@ -148,6 +149,8 @@ class TrajectoryLinearization(AbstractObserver):
     threshold: float = eqx.field(static=True, default=DEFAULT_TOL)
     stiff_rate: float = eqx.field(static=True, default=50.0)
     on_unobservable: str = eqx.field(static=True, default="error")
+    # the state scaling of the balanced pair at t = 0 (the margin's state units, computed once)
+    state_scale: tuple[float, ...] | None = eqx.field(static=True, default=None)
 
     def __init__(
         self,
@@ -220,6 +223,13 @@ class TrajectoryLinearization(AbstractObserver):
             A, C = self._frozen_jacobians()
             indices = ltv_observability_indices(A, C, 0.0 if check_ts is None else check_ts)
         self.indices = _check_indices(indices, model.n, model.m)
+        A0f, C0f = self._frozen_jacobians()
+        A0v, C0v = np.asarray(A0f(jnp.asarray(0.0)), float), np.asarray(C0f(jnp.asarray(0.0)), float)
+        self.state_scale = None
+        if np.all(np.isfinite(A0v)) and np.all(np.isfinite(C0v)):
+            d = np.asarray(balancing(A0v, C0v)[0], float)
+            if np.all(np.isfinite(d)) and np.all(d > 0):
+                self.state_scale = tuple(float(v) for v in d)
         if check_ts is not None:
             A, C = self._jacobian_fns(None, None)
             strong_observability(A, C, check_ts, threshold=self.threshold)
@@ -342,6 +352,7 @@ class TrajectoryLinearization(AbstractObserver):
             eps=self.eps,
             indices=self.indices,
             threshold=self.threshold,
+            state_scale=None if self.state_scale is None else np.asarray(self.state_scale),
         )
 
     def gain(self, t, xhat=None, u=None) -> jax.Array:
