@@ -242,6 +242,7 @@ def test_error_gramian_bad_k():
     np.testing.assert_allclose(an.observability_gramian(CY, 2.0, 1.0), an.observability_gramian(CY, 2, 1.0))
 
 
+@pytest.mark.extended
 def test_error_gramian_end_reference_that_overflows():
     """A fast stable mode (−1e5) over T = 2: Φ(kT − T, kT) overflows, and the end-referenced gramian came
     back with −inf on its diagonal (a gramian is positive semidefinite)."""

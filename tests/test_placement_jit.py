@@ -50,6 +50,7 @@ def test_a_pair_closer_than_the_cluster_tolerance_is_a_real_double_pole(im):
 
 
 # ---------------------------------------------------------------- derivatives, jit, vmap
+@pytest.mark.extended
 def test_eager_derivative_in_the_model_includes_the_balancing():
     """jax.jvp/grad of place in A or C run eagerly (no jit), m = 2 < n = 4: the balancing (d, e) of the pair
     was computed in NumPy from the tracers' primal values, so its derivative was dropped (relative error
