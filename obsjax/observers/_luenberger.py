@@ -26,7 +26,7 @@ from ..design._poles import (
     pole_structure,
 )
 from ..systems._plants import LTI
-from ._base import AbstractObserver
+from ._base import AbstractObserver, require_no_feedthrough
 
 
 def _require_lti(model, who):
@@ -421,15 +421,8 @@ def _companion(coeffs):
     return F
 
 
-def _require_no_feedthrough(model, who):
-    """The observers built on y = Cx alone (reduced-order, functional) need D = 0: with feedthrough their
-    estimate is biased by D u without a word.  (Measure y − D u instead, with a model whose D is 0.)"""
-    Dv = concrete_value(model.D)
-    if Dv is not None and np.any(Dv != 0):
-        raise ValueError(
-            f"{who} needs a model without feedthrough: `D` must be 0, got max |D| = "
-            f"{float(np.max(np.abs(Dv))):.3g}. Give it the measurement y − D u and a model with D = 0."
-        )
+# the observers built on y = Cx alone (reduced-order, functional) need D = 0
+_require_no_feedthrough = require_no_feedthrough
 
 
 class FunctionalObserver(AbstractObserver):
