@@ -345,12 +345,14 @@ class Measurements(eqx.Module):
         t = jnp.asarray(t, self.ts.dtype)
         tc, t0c, t1c = concrete_value(t), concrete_value(self.ts[0]), concrete_value(self.ts[-1])
         if tc is not None and t0c is not None and t1c is not None:
-            tol = _schedule.tolerance(float(t1c) - float(t0c), max(abs(float(t0c)), abs(float(t1c))))
-            out = np.asarray(tc)[(np.asarray(tc) < float(t0c) - tol) | (np.asarray(tc) > float(t1c) + tol)]
-            if out.size or not np.all(np.isfinite(tc)):
+            lo, hi = float(t0c), float(t1c)
+            tol = _schedule.tolerance(hi - lo, max(abs(lo), abs(hi)))
+            tv = np.atleast_1d(np.asarray(tc, dtype=float))
+            outside = ~((tv >= lo - tol) & (tv <= hi + tol))  # NaN is outside
+            if outside.any():
                 raise ValueError(
-                    f"`evaluate` holds the samples on [{float(t0c):g}, {float(t1c):g}] only (outside it the "
-                    f"linear and cubic holds would extrapolate), got t = {np.atleast_1d(tc)[~((np.atleast_1d(tc) >= float(t0c) - tol) & (np.atleast_1d(tc) <= float(t1c) + tol))][0]:g}."
+                    f"`evaluate` holds the samples on [{lo:g}, {hi:g}] only (outside it the linear and cubic "
+                    f"holds would extrapolate), got t = {tv[outside][0]:g}."
                 )
         if t.ndim:
             return jax.vmap(self.evaluate)(t)

@@ -216,19 +216,17 @@ def balance_levels(levels, A0, state_scale=None):
     gives d instead (the state units do not change in time: a caller that evaluates the margin at every
     step of a simulation computes d once, :class:`obsjax.TrajectoryLinearization` at construction)."""
     if state_scale is not None:  # the units given (e.g. once per simulation: they do not change in time)
-        d = jax.lax.stop_gradient(jnp.asarray(state_scale, dtype=jnp.result_type(levels)))
         levels, A0 = jax.lax.stop_gradient(levels), jax.lax.stop_gradient(A0)
-        return levels * d[None, None, :], A0 * (d[None, :] / d[:, None])
-    if isinstance(levels, np.ndarray):
+        d = jnp.asarray(state_scale, dtype=jnp.result_type(levels))
+    elif isinstance(levels, np.ndarray):
         if not (np.all(np.isfinite(levels)) and np.all(np.isfinite(A0))):
             return levels, A0
-        d, _ = balancing(np.asarray(A0, dtype=float), np.asarray(levels[0], dtype=float))
-        d = np.asarray(d, dtype=float)
-        return levels * d[None, None, :], A0 * (d[None, :] / d[:, None])
-    levels, A0 = jax.lax.stop_gradient(levels), jax.lax.stop_gradient(A0)
-    finite = jnp.all(jnp.isfinite(levels)) & jnp.all(jnp.isfinite(A0))
-    d, _ = balancing(jnp.where(finite, A0, 0.0), jnp.where(finite, levels[0], 1.0))
-    d = jnp.where(finite & jnp.all(jnp.isfinite(d)) & jnp.all(d > 0), d, 1.0)
+        d = np.asarray(balancing(np.asarray(A0, dtype=float), np.asarray(levels[0], dtype=float))[0], dtype=float)
+    else:
+        levels, A0 = jax.lax.stop_gradient(levels), jax.lax.stop_gradient(A0)
+        finite = jnp.all(jnp.isfinite(levels)) & jnp.all(jnp.isfinite(A0))
+        d, _ = balancing(jnp.where(finite, A0, 0.0), jnp.where(finite, levels[0], 1.0))
+        d = jnp.where(finite & jnp.all(jnp.isfinite(d)) & jnp.all(d > 0), d, 1.0)
     return levels * d[None, None, :], A0 * (d[None, :] / d[:, None])
 
 

@@ -100,6 +100,15 @@ def omega_function(omega, name: str = "omega") -> Callable:
 RHO_BAR_MIN_GAP = 1e-8
 
 
+def rho_bar_too_close(r):
+    """True when two entries of r are closer than RHO_BAR_MIN_GAP·max|r| (NumPy or traced)."""
+    xp = np if isinstance(r, np.ndarray) else jnp
+    if r.shape[0] < 2:
+        return xp.asarray(False)
+    gap = xp.abs(r[:, None] - r[None, :]) + xp.where(xp.eye(r.shape[0], dtype=bool), xp.inf, 0.0)
+    return xp.min(gap) <= RHO_BAR_MIN_GAP * xp.max(xp.abs(r))
+
+
 def guard_bandwidth(omega_fn: Callable, t, result, name: str = "omega"):
     """`result`, refused unless the bandwidth ω(t) is a finite positive scalar: ``ValueError`` when ω(t)
     is concrete, ``eqx.error_if`` when it is traced (a callable ω is not checked at construction: a ramp
@@ -141,14 +150,12 @@ def check_rho_bar(
     if c is not None:
         if negative and not np.all(c < 0):
             raise ValueError(f"`{name}` must be < 0 for a stable observer, got {c.tolist()}.")
-        if distinct and len(c) > 1:
-            gaps = np.abs(c[:, None] - c[None, :])[~np.eye(len(c), dtype=bool)]
-            if not np.min(gaps) > RHO_BAR_MIN_GAP * np.max(np.abs(c)):
-                raise ValueError(
-                    f"`{name}` must hold distinct values, at least {RHO_BAR_MIN_GAP:g}·max|ρ̄| apart (the "
-                    "Vandermonde matrix V̄(ρ̄) of (21) is solved: with values 1e-14 apart the coefficients "
-                    f"were 6 % off), got {c.tolist()}."
-                )
+        if distinct and bool(rho_bar_too_close(np.asarray(c, dtype=float))):
+            raise ValueError(
+                f"`{name}` must hold distinct values, at least {RHO_BAR_MIN_GAP:g}·max|ρ̄| apart (the "
+                "Vandermonde matrix V̄(ρ̄) of (21) is solved: with values 1e-14 apart the coefficients "
+                f"were 6 % off), got {c.tolist()}."
+            )
     return r
 
 

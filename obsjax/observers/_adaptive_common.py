@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array, concrete_value
+from ._validation import spd_violation
 
 
 def gain_array(x, name: str, size: int) -> jnp.ndarray:
@@ -145,19 +146,15 @@ def check_stable_roots(roots, name: str, size: int | None = None) -> jnp.ndarray
 
 def traced_positive(arr, name: str):
     """``eqx.error_if`` guard (survives jit) that a scalar/vector gain is finite and > 0, or a matrix gain
-    finite, symmetric (to 1e-10 relative, as :func:`check_gain`) and positive definite: the Lyapunov
+    finite, symmetric (to 1e-10 relative) and positive definite (``spd_violation``): the Lyapunov
     arguments of the adaptive laws need Γ = Γᵀ > 0, and a traced Γ that is not is otherwise used as it is."""
     import equinox as eqx
 
     arr = jnp.asarray(arr)
-    bad = jnp.any(~jnp.isfinite(arr))
     if arr.ndim <= 1:
-        bad = bad | jnp.any(~(arr > 0))
-        what = "finite and > 0"
+        bad, what = jnp.any(~jnp.isfinite(arr) | ~(arr > 0)), "finite and > 0"
     else:
-        asym = jnp.max(jnp.abs(arr - arr.T)) > 1e-10 * jnp.max(jnp.abs(arr))
-        bad = bad | asym | jnp.any(~(jnp.linalg.eigvalsh(0.5 * (arr + arr.T)) > 0))
-        what = "finite, symmetric and positive definite"
+        bad, what = spd_violation(arr, semi=False), "finite, symmetric and positive definite"
     return eqx.error_if(arr, bad, f"`{name}` must be {what}.")
 
 

@@ -5,6 +5,9 @@ from __future__ import annotations
 import abc
 
 import equinox as eqx
+import numpy as np
+
+from .._checks import concrete_value
 
 
 class AbstractObserver(eqx.Module):
@@ -117,10 +120,6 @@ def require_no_feedthrough(model, who):
     """Refuse an LTI model with feedthrough D ≠ 0 for an observer built on y = C x alone, whose estimate
     would otherwise carry a bias of D u without a word (the Lovass-Nagy observers and the LTV
     finite-window observer read y where C x is meant).  A traced D is not checked."""
-    import numpy as np
-
-    from .._checks import concrete_value
-
     D = getattr(model, "D", None)
     Dv = None if D is None else concrete_value(D)
     if Dv is not None and np.any(np.asarray(Dv) != 0):

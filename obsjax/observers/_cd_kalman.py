@@ -135,9 +135,6 @@ class ContinuousDiscreteKalman(AbstractObserver):
         dP = A @ z.P + z.P @ A.T + self.Qw
         return ContinuousDiscreteKalmanState(dx, 0.5 * (dP + dP.T))
 
-    def _feedthrough(self, u):
-        return feedthrough(self.model, u)
-
     def gain(self, t, z):
         """Kalman gain K = P⁻ Cᵀ (C P⁻ Cᵀ + Rv)⁻¹ at a sample, shape (n, m)."""
         C = self.model.C_of(t)
@@ -148,7 +145,7 @@ class ContinuousDiscreteKalman(AbstractObserver):
         """The measurement update at a sample (Joseph form of the covariance)."""
         C = self.model.C_of(t)
         K = self.gain(t, z)
-        xhat = z.xhat + K @ (y - C @ z.xhat - self._feedthrough(u))
+        xhat = z.xhat + K @ (y - C @ z.xhat - feedthrough(self.model, u))
         IKC = jnp.eye(z.P.shape[0], dtype=z.P.dtype) - K @ C
         P = IKC @ z.P @ IKC.T + K @ self.Rv @ K.T
         return ContinuousDiscreteKalmanState(xhat, 0.5 * (P + P.T))

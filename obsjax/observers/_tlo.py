@@ -21,7 +21,13 @@ from ..design._ltv_canonical import (
     time_derivatives,
 )
 from ..analysis._lti import balancing
-from ..design._pd_spectrum import RHO_BAR_MIN_GAP, check_rho_bar, omega_function, pd_observer_gain
+from ..design._pd_spectrum import (
+    RHO_BAR_MIN_GAP,
+    check_rho_bar,
+    omega_function,
+    pd_observer_gain,
+    rho_bar_too_close,
+)
 from ..systems._plants import AbstractSystem
 from ._base import AbstractObserver
 from ._validation import positive_scalar, require_finite
@@ -219,11 +225,10 @@ class TrajectoryLinearization(AbstractObserver):
 
     def _structure(self, indices, check_ts):
         model = self.model
-        if indices is None:
-            A, C = self._frozen_jacobians()
-            indices = ltv_observability_indices(A, C, 0.0 if check_ts is None else check_ts)
-        self.indices = _check_indices(indices, model.n, model.m)
         A0f, C0f = self._frozen_jacobians()
+        if indices is None:
+            indices = ltv_observability_indices(A0f, C0f, 0.0 if check_ts is None else check_ts)
+        self.indices = _check_indices(indices, model.n, model.m)
         A0v, C0v = np.asarray(A0f(jnp.asarray(0.0)), float), np.asarray(C0f(jnp.asarray(0.0)), float)
         self.state_scale = None
         if np.all(np.isfinite(A0v)) and np.all(np.isfinite(C0v)):
@@ -266,10 +271,7 @@ class TrajectoryLinearization(AbstractObserver):
             )
             close, start = jnp.asarray(False), 0
             for p in self.indices:  # distinct within each block, as check_rho_bar eagerly
-                blk = rho[start : start + p]
-                if p > 1:
-                    gap = jnp.abs(blk[:, None] - blk[None, :]) + jnp.eye(p) * jnp.inf
-                    close = close | (jnp.min(gap) <= RHO_BAR_MIN_GAP * jnp.max(jnp.abs(blk)))
+                close = close | rho_bar_too_close(rho[start : start + p])
                 start += p
             rho = eqx.error_if(
                 rho,
