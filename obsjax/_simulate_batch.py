@@ -16,7 +16,7 @@ from ._integrate._lockstep import lockstep_norm, per_member
 from ._integrate._status import NONFINITE, is_finite
 from ._integrate._system import initial_state
 from ._integrate._system import with_content as _with_content
-from ._simulate import Trajectory, _Args, _raise_if, simulate, trajectory
+from ._simulate import Trajectory, _raise_if, simulate, trajectory
 
 __all__ = ["lockstep_norm", "simulate_batch"]
 from .systems._noise import AbstractNoise, BandLimitedNoise, WhiteNoise, realise_band_limited
