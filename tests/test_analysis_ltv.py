@@ -363,3 +363,71 @@ def test_a_non_finite_plant_or_regressor_is_named_before_integrating():
     with pytest.raises(ValueError, match="regressor .* not finite"):
         an.is_persistently_exciting(w, 2 * np.pi, 20.0)
     np.testing.assert_allclose(an.transition_matrix(bad_plant, 2.0, 0.0), np.exp(2.0) * np.eye(2), rtol=1e-9)
+
+
+def _stiff_exact(lam, b, T):
+    """A = [[λ, 0], [1, b]], C = [1, 1] at 800 digits (cond W_o^end = e^{2|λ|T} needs |λ|T/1.15 of them): m1 = σ_min Φ(T, 0) and the extreme eigenvalues of
+    W_o^end = V⁻ᵀ H V⁻¹ (A = V diag(λ, b) V⁻¹, H_ij = c_i c_j (1 − e^{−(λ_i+λ_j)T}) / (λ_i + λ_j), c = C V):
+    closed forms that share nothing with the solver."""
+    import mpmath as mp
+
+    with mp.workdps(800):
+        lam, b, T = mp.mpf(lam), mp.mpf(b), mp.mpf(T)
+        e = lambda x: mp.e**x  # noqa: E731
+        Phi = mp.matrix([[e(lam * T), 0], [(e(b * T) - e(lam * T)) / (b - lam), e(b * T)]])
+        V = mp.matrix([[b - lam, 0], [-1, 1]])
+        c, ev = [b - lam - 1, mp.mpf(1)], [lam, b]
+        H = mp.matrix(2, 2)
+        for i in range(2):
+            for j in range(2):
+                s = ev[i] + ev[j]
+                H[i, j] = c[i] * c[j] * (1 - e(-s * T)) / s
+        Vi = V**-1
+        W = Vi.T * H * Vi
+        ew = sorted(mp.eigsy(W, eigvals_only=True))
+        m1 = min(mp.svd_r(Phi, compute_uv=False))
+        return float(m1), float(ew[0]), float(ew[-1]), np.array(W.tolist(), dtype=float)
+
+
+def test_constants_of_a_fast_stable_mode_are_not_floored_by_the_tolerance():
+    """m1 = σ_min Φ(t_k + T, t_k) and α2 = λ_max(W_o^end) with a mode e^{λT} far below the solver's atol.
+    Integrated forwards, the small singular value sat at the absolute tolerance: m1 = 2.8e-14 for the exact
+    3.7e-44 (λ = −50, T = 2), and α2 = 1.25e25 for 6.9e84; the end-referenced gramian was 60 orders of
+    magnitude off in norm.  Where float64 cannot hold them (λ = −400) m1 rounds to 0 and α2 to ∞, while α1
+    stays exact."""
+    T = 2.0
+    for lam in (-12.0, -50.0, -400.0):
+        plant = obsjax.LTI(np.array([[lam, 0.0], [1.0, 0.1]]), None, np.array([[1.0, 1.0]]))
+        m1, a1, a2, W = _stiff_exact(lam, 0.1, T)
+        c = an.uniform_observability_constants(plant, T, T)
+        np.testing.assert_allclose(float(c.alpha1[0]), a1, rtol=1e-8)
+        if lam > -300:
+            np.testing.assert_allclose(float(c.m1[0]), m1, rtol=1e-7)
+            np.testing.assert_allclose(float(c.alpha2[0]), a2, rtol=1e-7)
+            We = np.asarray(an.observability_gramian(plant, 1, T, reference="end"))
+            assert np.linalg.norm(We - W) <= 1e-7 * np.linalg.norm(W)
+        else:
+            assert m1 == 0.0 and float(c.m1[0]) == 0.0  # e^{−800}: below float64
+            assert a2 == np.inf and float(c.alpha2[0]) == np.inf
+        rho = an.chen_yen_bound(plant, 20.0, 0.1, T, T)
+        np.testing.assert_allclose(float(rho[0]), float(c.mu[0]) / (1 + 2.0 * a1 * m1**2), rtol=1e-9)
+
+
+@pytest.mark.extended
+def test_error_transition_that_overflows_within_a_period_names_the_cause():
+    """An unstable mode e^{400 t} over T = 2 overflows float64: the forward solve used up its step budget
+    and the analysis reported 'increase max_steps', which cannot help.  The end-referenced gramian, solved
+    backwards, is finite there (W = diag-ish, 1/800 in the fast direction)."""
+    plant = obsjax.LTI(np.diag([400.0, -1.0]), None, np.array([[1.0, 1.0]]))
+    for call in (
+        lambda: an.chen_yen_bound(plant, 20.0, 0.1, 2.0, 2.0),
+        lambda: an.regressor_gramian(plant, 1, 2.0),
+    ):
+        with pytest.raises(ValueError, match=r"overflows float64 within the period .* shorter period T"):
+            call()
+    We = np.asarray(an.observability_gramian(plant, 1, 2.0, reference="end"))
+    exact = np.array(
+        [[(1 - np.exp(-1600.0)) / 800, (1 - np.exp(-798.0)) / 399], [0.0, (1 - np.exp(4.0)) / -2.0]]
+    )
+    exact[1, 0] = exact[0, 1]
+    np.testing.assert_allclose(We, exact, rtol=1e-9)

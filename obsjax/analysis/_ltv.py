@@ -39,7 +39,8 @@ def _controller(plant, rtol, atol):
     return pid
 
 
-def _solve(rhs, plant, t0, t1, y0, saveat, rtol, atol, max_steps):
+def _solve(rhs, plant, t0, t1, y0, saveat, rtol, atol, max_steps, *, throw=True):
+    """The solution's ``ys``; with ``throw=False``, ``(ys, solved)`` (the caller names the failure)."""
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(rhs),
         _SOLVER(),
@@ -50,8 +51,9 @@ def _solve(rhs, plant, t0, t1, y0, saveat, rtol, atol, max_steps):
         saveat=saveat,
         stepsize_controller=_controller(plant, rtol, atol),
         max_steps=max_steps,
+        throw=throw,
     )
-    return sol.ys
+    return sol.ys if throw else (sol.ys, sol.result == diffrax.RESULTS.successful)
 
 
 def _check_plant(plant):
@@ -181,20 +183,105 @@ def _period(plant, a, T, n_grid, rtol, atol, max_steps):
 
     ts = a + T * jnp.linspace(0.0, 1.0, n_grid)
     y0 = (jnp.eye(n), jnp.zeros((n, n)))
-    Phis, Gs = _solve(rhs, plant, a, a + T, y0, diffrax.SaveAt(ts=ts), rtol, atol, max_steps)
+    save = diffrax.SaveAt(ts=ts)
+    (Phis, Gs), ok = _solve(rhs, plant, a, a + T, y0, save, rtol, atol, max_steps, throw=False)
     G = Gs[-1]
-    return Phis, 0.5 * (G + G.T)
+    return Phis, 0.5 * (G + G.T), ok
+
+
+def _periods(plant, starts, T, n_grid, rtol, atol, *, where):
+    """For each period start a: (max_s ‖Φ(s, a)‖ on the grid, Φ(a+T, a), W_o^z), each solve checked:
+    a ValueError naming `where` (an `eqx.error_if` when traced) if one did not finish."""
+    mu, PhiT, Wz, ok = _periods_solve(plant, starts, T, n_grid, rtol, atol)
+    message = (
+        f"{where}: the solve for Φ(t, t_k) over a period did not finish within 65536 Dopri8 steps. "
+        "Either Φ overflows float64 within the period (an unstable mode λ with λT ≳ 700: use a shorter "
+        "period T) or A(t) varies too fast for rtol/atol."
+    )
+    okv = concrete_value(ok)
+    if okv is None:
+        return eqx.error_if((mu, PhiT, Wz), ~jnp.all(ok), message)
+    if not np.all(okv):
+        raise ValueError(message)
+    return mu, PhiT, Wz
 
 
 @eqx.filter_jit
-def _periods(plant, starts, T, n_grid, rtol, atol):
-    """For each period start a: (max_s ‖Φ(s, a)‖ on the grid, Φ(a+T, a), W_o^z) — compiled once per plant."""
+def _periods_solve(plant, starts, T, n_grid, rtol, atol):
+    """The compiled part of :func:`_periods` — compiled once per plant."""
 
     def one(a):
-        Phis, Wz = _period(plant, a, T, n_grid, rtol, atol, 65536)
-        return jnp.max(jnp.linalg.norm(Phis, ord=2, axis=(1, 2))), Phis[-1], Wz
+        Phis, Wz, ok = _period(plant, a, T, n_grid, rtol, atol, 65536)
+        return jnp.max(jnp.linalg.norm(Phis, ord=2, axis=(1, 2))), Phis[-1], Wz, ok
 
     return jax.vmap(one)(starts)
+
+
+# The scaled backward solve is stiff where the forward one is (a fast stable mode, normalised away, leaves
+# the others decaying at its rate, Ĝ at twice it): a larger budget than the forward solves' 65536 steps.
+_END_MAX_STEPS = 262144
+
+
+def _period_end(plant, b, T, rtol, atol, max_steps):
+    """Φ(b − T, b) and W_o^end = ∫_{b−T}^{b} Φᵀ(τ, b) Cᵀ C Φ(τ, b) dτ, in a scaled form that neither
+    overflows nor loses the small singular values of Φ(b, b − T) to the absolute tolerance.
+
+    Integrating Φ(s, b) backwards from s = b, its fast stable modes grow like exp(|λ|(b − s)).  The
+    solve carries Ψ̂ = Φ(s, b) e^{−ℓ(s)} with ‖Ψ̂‖_F constant, the log-scale ℓ, and Ĝ = G e^{−2ℓ} where
+    G(s) = ∫_s^b Φᵀ(τ, b) Cᵀ C Φ(τ, b) dτ:
+
+        dΨ̂/ds = A Ψ̂ − r Ψ̂,   dℓ/ds = r,   dĜ/ds = −2 r Ĝ − (C Ψ̂)ᵀ (C Ψ̂),   r = ⟨Ψ̂, A Ψ̂⟩_F / ‖Ψ̂‖_F²,
+
+    so that Φ(b − T, b) = e^ℓ Ψ̂ and W_o^end = e^{2ℓ} Ĝ at s = b − T, with every solved quantity of order
+    one: the solver's tolerances are then relative to each of them.  Returns (ℓ, Ψ̂, Ĝ, ok).
+    """
+    n = plant.n
+
+    def rhs(s, y, args):
+        Psi, _, G = y
+        APsi = plant.A_of(s) @ Psi
+        r = jnp.sum(Psi * APsi) / jnp.sum(Psi * Psi)
+        CPsi = plant.C_of(s) @ Psi
+        return APsi - r * Psi, r, -2.0 * r * G - CPsi.T @ CPsi
+
+    y0 = (jnp.eye(n), jnp.zeros(()), jnp.zeros((n, n)))
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(rhs),
+        _SOLVER(),
+        b,
+        b - T,
+        None,
+        y0,
+        saveat=diffrax.SaveAt(t1=True),
+        stepsize_controller=_controller(plant, rtol, atol),
+        max_steps=max_steps,
+        throw=False,
+    )
+    Psi, ell, G = (v[0] for v in sol.ys)
+    return ell, Psi, 0.5 * (G + G.T), sol.result == diffrax.RESULTS.successful
+
+
+@eqx.filter_jit
+def _periods_end(plant, ends, T, rtol, atol):
+    """For each period end b: (log σ_max Φ(b − T, b), log λ_max(W_o^end), W_o^end, solved) — see
+    :func:`_period_end`; the logarithms stay finite where the values themselves over- or underflow."""
+
+    def one(b):
+        ell, Psi, G, ok = _period_end(plant, b, T, rtol, atol, _END_MAX_STEPS)
+        log_sv = ell + jnp.log(jnp.linalg.norm(Psi, ord=2))
+        log_ew = 2.0 * ell + jnp.log(jnp.linalg.eigvalsh(G)[-1])
+        return log_sv, log_ew, jnp.exp(2.0 * ell) * G, ok
+
+    return jax.vmap(one)(ends)
+
+
+def _end_failed(ok, where):
+    if not bool(np.all(np.asarray(ok))):
+        raise ValueError(
+            f"{where}: the backward solve for Φ(t_k, t_k + T) and the end-referenced gramian did not "
+            f"finish within its step budget ({_END_MAX_STEPS} Dopri8 steps per period) at rtol/atol; a "
+            "plant whose A(t) varies this fast needs a shorter period T or looser tolerances."
+        )
 
 
 def _window(k, T, t0):
@@ -221,6 +308,11 @@ def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL,
 
     **Arguments:** `plant` (LTV/LTI), `k` (integer ≥ 1), `T` (> 0), `t0` (time origin), `reference`.
 
+    The end-referenced gramian comes from a scaled backward solve of Φ(τ, kT) and is accurate relative to
+    its norm.  When a fast stable mode makes it ill-conditioned beyond float64 (cond ≈ e^{2|λ|T}), its
+    smallest eigenvalue is not resolved by any float64 matrix: take α1 from
+    :func:`uniform_observability_constants`, which computes it from the forward quantities.
+
     **Returns:** the symmetric (n, n) matrix W_o(k).
 
     **Example:**
@@ -235,20 +327,23 @@ def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL,
         raise ValueError(f"`reference` must be 'start' or 'end', got {reference!r}.")
     a = _window(k, T, t0)
     _probe_plant(plant, a, a + T)
-    _, PhiT, G = _periods(plant, _pad(jnp.asarray([a])), jnp.asarray(T), 2, rtol, atol)
-    PhiT, G = PhiT[0], G[0]
     if reference == "start":
-        return G
-    Phi_inv = jnp.linalg.inv(PhiT)  # Φ(kT-T, kT)
-    W = Phi_inv.T @ G @ Phi_inv
-    W = 0.5 * (W + W.T)
-    Wv = concrete_value(W)
-    if Wv is not None and not np.all(np.isfinite(Wv)):
+        a_ = _pad(jnp.asarray([a]))
+        return _periods(plant, a_, jnp.asarray(T), 2, rtol, atol, where="observability_gramian")[2][0]
+    # Φ(kT − T, kT) by a scaled backward solve (not inv(Φ(kT, kT − T)): the small singular values of
+    # Φ(kT, kT − T) are lost to the absolute tolerance when a fast stable mode decays over the window)
+    log_sv, _, W, ok = _periods_end(plant, _pad(jnp.asarray([a + T])), jnp.asarray(T), rtol, atol)
+    log_sv, W, ok = log_sv[0], W[0], ok[0]
+    okv, Wv = concrete_value(ok), concrete_value(W)
+    if okv is None:
+        return eqx.error_if(W, ~ok, "observability_gramian(reference='end'): the backward solve failed.")
+    _end_failed(okv, "observability_gramian(reference='end')")
+    if not np.all(np.isfinite(Wv)):
         raise ValueError(
-            "observability_gramian(reference='end'): W_o(k) = Φ(kT − T, kT)ᵀ W_o^start Φ(kT − T, kT) "
-            "overflows: Φ(kT − T, kT) = Φ(kT, kT − T)⁻¹ grows like exp(−λ T) for a fast stable mode λ "
-            f"(max |Φ(kT − T, kT)| = {float(np.max(np.abs(np.asarray(Phi_inv)))):.3g}). Use a shorter "
-            "window T or reference='start'."
+            "observability_gramian(reference='end'): W_o(k) = ∫ Φᵀ(τ, kT) Cᵀ C Φ(τ, kT) dτ overflows: "
+            "Φ(kT − T, kT) = Φ(kT, kT − T)⁻¹ grows like exp(−λ T) for a fast stable mode λ "
+            f"(‖Φ(kT − T, kT)‖ = 10^{float(log_sv) / np.log(10):.1f}). Use a shorter window T or "
+            "reference='start'."
         )
     return W
 
@@ -271,7 +366,8 @@ def regressor_gramian(plant, k, T, *, t0=0.0, rtol=_RTOL, atol=_ATOL):
     _solver_tolerances(rtol, atol)
     T = _pos_float(T, "T")
     a = _window(k, T, _finite_float(t0, "t0"))
-    return _periods(plant, _pad(jnp.asarray([a])), jnp.asarray(T), 2, rtol, atol)[2][0]
+    a_ = _pad(jnp.asarray([a]))
+    return _periods(plant, a_, jnp.asarray(T), 2, rtol, atol, where="regressor_gramian")[2][0]
 
 
 class UniformObservability(NamedTuple):
@@ -285,6 +381,11 @@ class UniformObservability(NamedTuple):
       constants (7) of w_o.
 
     The paper's constants are the extremes over k: μ = max mu, α1 = min alpha1, m1 = min m1, etc.
+
+    m1 = 1/‖Φ(t_k, t_k + T)‖ and α2 come from a scaled backward solve, α1 = 1/λ_max(Φ_T (W_o^z)⁻¹ Φ_Tᵀ)
+    from the forward one, so that each is accurate relative to itself even when a fast stable mode makes
+    W_o^end ill-conditioned beyond float64 (m1 = e^{−100} is returned as 3.7e-44, not at the absolute
+    tolerance); m1 is 0 and α2 is ∞ only where the exact values lie outside float64's range.
     """
 
     t_start: jax.Array
@@ -338,16 +439,23 @@ def uniform_observability_constants(
     starts = _finite_float(t0, "t0") + T * jnp.arange(K, dtype=float)
     _probe_plant(plant, starts[0], starts[0] + K * T, n=max(65, 8 * K + 1))
 
-    mu, PhiT, Wz = _periods(plant, _pad(starts), jnp.asarray(T), n_grid, rtol, atol)
+    where = "uniform_observability_constants"
+    mu, PhiT, Wz = _periods(plant, _pad(starts), jnp.asarray(T), n_grid, rtol, atol, where=where)
     mu, PhiT, Wz = mu[:K], PhiT[:K], Wz[:K]
-    sv = jnp.linalg.svd(PhiT, compute_uv=False)
-    Pinv = jnp.linalg.inv(PhiT)
-    W_end = jnp.swapaxes(Pinv, 1, 2) @ Wz @ Pinv
-    ew = jnp.linalg.eigvalsh(0.5 * (W_end + jnp.swapaxes(W_end, 1, 2)))
-    ez = jnp.linalg.eigvalsh(Wz)
-    return UniformObservability(
-        starts, mu, ew[:, 0], ew[:, -1], sv[:, -1], sv[:, 0], ez[:, 0], ez[:, -1]
-    )
+    log_sv, log_ew, _, ok = _periods_end(plant, _pad(starts + T), jnp.asarray(T), rtol, atol)
+    _end_failed(ok[:K], "uniform_observability_constants")
+    # m1 = 1/‖Φ(t_k, t_k + T)‖ and α2 = λ_max(W_o^end) from the scaled backward solve: forward, the small
+    # singular values of Φ(t_k + T, t_k) sit at the absolute tolerance (a mode e^{−50·2} gave 3e-14
+    # for 4e-44).  exp rounds them to 0 or ∞ only where float64 cannot hold them.
+    m1, alpha2 = jnp.exp(-log_sv[:K]), jnp.exp(log_ew[:K])
+    m2 = jnp.linalg.norm(PhiT, ord=2, axis=(1, 2))
+    # α1 = λ_min(W_o^end) = 1/λ_max(Φ_T (W_o^z)⁻¹ Φ_Tᵀ) (Appendix: W_o^z = Φ_Tᵀ W_o^end Φ_T): the largest
+    # eigenvalue of forward quantities, accurate where W_o^end's own smallest eigenvalue is not
+    ez, U = jnp.linalg.eigh(Wz)
+    inv_sqrt = jnp.where(ez > 0, 1.0 / jnp.sqrt(jnp.where(ez > 0, ez, 1.0)), jnp.inf)
+    s_max = jnp.linalg.norm((PhiT @ U) * inv_sqrt[:, None, :], ord=2, axis=(1, 2))
+    alpha1 = jnp.where(ez[:, 0] > 0, 1.0 / s_max**2, 0.0)
+    return UniformObservability(starts, mu, alpha1, alpha2, m1, m2, ez[:, 0], ez[:, -1])
 
 
 def chen_yen_bound(plant, gamma, p0, T, horizon, *, t0=0.0, n_grid=129) -> jax.Array:
@@ -437,7 +545,8 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, jump_ts=None, r
                 "`jump_ts` (e.g. obsjax.LTV(A, C, jump_ts=...))."
             )
         sigma = _probe_scale(lambda t: w.C_of(t), probe)
-        Gs = _periods(_ScaledOutput(w, sigma), _pad(starts), jnp.asarray(T), 2, rtol, atol)[2][:K]
+        scaled, where = _ScaledOutput(w, sigma), "is_persistently_exciting"
+        Gs = _periods(scaled, _pad(starts), jnp.asarray(T), 2, rtol, atol, where=where)[2][:K]
         Gs = Gs * sigma**2
 
     elif callable(w):
