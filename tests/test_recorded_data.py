@@ -468,3 +468,19 @@ def test_csv_rows_of_empty_fields_follow_the_missing_mode(tmp_path):
     m = obsjax.Measurements.from_csv(p, t="t", y="y", missing="skip")
     np.testing.assert_array_equal(np.asarray(m.ts), [0.0, 0.1, 0.2, 0.3])
     np.testing.assert_array_equal(np.asarray(m.y)[:, 0], [1.0, 2.0, 3.0, 4.0])
+
+
+def test_epoch_time_stamps_warn_of_their_resolution():
+    """At |t| = 1.7e9 s float64 resolves 2.4e-7 s, 2.4e-4 of a 1 ms sampling interval: the holds and the
+    solver silently lost that much relative accuracy.  Such time stamps now warn, naming the remedy; the
+    same samples from t = 0 do not."""
+    import warnings
+
+    ts = 1.7e9 + 1e-3 * np.arange(50)
+    y = np.sin(np.arange(50.0))
+    with pytest.warns(UserWarning, match=r"resolves time to 2\.4e-07, 2\.4e-04 of the shortest .*\(ts − ts\[0\]"):
+        obsjax.Measurements(ts, y)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        obsjax.Measurements(ts - ts[0], y)
+        obsjax.Measurements(1e3 + 1e-3 * np.arange(50), y)  # 1.1e-10 of the interval

@@ -54,7 +54,45 @@ def _check_separated(ts):
             f"(Δ = {float(v[i + 1] - v[i]):.3g}). The observer would take them as one instant (one update lost); "
             "merge them (e.g. average the two samples) or drop one."
         )
+    _warn_time_resolution(v)
     return ts
+
+
+#: relative resolution of the shortest sampling interval below which :class:`Measurements` warns
+TIME_RESOLUTION_WARN = 1e-7
+
+
+def _warn_time_resolution(v):
+    """A UserWarning when float64 resolves the shortest sampling interval only coarsely: time stamps far
+    from zero (epoch seconds, ~1e9) leave ulp(t)/Δt of every interval to rounding, in the holds and in the
+    solver's steps alike."""
+    dt = float(np.min(np.diff(v)))
+    res = float(np.spacing(np.max(np.abs(v)))) / dt
+    if res > TIME_RESOLUTION_WARN:
+        import warnings
+
+        warnings.warn(
+            f"`ts` runs from {float(v[0])!r} to {float(v[-1])!r}: at |t| = {float(np.max(np.abs(v))):.3g}, float64 "
+            f"resolves time to {float(np.spacing(np.max(np.abs(v)))):.2g}, {res:.1e} of the shortest sampling "
+            f"interval ({dt:.3g}), and the holds and the solver lose that much relative accuracy. Subtract "
+            "the first time stamp (ts − ts[0]) unless the model depends on absolute time.",
+            UserWarning,
+            stacklevel=_caller_level(),
+        )
+
+
+def _caller_level():
+    """The stack level of the first frame outside obsjax and equinox (a Measurements is built through
+    equinox's module machinery and, from a file, through the readers): the warning points at user code."""
+    import inspect
+
+    frame, level = inspect.currentframe(), 1
+    while frame is not None:
+        name = frame.f_globals.get("__name__", "")
+        if level > 2 and not (name.startswith("obsjax.") or name.startswith("equinox")):
+            return level - 1
+        frame, level = frame.f_back, level + 1
+    return 2
 
 
 def check_times(ts, name="ts"):
