@@ -466,3 +466,52 @@ def test_adjoint_is_passed_to_diffrax():
     np.testing.assert_allclose(jax.jacfwd(loss)(20.0, diffrax.ForwardMode()), g0, rtol=1e-8)
     with pytest.raises(Exception):
         jax.grad(loss)(20.0, diffrax.ForwardMode())
+
+
+def _ramp_after(tau):
+    """ẋ = b(t)·1 with b = 0 before τ and 1 from τ on (declared jump τ): x(t) = max(0, t − τ)."""
+    plant = obsjax.LTV(lambda t: jnp.zeros((1, 1)), lambda t: jnp.ones((1, 1)),
+                       B=lambda t: jnp.where(t >= tau, 1.0, 0.0).reshape(1, 1), jump_ts=(tau,))
+    obs = obsjax.Luenberger(obsjax.LTI([[0.0]], [[0.0]], [[1.0]]), L=[[1.0]])
+    return plant, obs
+
+
+@pytest.mark.parametrize("shift", [0.0, 1e-10, -1e-10, "linspace"])
+def test_fixed_steps_keep_a_plant_jump_where_the_plant_switches(shift):
+    """A plant jump within the schedule's tolerance of a save time (np.linspace puts 0.7000000000000001
+    beside the jump at 0.7) was moved onto the save time: the steps beside it then had stages on the
+    wrong side of the switch, x(2) = 1.32325 for 1.3 at h = 0.01 (2.3e-3 at h = 0.001), status 0.  The
+    jump now stays a node of its own; exact for this piecewise-constant field, eagerly and with the
+    reset period traced (the in-trace grid)."""
+    tau = 0.7
+    ts = np.linspace(0, 2, 21) if shift == "linspace" else np.r_[np.linspace(0, 0.6, 7), tau + shift,
+                                                                   np.linspace(0.8, 2, 13)]
+    plant, obs = _ramp_after(tau)
+    u = lambda t: jnp.ones(1)  # noqa: E731
+    exact = np.maximum(0.0, ts - tau)
+    tr = obsjax.simulate(plant, obs, jnp.zeros(1), jnp.zeros(1), ts, u=u, adaptive=False, dt0=0.01)
+    assert int(tr.status) == 0
+    np.testing.assert_allclose(np.asarray(tr.x[:, 0]), exact, rtol=0, atol=1e-12)
+    if shift == "linspace":  # the in-trace grid: resets at a traced period
+        ls_model = obsjax.LTV(lambda t: jnp.zeros((1, 1)), lambda t: jnp.ones((1, 1)))
+
+        @jax.jit
+        def run(T):
+            o = obsjax.LeastSquaresReset(ls_model, 1.0, 1.0, T)
+            return obsjax.simulate(plant, o, jnp.zeros(1), jnp.zeros(1), ts, u=u, adaptive=False, dt0=0.01,
+                                   max_segments=8).x[:, 0]
+
+        np.testing.assert_allclose(np.asarray(run(0.33)), exact, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("gap", [0.0, 1e-10])
+def test_fixed_steps_stop_before_a_plant_jump_at_the_end(gap):
+    """A jump at t1 (or within the tolerance below it) is no breakpoint of the schedule, and the last step's
+    final stage at t1 saw the field after it: x(2) = 2.3e-2 for 0 (h = 0.01).  The last interval now ends
+    one float before the jump."""
+    tau = 2.0 - gap
+    plant, obs = _ramp_after(tau)
+    ts = np.linspace(0.0, 2.0, 5)
+    tr = obsjax.simulate(plant, obs, jnp.zeros(1), jnp.zeros(1), ts, u=lambda t: jnp.ones(1), adaptive=False,
+                         dt0=0.01)
+    assert abs(float(tr.x[-1, 0])) <= 2e-10

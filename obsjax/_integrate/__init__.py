@@ -38,13 +38,14 @@ def integrate(args: Args, state0, plan: Plan):
         tab = _fixed_step.tableau_of(opt.solver)
         if tab is not None and plan.ts_np is not None:
             tol = _schedule.horizon_tolerance(plan.ts_np)
-            g = _fixed_step.grid(plan.ts_np, opt.dt0, sched.concrete, tol)
+            edges = _fixed_step.edge_jumps(plan.ts_np, getattr(args.plant, "jump_ts", None), tol)
+            g = _fixed_step.grid(plan.ts_np, opt.dt0, sched.concrete, tol, edges)
             if g is not None:
                 return _fixed_step.integrate(args, state0, sched, g, tab)
             dt0 = _fixed_step.concrete_value(opt.dt0)
             if dt0 is not None and sched.concrete is None:  # traced breakpoints (a tuned T)
                 return _fixed_step.integrate_traced(
-                    args, state0, sched, plan.ts_np, float(np.asarray(dt0).reshape(())), tab, tol
+                    args, state0, sched, plan.ts_np, float(np.asarray(dt0).reshape(())), tab, tol, edges
                 )
     # One trajectory: diffrax.  (Batches with independent adaptive steps go to ``_masked.py`` from
     # ``simulate_batch``, where the batch is visible.)

@@ -11,9 +11,11 @@ small float64 states of an observer; with fixed steps none of it is needed.  Res
 ``ConstantStepSize`` solve to rounding when the step grids coincide (tested).
 
 The grid: its nodes are the save times and the breakpoints of the schedule (reset instants, plant jumps,
-event times; a breakpoint within the schedule's tolerance of a save time is moved onto it); each interval
-between consecutive nodes is cut into ⌈Δ/dt0⌉ equal steps.  An interval that ends at a plant jump ends one
-float before it, as the segmented back-end does, so no stage sees the vector field after the jump.  An outer
+event times; a reset or event within the schedule's tolerance of a save time is moved onto it, a plant jump
+never is); each interval between consecutive nodes is cut into ⌈Δ/dt0⌉ equal steps.  An interval that ends
+at a plant jump ends one float before it, as the segmented back-end does, so no stage sees the vector field
+after the jump; a jump within the tolerance of t0 or t1, which the schedule leaves out, cuts the interval
+around it too (:func:`edge_jumps`).  An outer
 ``lax.scan`` over intervals (with ``jax.checkpoint``, so reverse mode stores one state per interval) runs an
 inner ``lax.scan`` of K steps, K the largest step count of any interval (shorter intervals mask their extra
 steps).  The jump of a breakpoint (reset, then event update) is applied at the start of the interval it
@@ -71,11 +73,38 @@ def tableau_of(solver):
     return a[:used, :used], b[:used], c[:used]
 
 
-def grid(ts, dt0, breakpoints, tol):
+def edge_jumps(ts_np, jumps, tol):
+    """The plant's jump times in [t0, t1] that the schedule leaves out, those within `tol` of t0 or t1
+    (NumPy, possibly empty; empty when the jump times are traced).  The fixed-step grids cut the interval
+    around each of them (:func:`_cut_at_edge_jumps`): no stage of a step may see the vector field of the
+    other side of a jump, or the step is only first-order accurate."""
+    jv = concrete_value(jumps) if jumps is not None else None
+    if jv is None or ts_np is None:
+        return np.zeros(0)
+    jv = np.asarray(jv, dtype=np.float64).ravel()
+    t0, t1 = float(ts_np[0]), float(ts_np[-1])
+    inside = (jv >= t0) & (jv <= t1)
+    return np.sort(jv[inside & ((jv <= t0 + tol) | (jv >= t1 - tol))])
+
+
+def _cut_at_edge_jumps(start, end, jumps, xp=np):
+    """Intervals [start, end] that hold an edge jump τ (start < τ ≤ end) lose the side of τ nearer to their
+    end: they start at τ when τ is nearer their start, else end one float before τ (either way at most the
+    schedule's tolerance is left out, the convention by which the schedule merged τ with t0 or t1)."""
+    for tau in np.asarray(jumps, dtype=np.float64):
+        inside = (start < tau) & (tau <= end)
+        lower = (tau - start) <= (end - tau)
+        before = np.nextafter(tau, -np.inf)
+        start = xp.where(inside & lower, tau, start)
+        end = xp.where(inside & ~lower, xp.maximum(before, start), end)
+    return start, end
+
+
+def grid(ts, dt0, breakpoints, tol, jumps=()):
     """The concrete step grid, or ``None`` when the save times or dt0 are traced.
 
     `breakpoints`: ``Schedule.concrete``, i.e. NumPy (times, reset, event, jump) sorted by time; `tol`: the
-    schedule's tolerance.  Returns a dict of NumPy arrays over the intervals between consecutive nodes:
+    schedule's tolerance; `jumps`: :func:`edge_jumps`.  Returns a dict of NumPy arrays over the intervals between consecutive nodes:
     ``start``, ``end``, ``h`` step size, ``nsteps``, ``reset`` and ``event`` (what to apply at the interval's start);
     ``save_idx`` (len(ts),) the node of each save time; ``K`` the largest step count.
     """
@@ -89,15 +118,18 @@ def grid(ts, dt0, breakpoints, tol):
         raise ValueError(f"`dt0` must be > 0 for fixed steps, got {dt0}.")
     times, is_reset, is_event, is_jump = breakpoints
     t1 = float(ts[-1])
-    # nodes (t, kind, reset, event, jump, save index): the breakpoints (moved onto a save time within tol),
-    # then the save times that are no breakpoint.  A save time at a breakpoint is the state after it, i.e.
-    # the node of the (last) breakpoint there, except at t1, where no interval starts after the node.
+    # nodes (t, kind, reset, event, jump, save index): the breakpoints (a reset or event within tol of a save
+    # time moved onto it), then the save times that are no breakpoint.  A save time at a breakpoint is the
+    # state after it, i.e. the node of the (last) breakpoint there, except at t1, where no interval starts
+    # after the node.  A plant jump is never moved: the plant switches at its own time, and a node moved
+    # off it leaves stages of the step beside it on the wrong side of the switch (an O(h) error); a save
+    # time within tol of it keeps its own node, at the end of an interval of a few floats.
     times = np.asarray(times, dtype=np.float64)
     N = len(ts)
     hi = np.clip(np.searchsorted(ts, times), 0, N - 1)
     lo = np.clip(hi - 1, 0, N - 1)
     near = np.where(np.abs(ts[lo] - times) <= np.abs(ts[hi] - times), lo, hi)
-    close = np.abs(ts[near] - times) <= tol
+    close = (np.abs(ts[near] - times) <= tol) & ~np.asarray(is_jump, bool)
     snapped = np.where(close, ts[near], times)
     merged = np.zeros(N, bool)
     merged[near[close & (ts[near] != t1)]] = True
@@ -118,6 +150,7 @@ def grid(ts, dt0, breakpoints, tol):
     start, end = t_node[:-1], t_node[1:].copy()
     ends_at_jump = np.array([nd[4] for nd in nodes[1:]], bool)
     end[ends_at_jump] = np.maximum(np.nextafter(end[ends_at_jump], -np.inf), start[ends_at_jump])
+    start, end = _cut_at_edge_jumps(start, end, jumps)
     span = end - start
     nsteps = np.maximum(1, np.ceil(span / dt0 - 1e-9)).astype(np.int64)
     return dict(
@@ -227,11 +260,11 @@ def traced_steps(ts_np, dt0, n_nodes) -> int:
     return math.ceil(span / dt0 * (1.0 + 1e-12) + 1e-9) + max(n_nodes - 1, 0)
 
 
-def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol):
+def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol, jumps=()):
     """Fixed steps on a grid whose breakpoints are traced (a tuned reset period T, traced event times).
 
-    The same grid as :func:`grid` (nodes: the save times and the breakpoints, a breakpoint within `tol` of a
-    save time moved onto it; every interval cut into max(1, ⌈Δ/dt0⌉) equal steps; an interval that ends at a
+    The same grid as :func:`grid` (nodes: the save times and the breakpoints, a reset or event within `tol`
+    of a save time moved onto it; every interval cut into max(1, ⌈Δ/dt0⌉) equal steps; an interval that ends at a
     plant jump ends one float before it), but built inside the trace: the nodes are sorted by value, and one
     ``lax.scan`` of a fixed length (:func:`traced_steps`) walks the intervals step by step, applying each
     breakpoint's jump at the first step of the interval it opens; steps past the grid's last are masked.
@@ -265,11 +298,12 @@ def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol
     ts = jnp.asarray(ts_np, dtype)
     bt = jnp.asarray(sched.times, dtype)
     Nb = int(bt.shape[0])
-    # a breakpoint within tol of a save time is moved onto it (its value; its derivative is kept)
+    # a reset or event within tol of a save time is moved onto it (its value; its derivative is kept); a
+    # plant jump stays where the plant switches (see :func:`grid`)
     hi = jnp.clip(jnp.searchsorted(ts, sg(bt)), 0, N - 1)
     lo = jnp.clip(hi - 1, 0, N - 1)
     near = jnp.where(jnp.abs(ts[lo] - sg(bt)) <= jnp.abs(ts[hi] - sg(bt)), lo, hi)
-    close = jnp.abs(ts[near] - sg(bt)) <= tol
+    close = (jnp.abs(ts[near] - sg(bt)) <= tol) & ~sched.jump
     bt = jnp.where(close, bt + sg(ts[near] - bt), bt)
     # nodes: breakpoints, then save times; sorted by (time, breakpoint before save time, given order)
     M = Nb + N
@@ -288,6 +322,7 @@ def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol
     before = jnp.nextafter(end, jnp.asarray(-jnp.inf, dtype))
     end = jnp.where(jump[1:], before, end)
     end = jnp.where(end >= start, end, start)  # never a negative span
+    start, end = _cut_at_edge_jumps(start, end, jumps, jnp)
     span = end - start
     nsteps = jnp.maximum(1, jnp.ceil(span / dt0 - 1e-9)).astype(jnp.int32)
     h = span / nsteps
