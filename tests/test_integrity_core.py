@@ -4,6 +4,8 @@ isolate failures.  Breakpoints as segment boundaries (plant jumps, observer even
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -404,3 +406,52 @@ def test_eager_gradient_in_the_save_times(kw):
     assert eager == pytest.approx(float(jax.jit(jax.grad(cost))(1.0)), rel=1e-9)
     f = jax.jit(cost)
     assert eager == pytest.approx(float((f(1.0 + 1e-5) - f(1.0 - 1e-5)) / 2e-5), rel=1e-5)
+
+
+@pytest.mark.extended
+def test_lockstep_gradient_leaves_out_failed_members():
+    """simulate_batch(lockstep=True), the default: a member that starts at NaN (or escapes in finite time)
+    made jax.grad NaN for the whole batch, even with a loss that leaves the failed members out (their
+    vector field's NaN partials, times a zero cotangent, summed into the shared gain's derivative).  Now
+    the gradient is the healthy members' (against central differences); a NaN start is the cheap case of
+    the defect, a member escaping in finite time took the same path."""
+    plant = obsjax.LTI([[0.0, 1.0], [-1.0, -0.2]], None, [[1.0, 0.0]])
+    ts = np.linspace(0, 2, 11)
+    X0 = np.array([[1.0, 0.0], [0.5, 0.5], [np.nan, 0.0]])
+
+    @functools.partial(jax.jit, static_argnums=1)
+    def loss(Lv, n):
+        obs = obsjax.Luenberger(plant, L=Lv.reshape(2, 1))
+        tb = obsjax.simulate_batch(plant, obs, X0[:n], np.zeros((n, 2)), ts, rtol=1e-9, atol=1e-12, throw=False)
+        ok = tb.status == 0
+        return jnp.sum(jnp.where(ok[:, None, None], tb.error, 0.0) ** 2), tb.status
+
+    Lv = jnp.array([2.0, 1.5])
+    (_, st), g = jax.value_and_grad(loss, has_aux=True)(Lv, 3)
+    np.testing.assert_array_equal(np.asarray(st), [0, 0, 2])
+    assert np.all(np.isfinite(np.asarray(g)))
+    h = 1e-6  # the loss leaves the failed member out, so these are the healthy members' differences
+    fd = [(loss(Lv + h * e, 3)[0] - loss(Lv - h * e, 3)[0]) / (2 * h) for e in np.eye(2)]
+    np.testing.assert_allclose(g, fd, rtol=1e-5)
+
+
+@pytest.mark.extended
+def test_a_first_step_whose_candidate_overflows_is_rejected_not_fatal():
+    """ẋ1 = −x1³ + x2 from x1 = 300: the first trial step's candidate overflows, its error estimate is
+    inf − inf = NaN, and the step-size controller proposed a NaN step for ever: status 1 after max_steps
+    with x = inf, for a problem that dt0 = 1e-6 solves.  The step is now rejected (shrunk by factormin),
+    in simulate and in both batch back-ends, and the result equals the small-first-step solve."""
+    f = lambda t, x, u: jnp.array([-x[0] ** 3 + x[1], -x[1] + 0.5 * x[0] ** 2])  # noqa: E731
+    plant = obsjax.Nonlinear(f, lambda t, x, u: x[:1], n=2, m=1, p=0)
+    obs = obsjax.Luenberger(obsjax.LTI([[0.0, 1.0], [0.0, -1.0]], None, [[1.0, 0.0]]), L=[[3.0], [2.0]])
+    ts = np.linspace(0, 3, 7)
+    kw = dict(rtol=1e-9, atol=1e-11, max_steps=2000, throw=False)
+    ref = obsjax.simulate(plant, obs, jnp.array([300.0, 0.0]), jnp.zeros(2), ts, dt0=1e-6, **kw)
+    assert int(ref.status) == 0
+    tr = obsjax.simulate(plant, obs, jnp.array([300.0, 0.0]), jnp.zeros(2), ts, **kw)
+    assert int(tr.status) == 0
+    np.testing.assert_allclose(tr.x, ref.x, rtol=1e-7)
+    tb = obsjax.simulate_batch(plant, obs, jnp.array([[300.0, 0.0], [1.0, 0.0]]), jnp.zeros((2, 2)), ts,
+                               lockstep=False, **kw)
+    np.testing.assert_array_equal(np.asarray(tb.status), [0, 0])
+    np.testing.assert_allclose(tb.x[0], ref.x, rtol=1e-7)

@@ -891,7 +891,9 @@ def _adapt(y, y1, y_err, dt, cr, ctrl, method, norm_b):
         min=jnp.where(keep, 1.0, ctrl.factormin),
         max=jnp.where(keep, ctrl.factormax, ctrl.safety),
     )
-    factor = jax.lax.stop_gradient(factor)
+    # an overflowing candidate has a NaN error (inf − inf): reject it like any other step, not with a NaN
+    # step size that every later step inherits (see GuardedController)
+    factor = jax.lax.stop_gradient(jnp.where(jnp.isnan(factor), ctrl.factormin, factor))
     dt_next = dt * factor
     inv = jnp.where((inv == 0) | jnp.isinf(inv), 1.0, inv)
     at_dtmin = cr.at_dtmin

@@ -162,6 +162,49 @@ def _drift(t, y, a):
     return per_member(args_b, lambda ai, xx, zz: _system.drift(t, (xx, zz), ai))(x, z)
 
 
+def _finite_gradient(fn, *args):
+    """``fn(*args)``, whose reverse-mode derivative is zero when its floating inputs or its output are not
+    finite (under ``vmap``: per member).  Non-floating arrays travel as a second argument (float0
+    cotangents), everything else is closed over (no tracers in it)."""
+    diff, rest = eqx.partition(args, eqx.is_inexact_array)
+    arrs, static = eqx.partition(rest, eqx.is_array)
+
+    def run(d, a):
+        return fn(*eqx.combine(d, a, static))
+
+    @jax.custom_vjp
+    def call(d, a):
+        return run(d, a)
+
+    def fwd(d, a):
+        out, vjp = jax.vjp(lambda dd: run(dd, a), d)
+        return out, (vjp, is_finite(out) & is_finite(d), a)
+
+    def bwd(res, ct):
+        vjp, ok, a = res
+        (g,) = vjp(ct)
+        g = tmap(lambda v: jnp.where(ok, v, jnp.zeros_like(v)), g)
+        return g, tmap(lambda v: np.zeros(v.shape, jax.dtypes.float0), a)
+
+    call.defvjp(fwd, bwd)
+    return call(diff, arrs)
+
+
+def _drift_finite_gradient(t, y, a):
+    """:func:`_drift` whose reverse-mode derivative leaves out the members whose state or vector field is
+    not finite.  Such a member's result is replaced afterwards (:func:`_isolate`) and its cotangent is zero,
+    but the partial derivatives of its vector field are NaN, and 0 × NaN, summed over the members into the
+    derivative of the shared parameters, made the gradient NaN for the whole batch (the diffrax back-end
+    drops such steps per trajectory, :class:`_diffrax.FiniteGradientSolver`)."""
+    args_b, _ = a
+    x, z = y
+
+    def one(ai, xx, zz):
+        return _finite_gradient(lambda tt, aa, x_, z_: _system.drift(tt, (x_, z_), aa), t, ai, xx, zz)
+
+    return per_member(args_b, one)(x, z)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Solve:
     args_b: _system.Args
@@ -210,7 +253,10 @@ def integrate(args_b: _system.Args, state0, ts, sched: Schedule, opt: _diffrax.O
 
     carry0 = (state0, jnp.zeros((B,), bool))
     row = jax.eval_shape(lambda s: s, state0)
-    f = _system.for_check_mode(_drift)
+    # reverse mode by the default adjoint: the failed members' NaN partials are kept out of the gradient
+    # (a custom_vjp, which has no forward mode: ForwardMode and other adjoints get the plain field)
+    reverse = opt.adjoint is None or type(opt.adjoint) is diffrax.RecursiveCheckpointAdjoint
+    f = _system.for_check_mode(_drift_finite_gradient if reverse else _drift)
     solve = _Solve(args_b, opt, ctrl, f)
 
     def drift(t, carry):  # the batch's vector field; the eviction mask does not move

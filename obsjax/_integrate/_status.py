@@ -133,6 +133,11 @@ class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
         keep, next_t0, next_t1, jump, state, result = self.inner.adapt_step_size(
             t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
         )
+        # A candidate that overflows has a NaN error estimate (inf − inf): the PID factor, and so the next
+        # step, came out NaN, and every later step with it, until max_steps (a solvable problem reported as
+        # a solver failure).  It is a rejection like any other: shrink by factormin.
+        shrunk = next_t0 + jax.lax.stop_gradient(self.inner.factormin * (t1 - t0))
+        next_t1 = jnp.where(jnp.isfinite(next_t1), next_t1, shrunk)
         dt = jax.lax.stop_gradient(next_t1 - next_t0)
         # A step already at the floor is accepted whatever its error (diffrax's ``dtmin``): a finite one lets
         # the solve go on, a non-finite one (the state is kept, so later segments start from it) ends it.
