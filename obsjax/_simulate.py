@@ -132,8 +132,11 @@ def simulate(
     - `max_steps`: per solve (per segment), a positive integer.
     - `adjoint`: how diffrax differentiates each solve (default ``RecursiveCheckpointAdjoint()``, with
       log₂(max_steps) checkpoints); e.g. ``RecursiveCheckpointAdjoint(checkpoints=max_steps)`` stores every
-      step of a short fixed-step segment and skips recomputation in reverse mode.  Unused by the direct
-      fixed-step path (a ``lax.scan``, differentiated by JAX).
+      step of a short fixed-step segment and skips recomputation in reverse mode.  Forward mode
+      (``jax.jvp``, ``jax.jacfwd``) through an adaptive solve needs ``adjoint=diffrax.ForwardMode()``: the
+      default adjoint is a ``custom_vjp``, which JAX cannot differentiate forwards (``obsjax.tune`` passes
+      it itself when it chooses forward mode).  Unused by the direct fixed-step path (a ``lax.scan``,
+      differentiated by JAX in either mode).
     - `max_segments`: number of reset segments, needed only when the reset period is traced under ``jit``
       (a T passed into the jitted function or computed from traced values; a constant T, also one written
       as a literal inside the jitted function, is counted: ceil((t1 − t0) / T)); must satisfy

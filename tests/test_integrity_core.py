@@ -103,6 +103,8 @@ VALUE_CASES = {
     "ts nan": (lambda: sim(PLANT, OBS, X0, XH0, np.array([0.0, np.nan, 1.0])), "`ts`"),
     "ts decreasing": (lambda: sim(PLANT, OBS, X0, XH0, TS[::-1]), "`ts` must be strictly increasing"),
     "x0 complex": (lambda: sim(PLANT, OBS, X0 + 1j, XH0, TS), "`x0` must be real"),
+    # a complex input failed inside the integration with a message naming nothing
+    "u complex": (lambda: sim(PLANT, OBS, X0, XH0, TS, u=lambda t: jnp.ones(1) * (1 + 1j)), "`u(t)` must return real"),
 }
 
 

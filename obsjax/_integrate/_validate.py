@@ -179,6 +179,8 @@ def _check_input(u, t0, p):
     if not callable(u):
         raise ValueError(f"`u` must be a callable t -> (p,) input, got {type(u).__name__}.")
     out = _shape(lambda: jnp.asarray(u(t0)), "calling `u(t)` at ts[0]")
+    if jnp.issubdtype(out.dtype, jnp.complexfloating):
+        raise ValueError(f"`u(t)` must return real values, got dtype {out.dtype} at ts[0].")
     if int(np.prod(out.shape)) != p:
         raise ValueError(
             f"`u(t)` must return shape ({p},) (one value per plant input, p = {p}), got shape {out.shape}."
@@ -194,6 +196,8 @@ def _check_controller(controller, t0, xhat, p):
     if p == 0:
         raise ValueError("`controller` is given but `plant` has no inputs (p = 0).")
     out = _shape(lambda: jnp.asarray(controller(t0, xhat)), f"calling `controller(t, x̂)` with x̂ of shape {xhat.shape}")
+    if jnp.issubdtype(out.dtype, jnp.complexfloating):
+        raise ValueError(f"`controller(t, x̂)` must return real values, got dtype {out.dtype}.")
     if int(np.prod(out.shape)) != p:
         raise ValueError(
             f"`controller(t, x̂)` must return shape ({p},) (one value per plant input), got shape {out.shape}."

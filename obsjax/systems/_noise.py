@@ -63,6 +63,10 @@ class BandLimitedNoise(AbstractNoise):
     """Band-limited measurement noise: N(0, σ²) samples every ``dt``, linearly interpolated.
 
     `sigma`: a scalar or an (m,) vector, finite and ≥ 0; `dt` > 0 finite.
+
+    The path is continuous and piecewise linear: its kinks at the nodes are not breakpoints of the solve,
+    so adaptive solves of a noisy trajectory reach about 100·rtol rather than rtol (see
+    :mod:`obsjax.noise`).
     """
 
     sigma: jax.Array
