@@ -433,3 +433,139 @@ def test_lti_constant_T_places_eigenvalues_of_F():
     eig = np.sort(np.linalg.eigvals(np.asarray(plant.A) - L @ np.asarray(plant.C)).real)
     assert np.allclose(eig, [-4.0, -3.0], atol=1e-10)
     assert np.allclose(obs.Tdot_of(0.5), 0.0)
+
+
+# --- scale-invariant verdicts (review findings 1 and 4) -------------------------------------------------
+class _Ac(eqx.Module):
+    """A(t) of a 4-state, 2-output LTV plant in time units 1/c: c·A(c t) (c a leaf: one compilation)."""
+
+    c: jax.Array
+
+    def __call__(self, t):
+        c = self.c
+        return c * jnp.array(
+            [
+                [0.0, 1.0, 0.0, 0.0],
+                [-2.0 - 0.5 * jnp.sin(c * t), -0.4, 0.3, 0.0],
+                [0.0, 0.0, 0.0, 1.0],
+                [0.2 * jnp.cos(0.7 * c * t), 0.0, -3.0, -0.2],
+            ]
+        )
+
+
+class _Sc(eqx.Module):
+    c: jax.Array
+
+    def __call__(self, t):
+        c = self.c
+        return jnp.array(
+            [[1.0, 0.2 * jnp.sin(c * t)], [0.0, 1.0], [0.3, 0.1 * jnp.cos(c * t)], [0.1, 0.5]]
+        )
+
+
+class _Perturbed(eqx.Module):
+    """T(t)·(1 + δ E): a relative δ in the columns of T that the condition fixes."""
+
+    T: eqx.Module
+    delta: jax.Array
+
+    def __call__(self, t):
+        E = jnp.array([[0.0, 1.0, 0.0, 0.0], [0.0] * 4, [0.0, 0.0, 0.0, 1.0], [0.0] * 4])
+        return self.T(t) * (1.0 + self.delta * E)
+
+
+_C4 = jnp.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+
+
+def _C4_of(t):
+    return _C4
+
+
+def _lti_tv_plant(c, delta):
+    """The plant in time units 1/c (A → c·A(c t), F → c·F), with T from lovass_nagy_T perturbed by a
+    relative `delta` (the reviewer's p22)."""
+    c = jnp.asarray(c)
+    A = _Ac(c)
+    F = c * jnp.diag(jnp.array([-2.0, -3.0, -4.0, -5.0]))
+    return LTV(A, _C4_of), F, _Perturbed(lovass_nagy_T(A, _C4, F, _Sc(c)), jnp.asarray(delta))
+
+
+def test_solvability_verdict_does_not_depend_on_the_time_unit():
+    """A T violating the condition by a relative 1e-3 was refused with c = 1 and 1e-3 but accepted with
+    c = 1e-5 (the test was res/max(scale, 1) ≤ rtol: absolute once ‖Ṫ‖ + ‖TA‖ + ‖FT‖ ≪ 1), and the
+    accepted observer's error stalled at 6.5e-5.  Now: refused in every time unit, eagerly and under
+    jit; the exact T is accepted in every unit and its error follows T⁻¹ e^{Ft} T0 e0 (scipy expm)."""
+    for c in (1.0, 1e-3, 1e-5):
+        plant, F, T_bad = _lti_tv_plant(c, 1e-3)
+        with pytest.raises(ValueError, match=r"solvability condition fails.*relative to"):
+            obsjax.GeneralizedInverse(plant, F, T_bad, horizon=(0.0, 2.0 / c), num_checks=21)
+        plant, F, T = _lti_tv_plant(c, 0.0)
+        obsjax.GeneralizedInverse(plant, F, T, horizon=(0.0, 2.0 / c), num_checks=21)
+    plant, F, T_bad = _lti_tv_plant(1e-5, 1e-3)
+    with pytest.raises(
+        (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError, ValueError),
+        match="GeneralizedInverse: the Lovass-Nagy solvability condition",
+    ):
+        jax.block_until_ready(
+            jax.jit(lambda F: obsjax.GeneralizedInverse(plant, F, T_bad, num_checks=5).F)(F)
+        )
+
+
+@pytest.mark.extended
+def test_exact_design_converges_in_slow_time_units():
+    """The design the scale-invariant test accepts at c = 1e-5 does what it claims: its error follows
+    T⁻¹ e^{Ft} T0 e0 (scipy expm) over t ∈ [0, 2/c] (the violating T the old test accepted stalled)."""
+    c = 1e-5
+    plant, F, T = _lti_tv_plant(c, 0.0)
+    obs = obsjax.GeneralizedInverse(plant, F, T)
+    x0, xhat0 = np.array([1.0, 0.0, -1.0, 0.5]), np.zeros(4)
+    ts = jnp.array([0.0, 1.0 / c, 2.0 / c])
+    tr = obsjax.simulate(plant, obs, x0, xhat0, ts, rtol=1e-10, atol=1e-12)
+    e0 = xhat0 - x0
+    T0 = np.asarray(T(0.0))
+    for t, err in zip(np.asarray(ts), np.asarray(tr.error)):
+        pred = np.linalg.solve(np.asarray(T(t)), scipy.linalg.expm(np.asarray(F) * t) @ T0 @ e0)
+        np.testing.assert_allclose(err, pred, rtol=1e-6, atol=1e-8)
+    assert np.abs(np.asarray(tr.error[-1])).max() < 0.1  # |e0| = 1 → 5e-2 at 2/c (the old T_bad: stalls)
+
+
+class _RT(eqx.Module):
+    """R·T(t) for a constant R (a leaf: one compilation for every R)."""
+
+    T: eqx.Module
+    R: jax.Array
+
+    def __call__(self, t):
+        return self.R @ self.T(t)
+
+
+def test_invertibility_verdict_is_scale_invariant():
+    """det T ≤ 1e-12·max(max|det T|, 1) refused 1e-3·T (the same observer, z in other units: det T =
+    −5.8e-13) and accepted any T with |det T| ≥ 1e-12 however ill-conditioned.  Now σ_min(T)/σ_max(T):
+    s·T is accepted for s = 1, 1e-3, 1e-6 (eagerly and under jit) and recovers ŵ; R·T with R nearly
+    singular (cond(R) ≈ 4e11, |det(R·T(0))| > 1e-9) is refused in every unit, eagerly and under jit."""
+    A22 = lambda t: A_ex(t)[2:, 2:]
+    T = lovass_nagy_T(A22, A12, F5, S_ex)  # F5 = −5I commutes with any R: R·T satisfies the condition
+    R = 1e3 * jnp.array([[1.0, 1.0], [1.0, 1.0 + 1e-11]])
+    plant = reduced_plant()
+    build = lambda F, Ts: obsjax.GeneralizedInverseReduced(plant, F, Ts, C1=C1_slides).F
+    jbuild = eqx.filter_jit(build)
+    w = jnp.array([0.3, -0.7])
+    for s in (1.0, 1e-3, 1e-6):
+        Ts = _RT(T, s * jnp.eye(2))
+        obs = obsjax.GeneralizedInverseReduced(plant, F5, Ts, C1=C1_slides, horizon=(0.0, 3.0),
+                                               num_checks=31)
+        jax.block_until_ready(jbuild(F5, Ts))
+        xhat = obs.estimate(1.0, obs.init(1.0, jnp.concatenate([jnp.zeros(2), w]), jnp.zeros(2)),
+                            jnp.zeros(2))
+        np.testing.assert_allclose(np.asarray(xhat)[2:], w, rtol=1e-12)  # x̂ = [y; T⁻¹ z] recovers ŵ
+        with pytest.raises(ValueError, match=r"`T` must be invertible.*σ_min\(T\)/σ_max\(T\) = "):
+            obsjax.GeneralizedInverseReduced(plant, F5, _RT(T, s * R), C1=C1_slides,
+                                             horizon=(0.0, 3.0), num_checks=31)
+        with pytest.raises(
+            (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError, ValueError),
+            match=r"`T` must be invertible",
+        ):
+            jax.block_until_ready(jbuild(F5, _RT(T, s * R)))
+    # R·T's determinant is far above the old absolute floor: the old test accepted it
+    assert abs(float(jnp.linalg.det(R @ T(0.0)))) > 1e-9

@@ -323,3 +323,142 @@ def test_cost1_bad_inputs():
         obsjax.minmax_sum_initial_state(As, B_mm, C_mm, ys, us, eps=-1.0)
     with pytest.raises(ValueError, match="rank"):
         obsjax.minmax_sum_initial_state(As[:1], B_mm, C_mm, ys[:2], us[:1])
+
+
+# --- scale-invariant verdicts (review findings 2, 3, 4) ---------------------------------------------------
+def _np_chain(A, C, x0, N):
+    xs = [np.asarray(x0, dtype=float)]
+    for _ in range(N):
+        xs.append(A @ xs[-1])
+    xs = np.array(xs)
+    return xs, xs @ C.T
+
+
+def test_combination_solvability_verdict_does_not_depend_on_units_of_z():
+    """The test was res ≤ rtol·max(1, ‖M‖): T_bad (a relative 1e-4 off the condition) was refused, but
+    1e-5·T_bad (the same observer, z in other units) accepted, and its error then followed x, not F^k.
+    Now refused for s = 1, 1e-5, 1e5; the exact T0 is accepted for each s and its error is
+    T0⁻¹ F^k T0 e0 (numpy matrix powers)."""
+    A = np.array([[0.9, 0.2], [-0.1, 0.8]])
+    C = np.array([[1.0, 0.0]])
+    F = np.diag([0.2, 0.3])
+    t1 = np.array([1.0, 1.0])  # column 2 of T from (T A − F T)[:, 1] = 0
+    T0 = np.column_stack([t1, np.linalg.solve(A[1, 1] * np.eye(2) - F, -A[0, 1] * t1)])
+    T_bad = T0 * (1 + np.array([[0.0, 1e-4], [0.0, 1e-4]]))
+    xs, ys = _np_chain(A, C, [1.0, -2.0], 30)
+    for s in (1.0, 1e-5, 1e5):
+        with pytest.raises(ValueError, match=r"fails at k = 0: residual .*expected ≤ rtol"):
+            obsjax.MinMaxLuenberger(A, None, C, F, window=3, T=s * T_bad).gains(3)
+        xh = obsjax.MinMaxLuenberger(A, None, C, F, window=3, T=s * T0).luenberger(ys, None, np.zeros(2))
+        e0 = -xs[0]
+        for k in (0, 5, 10, 30):
+            pred = np.linalg.solve(T0, np.linalg.matrix_power(F, k) @ T0 @ e0)
+            np.testing.assert_allclose(xh[k] - xs[k], pred, rtol=1e-7, atol=1e-13)
+
+
+def test_combination_invertibility_of_T_is_scale_invariant():
+    """|det T| < 1e-12 refused T = 1e-6·I (det 1e-18) and accepted a nearly singular T with det 1e-5.
+    Now σ_min/σ_max: s·I is accepted for s = 1, 1e-6, 1e6 and recovers the state exactly (C = I: the
+    condition holds for any T); R = 1e3·[[1, 1, 0], [1, 1 + 1e-11, 0], [0, 0, 1]] is refused for each s."""
+    rng = np.random.default_rng(4)
+    Ak = lambda k: np.array([[0.9, 0.1 * np.sin(0.3 * k), 0.0], [0.0, 0.8, 0.2], [0.05, 0.0, 0.95]])
+    B = np.array([[0.0], [1.0], [0.5]])
+    K = 12
+    us = rng.standard_normal((K, 1))
+    xs, ys = simulate(Ak, B, np.eye(3), np.array([1.0, -2.0, 0.5]), us)
+    F = np.diag([0.1, -0.2, 0.3])
+    R = 1e3 * np.array([[1.0, 1.0, 0.0], [1.0, 1.0 + 1e-11, 0.0], [0.0, 0.0, 1.0]])
+    assert abs(np.linalg.det(R)) > 1e-6  # far above the old absolute floor
+    for s in (1.0, 1e-6, 1e6):
+        res = obsjax.MinMaxLuenberger(Ak, B, np.eye(3), F, window=4, T=s * np.eye(3)).run(ys, us)
+        np.testing.assert_allclose(res.xhat, xs[res.ks], atol=1e-12)
+        with pytest.raises(ValueError, match=r"`T\(0\)` must be invertible: expected σ_min"):
+            obsjax.MinMaxLuenberger(Ak, B, np.eye(3), F, window=4, T=s * R).run(ys, us)
+
+
+def _mass_spring(s):
+    """Discretised 4-state mass-spring pair (h = 0.1), one output, states in units diag(s, 1/s, 1, 1)."""
+    import scipy.linalg
+
+    Ac = np.array([[0, 1, 0, 0], [-2, -0.1, 1, 0], [0, 0, 0, 1], [1, 0, -1, -0.1]], dtype=float)
+    Bc = np.array([[0.0], [1.0], [0.0], [0.0]])
+    Ad = scipy.linalg.expm(0.1 * Ac)
+    Bd = np.linalg.solve(Ac, Ad - np.eye(4)) @ Bc
+    S = np.diag([s, 1 / s, 1.0, 1.0])
+    Si = np.diag([1 / s, s, 1.0, 1.0])
+    return S @ Ad @ Si, S @ Bd, np.array([[1.0, 0, 0, 0]]) @ Si, S
+
+
+def test_minmax_initial_state_does_not_depend_on_state_units():
+    """The rank test and the LP ran on the raw ψ: with units diag(s, 1/s, 1, 1), s = 2e7 was refused
+    ("rank 3 < n = 4 ... lengthen the window") and past it the LP returned a wrong x0.  Now ψ's columns
+    are normalised first: the same verdict and the same x0 for s = 1, 2e7, 5e7 — exact data give x0, noisy
+    data give the Chebyshev estimate of an independent scipy linprog in the natural units."""
+    import scipy.optimize
+
+    rng = np.random.default_rng(11)
+    N = 30
+    us = rng.standard_normal((N, 1))
+    x0 = np.array([0.5, -1.0, 2.0, 0.3])
+    A, B, C, _ = _mass_spring(1.0)
+    xs = [x0]
+    for k in range(N):
+        xs.append(A @ xs[-1] + B @ us[k])
+    ys = np.array(xs) @ C.T
+    ysn = ys + 0.01 * rng.uniform(-1, 1, ys.shape)
+    ybar, psi = window_regression(A, B, C, ysn, us)
+    r = psi.shape[0]
+    ref = scipy.optimize.linprog(
+        np.r_[np.zeros(4), 1.0],
+        A_ub=np.block([[psi, -np.ones((r, 1))], [-psi, -np.ones((r, 1))]]),
+        b_ub=np.r_[ybar, -ybar],
+        bounds=[(None, None)] * 4 + [(0, None)],
+    )
+    for s in (1.0, 2e7, 5e7):
+        A_s, B_s, C_s, S = _mass_spring(s)
+        xe, th = obsjax.minmax_initial_state(A_s, B_s, C_s, ys, us)
+        np.testing.assert_allclose(np.linalg.solve(S, xe), x0, rtol=1e-9)
+        assert th < 1e-12
+        xe, _cost = obsjax.minmax_sum_initial_state(A_s, B_s, C_s, ys, us)
+        np.testing.assert_allclose(np.linalg.solve(S, xe), x0, rtol=1e-9)
+        xe, th = obsjax.minmax_initial_state(A_s, B_s, C_s, ysn, us, eps=0.01)
+        np.testing.assert_allclose(np.linalg.solve(S, xe), ref.x[:4], rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(th, ref.fun + 0.01, rtol=1e-8)
+
+
+def test_minmax_long_window_with_a_growing_mode():
+    """A = diag(1.5, 0.6), C = [1, 1], exact data: N = 80 was refused with "lengthen the window" (and
+    the LP alone returned HiGHS status 4).  With normalised columns ψ has full rank; the value is the
+    Chebyshev residual of ȳ, whose entries reach 1.5⁸⁰ ≈ 1e14: rounding leaves θ of order 1e-16·‖ȳ‖∞ and
+    x0 correct to what the early rows can resolve."""
+    A = np.diag([1.5, 0.6])
+    C = np.array([[1.0, 1.0]])
+    x0 = np.array([1.0, 2.0])
+    for N in (10, 40, 80):
+        _xs, ys = _np_chain(A, C, x0, N)
+        xe, th = obsjax.minmax_initial_state(A, None, C, ys)
+        assert th <= 1e-15 * np.abs(ys).max()
+        np.testing.assert_allclose(xe, x0, atol=1e-15 * np.abs(ys).max() + 1e-12)
+        xe, _ = obsjax.minmax_sum_initial_state(A, None, C, ys)
+        np.testing.assert_allclose(xe, x0, atol=1e-15 * np.abs(ys).max() + 1e-12)
+
+
+def test_minmax_rank_advice_fits_the_cause():
+    """"Lengthen the window" only when the window has fewer rows than states; when the first samples
+    determine x0 and later ones (a huge growth along [1, 1]) make ψ rank-deficient, the message says a
+    longer window does not help."""
+    C = np.array([[1.0, 0.0]])
+    rot = np.array([[0.0, 1.0], [-1.0, 0.0]])
+    grow = 1e9 * np.array([[1.0, 1.0], [1.0, 1.0]])
+    A = np.stack([rot, grow, grow, grow])
+    x0 = np.array([0.3, -0.2])
+    xs = [x0]
+    for k in range(4):
+        xs.append(A[k] @ xs[-1])
+    ys = np.array(xs) @ C.T
+    with pytest.raises(ValueError, match=r"rank 1 < n = 2") as err:
+        obsjax.minmax_initial_state(A, None, C, ys)
+    assert "lengthen the window" not in str(err.value) and "does not help" in str(err.value)
+    np.testing.assert_allclose(obsjax.minmax_initial_state(A[:1], None, C, ys[:2])[0], x0, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"rank 1 < n = 2.*lengthen the window"):
+        obsjax.minmax_initial_state(A[:0], None, C, ys[:1])

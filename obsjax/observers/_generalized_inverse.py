@@ -31,9 +31,31 @@ def _time_grid(horizon, num):
     return np.linspace(t0, t1, int(num))
 
 
+def _rcond_sign(T):
+    """(σ_min(T)/σ_max(T), sign det T): invertibility of T by a scale-invariant test (the same verdict
+    for T and s·T, z in other units), and the sign of det T from ``slogdet`` (no over- or underflow)."""
+    sv = jnp.linalg.svd(T, compute_uv=False)
+    rcond = jnp.where(sv[0] > 0, sv[-1] / jnp.where(sv[0] > 0, sv[0], 1.0), 0.0)
+    return rcond, jnp.linalg.slogdet(T)[0]
+
+
+def _checks_at(obs, t):
+    res, scale, det = obs.solvability(t)
+    rcond, sign = _rcond_sign(jax.lax.stop_gradient(obs.T_of(t)))  # a verdict, never differentiated
+    return res, scale, det, rcond, sign
+
+
 @eqx.filter_jit
 def _solvability_on_grid(obs, ts):
-    return jax.vmap(obs.solvability)(ts)
+    return jax.vmap(lambda t: _checks_at(obs, t))(ts)
+
+
+def _relative(res, scale, xp):
+    """res / scale, the residual relative to the size of the terms of M = Ṫ + TA − FT (no absolute
+    floor: invariant under time units A → cA, F → cF, Ṫ → cṪ and z units T → sT).  scale = 0 means
+    M = 0 exactly: relative 0 when res = 0 too, inf otherwise."""
+    safe = xp.where(scale > 0, scale, 1.0)
+    return xp.where(scale > 0, res / safe, xp.where(res == 0, 0.0, xp.inf))
 
 
 def _solvability(T, Td, F, A, C, C1):
@@ -47,62 +69,74 @@ def _solvability(T, Td, F, A, C, C1):
 
 
 def _check_over(obs, ts, what):
-    """Evaluate solvability residuals and det T on `ts`; raise ValueError naming the worst time.
+    """Evaluate solvability residuals and the invertibility of T on `ts`; raise ValueError naming the
+    worst time.  Both tests are scale-invariant: the residual relative to ‖Ṫ‖ + ‖TA‖ + ‖FT‖, and
+    σ_min(T)/σ_max(T) > `rcond_min` (plus no sign change of det T between grid points).
     Returns False when the values are traced (nothing could be checked here: see
     :func:`_guard_traced`)."""
     ts = jnp.asarray(ts, dtype=float)
-    res, scale, det = _solvability_on_grid(obs, ts)
-    res, scale, det = (concrete_value(v) for v in (res, scale, det))
-    if res is None or scale is None or det is None:
+    vals = [concrete_value(v) for v in _solvability_on_grid(obs, ts)]
+    if any(v is None for v in vals):
         return False  # traced (inside jit/grad)
+    res, scale, det, rcond, sign = (np.asarray(v) for v in vals)
     ts = np.asarray(ts)
-    rel = res / np.maximum(scale, 1.0)
-    i = int(np.argmax(rel))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = _relative(res, scale, np)
+    i = int(np.argmax(np.where(np.isfinite(rel), rel, -1.0)))
     if not np.all(np.isfinite(rel)) or rel[i] > obs.rtol:
         j = i if np.all(np.isfinite(rel)) else int(np.argmax(~np.isfinite(rel)))
         raise ValueError(
             f"{what}: the Lovass-Nagy solvability condition fails: the residual "
-            f"‖(Ṫ + T·Ā − F·T)(I − C^{{1}}·C)‖ = {res[j]:.3e} (relative {rel[j]:.3e} > rtol = "
-            f"{obs.rtol:.1e}) at t = {ts[j]:.6g}; G·C = Ṫ + T·Ā − F·T has no solution G there. "
+            f"‖(Ṫ + T·Ā − F·T)(I − C^{{1}}·C)‖ = {res[j]:.3e}, relative to ‖Ṫ‖ + ‖T·Ā‖ + ‖F·T‖ = "
+            f"{scale[j]:.3e}: {rel[j]:.3e} > rtol = {obs.rtol:.1e}, at t = {ts[j]:.6g}; "
+            f"G·C = Ṫ + T·Ā − F·T has no solution G there. "
             f"Choose T(t) with obsjax.design.lovass_nagy_T or change F."
         )
     # det T is continuous: a sign change between grid points means T is singular in between.
-    k = int(np.argmin(np.abs(det)))
-    flips = np.nonzero(np.sign(det[:-1]) * np.sign(det[1:]) < 0)[0]
-    tiny = np.abs(det[k]) <= 1e-12 * max(float(np.abs(det).max()), 1.0)
-    if not np.all(np.isfinite(det)) or tiny or flips.size:
+    k = int(np.argmin(np.where(np.isfinite(rcond), rcond, -1.0)))
+    flips = np.nonzero(sign[:-1] * sign[1:] < 0)[0]
+    tiny = not rcond[k] > obs.rcond_min
+    if not (np.all(np.isfinite(det)) and np.all(np.isfinite(rcond))) or tiny or flips.size:
         if flips.size and not tiny:
             j = int(flips[0])
-            where = f"changes sign between t = {ts[j]:.6g} and t = {ts[j + 1]:.6g} ({det[j]:.3e} → {det[j + 1]:.3e})"
+            where = (
+                f"det T changes sign between t = {ts[j]:.6g} and t = {ts[j + 1]:.6g} "
+                f"({det[j]:.3e} → {det[j + 1]:.3e})"
+            )
         else:
-            where = f"= {det[k]:.3e} at t = {ts[k]:.6g}"
+            where = (
+                f"σ_min(T)/σ_max(T) = {rcond[k]:.3e} (≤ rcond_min = {obs.rcond_min:.1e}, det T = "
+                f"{det[k]:.3e}) at t = {ts[k]:.6g}"
+            )
         raise ValueError(
-            f"{what}: `T` must be invertible over the horizon (det T ≠ 0), found det T {where}."
+            f"{what}: `T` must be invertible over the horizon (det T ≠ 0, expected "
+            f"σ_min(T)/σ_max(T) > rcond_min = {obs.rcond_min:.1e}), found {where}."
         )
     return True
 
 
 def _guard_traced(obs, what):
-    """`obs.F` guarded by ``eqx.error_if`` (survives jit): the solvability condition and det T ≠ 0
-    on the check grid (the horizon's, or t = 0), as :func:`_check_over` checks concrete values
-    eagerly."""
+    """`obs.F` guarded by ``eqx.error_if`` (survives jit): the solvability condition and the
+    invertibility of T on the check grid (the horizon's, or t = 0), the same scale-invariant tests as
+    :func:`_check_over` applies to concrete values eagerly."""
     ts = jnp.asarray([0.0] if obs.horizon is None else _time_grid(obs.horizon, obs.num_checks))
-    res, scale, det = jax.vmap(obs.solvability)(ts)
-    rel = res / jnp.maximum(scale, 1.0)
+    res, scale, _det, rcond, sign = jax.vmap(lambda t: _checks_at(obs, t))(ts)
+    rel = _relative(res, scale, jnp)
     F = eqx.error_if(
         obs.F,
         jnp.any(~(rel <= obs.rtol)),
         f"{what}: the Lovass-Nagy solvability condition "
-        f"‖(Ṫ + T·Ā − F·T)(I − C^{{1}}·C)‖ ≤ rtol·scale (rtol = {obs.rtol:.1e}) fails (or is not "
-        "finite) on the check grid: G·C = Ṫ + T·Ā − F·T has no solution G there.",
+        f"‖(Ṫ + T·Ā − F·T)(I − C^{{1}}·C)‖ ≤ rtol·(‖Ṫ‖ + ‖T·Ā‖ + ‖F·T‖) (rtol = {obs.rtol:.1e}) fails "
+        "(or is not finite) on the check grid: G·C = Ṫ + T·Ā − F·T has no solution G there.",
     )
-    tiny = jnp.min(jnp.abs(det)) <= 1e-12 * jnp.maximum(jnp.max(jnp.abs(det)), 1.0)
-    flips = jnp.any(jnp.sign(det[:-1]) * jnp.sign(det[1:]) < 0) if det.shape[0] > 1 else False
+    tiny = jnp.any(~(rcond > obs.rcond_min))
+    flips = jnp.any(sign[:-1] * sign[1:] < 0) if sign.shape[0] > 1 else False
     return eqx.error_if(
         F,
-        ~jnp.all(jnp.isfinite(det)) | tiny | flips,
-        f"{what}: `T` must be invertible over the check grid (det T ≠ 0), found a vanishing, "
-        "non-finite or sign-changing det T.",
+        tiny | flips,
+        f"{what}: `T` must be invertible over the check grid (det T ≠ 0, expected "
+        f"σ_min(T)/σ_max(T) > rcond_min = {obs.rcond_min:.1e}), found a smaller or non-finite "
+        "σ_min/σ_max, or a sign change of det T.",
     )
 
 
@@ -123,7 +157,10 @@ class GeneralizedInverse(AbstractObserver):
     - `horizon`: optional (t0, t1): the condition and det T ≠ 0 are checked on `num_checks` points of
       it at construction (and by :meth:`check`); with ``None`` only t = 0 is checked.  Use
       :meth:`check_horizon` for another horizon.
-    - `rtol`: relative tolerance on the solvability residual.
+    - `rtol`: relative tolerance on the solvability residual: ‖(Ṫ + TA − FT)(I − C^{1}C)‖ ≤
+      rtol·(‖Ṫ‖ + ‖TA‖ + ‖FT‖), the same verdict in any time unit and any units of z (T → sT).
+    - `rcond_min`: smallest admissible σ_min(T)/σ_max(T) on the check grid (T invertible, a
+      scale-invariant test; a sign change of det T between grid points is refused too).
 
     **Example:**
 
@@ -139,8 +176,10 @@ class GeneralizedInverse(AbstractObserver):
     horizon: tuple[float, float] | None = eqx.field(static=True)
     num_checks: int = eqx.field(static=True)
     rtol: float = eqx.field(static=True)
+    rcond_min: float = eqx.field(static=True)
 
-    def __init__(self, model, F, T, C1=None, *, horizon=None, num_checks=201, rtol=1e-7):
+    def __init__(self, model, F, T, C1=None, *, horizon=None, num_checks=201, rtol=1e-7,
+                 rcond_min=1e-10):
         require_no_feedthrough(model, "GeneralizedInverse")
         n, m = int(model.n), int(model.m)
         self.model = model
@@ -156,6 +195,7 @@ class GeneralizedInverse(AbstractObserver):
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
+        self.rcond_min = float(rcond_min)
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
         if not _check_over(self, ts, "GeneralizedInverse"):  # built under jit: eqx.error_if
             self.F = _guard_traced(self, "GeneralizedInverse")
@@ -258,7 +298,7 @@ class GeneralizedInverseReduced(AbstractObserver):
     - `F`: (n−m, n−m) constant observer matrix (a leaf).
     - `T`: callable t -> (n−m, n−m), twice differentiable (see :func:`obsjax.design.lovass_nagy_T`).
     - `C1`: optional constant (n−m, m) {1}-inverse of A12; the Moore–Penrose inverse of A12(t) if None.
-    - `horizon`, `num_checks`, `rtol`: as in :class:`GeneralizedInverse`.
+    - `horizon`, `num_checks`, `rtol`, `rcond_min`: as in :class:`GeneralizedInverse`.
 
     The observer state is p (n−m,).
 
@@ -276,8 +316,10 @@ class GeneralizedInverseReduced(AbstractObserver):
     horizon: tuple[float, float] | None = eqx.field(static=True)
     num_checks: int = eqx.field(static=True)
     rtol: float = eqx.field(static=True)
+    rcond_min: float = eqx.field(static=True)
 
-    def __init__(self, model, F, T, C1=None, *, horizon=None, num_checks=201, rtol=1e-7):
+    def __init__(self, model, F, T, C1=None, *, horizon=None, num_checks=201, rtol=1e-7,
+                 rcond_min=1e-10):
         require_no_feedthrough(model, "GeneralizedInverseReduced")
         n, m = int(model.n), int(model.m)
         q = n - m
@@ -308,6 +350,7 @@ class GeneralizedInverseReduced(AbstractObserver):
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
+        self.rcond_min = float(rcond_min)
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
         if not _check_over(self, ts, "GeneralizedInverseReduced"):  # under jit: eqx.error_if
             self.F = _guard_traced(self, "GeneralizedInverseReduced")

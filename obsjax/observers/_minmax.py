@@ -189,15 +189,11 @@ def minmax_sum_initial_state(A, B, C, ys, us=None, eps=0.0):
     if eps_v < 0:
         raise ValueError(f"`eps` must be >= 0 (a bound on |δy|), got {eps_v}.")
     ybar, psi = window_regression(A, B, C, ys, us)
-    n = psi.shape[1]
-    rank = np.linalg.matrix_rank(psi)
-    if rank < n:
-        raise ValueError(
-            f"`ys`: x(k0) is not determined by the window: ψ = [C(k)·Φ(k, k0)] has rank {rank} < n = {n} "
-            f"over N + 1 = {_window_len(ys)} samples; lengthen the window."
-        )
     m = psi.shape[0] // _window_len(ys)
-    return _solve_lp_sum(ybar, psi, eps_v, m)
+    psi_s, d = _equilibrate(psi)
+    _require_full_rank(psi_s, m)
+    x, cost = _refine(lambda yb, ps, e: _solve_lp_sum(yb, ps, e, m), ybar, psi_s, eps_v)
+    return d * x, cost
 
 
 def minmax_initial_state(A, B, C, ys, us=None, eps=0.0):
@@ -228,19 +224,74 @@ def minmax_initial_state(A, B, C, ys, us=None, eps=0.0):
     if eps_v < 0:
         raise ValueError(f"`eps` must be >= 0 (a bound on |δy|), got {eps_v}.")
     ybar, psi = window_regression(A, B, C, ys, us)
-    n = psi.shape[1]
-    rank = np.linalg.matrix_rank(psi)
-    if rank < n:
-        raise ValueError(
-            f"`ys`: x(k0) is not determined by the window: ψ = [C(k)·Φ(k, k0)] has rank {rank} < n = {n} "
-            f"over N + 1 = {_window_len(ys)} samples; "
-            f"lengthen the window (the system may be unobservable over it)."
-        )
-    return _solve_lp(ybar, psi, eps_v)
+    psi_s, d = _equilibrate(psi)
+    _require_full_rank(psi_s, psi.shape[0] // _window_len(ys))
+    x, theta = _refine(_solve_lp, ybar, psi_s, eps_v)
+    return d * x, theta
 
 
 def _window_len(ys):
     return int(np.asarray(ys).shape[0])
+
+
+def _refine(solve, ybar, psi, eps, rounds=4):
+    """The LP, then the same LP for a correction δ on the residual ȳ − ψ x (min over x + δ is the
+    same problem), while the value improves.  HiGHS's tolerances are relative to the size of the data:
+    when ȳ spans many orders of magnitude (a fast growing mode over a long window) one solve leaves an
+    error of order 1e-7·‖ȳ‖∞ in the value; each correction shrinks the data to the last residual."""
+    x, val = solve(ybar, psi, eps)
+    for _ in range(rounds):
+        r = ybar - psi @ x
+        dx, new = solve(r, psi, eps)
+        if not new < val:
+            break
+        x, val = x + dx, new
+    return x, val
+
+
+def _equilibrate(psi):
+    """(ψ D, diag D) with D = diag(1/‖ψ_j‖) (columns of unit norm; a zero column is kept as it is).
+
+    x0 = D x̃0 maps the estimate back: the rank test and the LP on ψ D give the same verdict and the
+    same x0 whatever the units of the states (x → S x with S diagonal: ψ → ψ S⁻¹, ψ D unchanged)."""
+    norms = np.linalg.norm(psi, axis=0)
+    d = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 1.0)
+    return psi * d, d
+
+
+def _require_full_rank(psi_s, m):
+    """Raise ValueError when ψ D (columns of unit norm) has numerical rank < n, with advice that fits:
+    too few rows, a window longer than a well-conditioned one (a fast growing or decaying mode), or an
+    unobservable / ill-conditioned window."""
+    r, n = psi_s.shape
+    sv = np.linalg.svd(psi_s, compute_uv=False)
+    tol = sv.max(initial=0.0) * max(r, n) * np.finfo(float).eps
+    rank = int(np.sum(sv > tol))
+    if rank == n:
+        return
+    samples = r // m
+    ratio = sv[-1] / sv[0] if sv.size == n and sv[0] > 0 else 0.0
+    head = (
+        f"`ys`: x(k0) is not determined by the window: ψ = [C(k)·Φ(k, k0)] (columns normalised) has "
+        f"rank {rank} < n = {n} over N + 1 = {samples} samples (σ_min/σ_max = {ratio:.2e}, expected "
+        f"> {max(r, n) * np.finfo(float).eps:.1e}); "
+    )
+    if r < n:
+        raise ValueError(head + f"the window has {r} output rows < n = {n}: lengthen the window.")
+    for k in range(-(-n // m), samples):  # the shortest prefix of the window with full rank
+        pre, _ = _equilibrate(psi_s[: k * m])
+        if np.linalg.matrix_rank(pre) == n:
+            raise ValueError(
+                head + f"its first {k} samples alone determine x(k0): the longer window is worse "
+                "conditioned (a mode of A that grows or decays much faster than the others dominates "
+                f"ψ), so lengthening it does not help: use a window of about {k} to {max(k, n)} samples "
+                "or a better conditioned state basis."
+            )
+    raise ValueError(
+        head + "the system may be unobservable over the window (a longer window helps only if it "
+        "makes x(k0) observable), or ψ is too ill-conditioned (a fast growing or decaying mode: then a "
+        "longer window makes it worse; try a shorter one)."
+    )
 
 
 class MinMaxAlgorithm(eqx.Module):
@@ -344,6 +395,9 @@ class MinMaxLuenberger(eqx.Module):
     - `window`: W ≥ 1, number of steps of each window [k − W, k].
     - `eps`: bound ε on measurement errors for the min-max LP.
     - `T`: optional constant matrix or callable k -> (n, n) (identity by default).
+    - `rtol`: relative tolerance of the condition: ‖(T(k+1)A(k) − F T(k))(I − C^{1}C(k))‖ ≤
+      rtol·(‖T(k+1)A(k)‖ + ‖F T(k)‖) (the same verdict for T and s·T).
+    - `rcond_min`: smallest admissible σ_min(T(k))/σ_max(T(k)) (T(k) invertible, a scale-invariant test).
 
     **Example:** the slides' combination example, C invertible, T = I::
 
@@ -359,8 +413,9 @@ class MinMaxLuenberger(eqx.Module):
     window: int = eqx.field(static=True)
     eps: float = eqx.field(static=True)
     rtol: float = eqx.field(static=True)
+    rcond_min: float = eqx.field(static=True)
 
-    def __init__(self, A, B, C, F, window, eps=0.0, T=None, rtol=1e-9):
+    def __init__(self, A, B, C, F, window, eps=0.0, T=None, rtol=1e-9, rcond_min=1e-10):
         self.A, self.B, self.C = (
             _of_k(A, "A"),
             (None if B is None else _of_k(B, "B")),
@@ -389,6 +444,7 @@ class MinMaxLuenberger(eqx.Module):
             raise ValueError(f"`eps` must be >= 0 and finite (a bound on |δy|), got {eps}.")
         self.eps = float(eps)
         self.rtol = float(rtol)
+        self.rcond_min = float(rcond_min)
 
     def _stacks(self, K):
         A = np.stack([np.asarray(self.A(k), dtype=float) for k in range(K)])
@@ -405,20 +461,34 @@ class MinMaxLuenberger(eqx.Module):
     def gains(self, K):
         """G(k), k = 0..K−1, with the discrete Lovass-Nagy condition checked at every k."""
         A, _, C, T = self._stacks(K)
+        self._check_T(T)
         Gs = []
         for k in range(K):
             M = T[k + 1] @ A[k] - self.F @ T[k]
             C1 = np.linalg.pinv(C[k])
             res = np.linalg.norm(M @ (np.eye(M.shape[1]) - C1 @ C[k]))
-            if res > self.rtol * max(1.0, np.linalg.norm(M)):
+            # relative to the terms of M, no absolute floor: the same verdict for T and s·T (z in
+            # other units) and for any scale of A and F
+            scale = np.linalg.norm(T[k + 1] @ A[k]) + np.linalg.norm(self.F @ T[k])
+            if not res <= self.rtol * scale:
                 raise ValueError(
                     f"MinMaxLuenberger: the solvability condition (T(k+1)A(k) − F T(k))(I − C^{{1}}C(k)) = 0 "
-                    f"fails at k = {k}: residual {res:.3e}; choose T(k) (or F) accordingly."
+                    f"fails at k = {k}: residual {res:.3e}, expected ≤ rtol·(‖T(k+1)A(k)‖ + ‖F T(k)‖) = "
+                    f"{self.rtol:.1e}·{scale:.3e}; choose T(k) (or F) accordingly."
                 )
-            if abs(np.linalg.det(T[k])) < 1e-12:
-                raise ValueError(f"`T({k})` must be invertible, det T = {np.linalg.det(T[k]):.3e}.")
             Gs.append(M @ C1)
         return np.stack(Gs)
+
+    def _check_T(self, T):
+        """T(k) invertible for every k: σ_min/σ_max > rcond_min (scale-invariant: T and s·T agree)."""
+        for k, Tk in enumerate(T):
+            sv = np.linalg.svd(Tk, compute_uv=False)
+            rcond = sv[-1] / sv[0] if sv[0] > 0 else 0.0
+            if not rcond > self.rcond_min:
+                raise ValueError(
+                    f"`T({k})` must be invertible: expected σ_min(T)/σ_max(T) > rcond_min = "
+                    f"{self.rcond_min:.1e}, found {rcond:.3e} (det T = {np.linalg.det(Tk):.3e})."
+                )
 
     def luenberger(self, ys, us=None, xhat0=None, start=0):
         """The Luenberger observer alone from x̂(start) = xhat0 over the record (k = start..K)."""
