@@ -49,8 +49,9 @@ import numpy as np
 OPT_OUT = "OBSJAX_NO_TRACE_CACHE"
 #: subdirectory of the compilation cache directory
 SUBDIR = "obsjax-traced"
-#: bumped when the file format or the key changes
-FORMAT = 1
+#: bumped when the file format or the key changes (2: the key's fingerprint hashes a class reached through a
+#: global, a closure cell or a base class by content, not as a bare reference)
+FORMAT = 2
 #: the oldest JAX whose programs, exported by one process and read back by another, run: with jax
 #: 0.6.1, 0.6.2, 0.7.2, 0.8.0, 0.9.0 and 0.9.2 the first call of a program read back crashed the
 #: process (SIGSEGV inside XLA), with 0.10.0 and 0.10.1 it computed the same numbers

@@ -732,3 +732,243 @@ def test_an_input_signal_with_arrays_is_a_simulate_kwarg(tmp_path):
     with pytest.raises(ValueError, match="holds a different study"):
         run(louder, tmp_path / "ck")
     assert run(u, tmp_path / "ck").n_computed == 0  # the same study: resumed
+
+
+# ---- review findings: the fingerprint of classes, the sampler form, complex samplers -------------------
+#
+# Module-level classes, read as globals by the samplers below (the fingerprint follows a function's
+# globals), each changed by a test through monkeypatch and restored after it.
+
+
+class _FpScale:
+    s = 1.0
+
+
+class _FpStatic:
+    @staticmethod
+    def g(x):
+        return 1.0 * x
+
+
+class _FpUnit:
+    @staticmethod
+    def g(x):
+        return x
+
+
+class _FpTriple:
+    @staticmethod
+    def g(x):
+        return 3.0 * x
+
+
+_FpRole = _FpUnit  # a global that is rebound to another class
+
+
+class _FpBase:
+    s = 1.0
+
+
+class _FpDerived(_FpBase):
+    def __call__(self, k):
+        return self.s * jr.normal(k, (2,))
+
+
+def _fp_reads_class_attribute(k):
+    return _FpScale.s * jr.normal(k, (2,))
+
+
+def _fp_reads_staticmethod(k):
+    return _FpStatic.g(jr.normal(k, (2,)))
+
+
+def _fp_reads_rebound_global(k):
+    return _FpRole.g(jr.normal(k, (2,)))
+
+
+def _fp(obj):
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    digest, opaque = fingerprint({"s": obj})
+    assert not opaque
+    return digest
+
+
+_FP_CASES = {
+    # a class attribute read by a sampler (the class a global of the sampler)
+    "class attribute": (_fp_reads_class_attribute, lambda mp: mp.setattr(_FpScale, "s", 2.0)),
+    # a staticmethod of a class read by a sampler
+    "class staticmethod": (
+        _fp_reads_staticmethod,
+        lambda mp: mp.setattr(_FpStatic, "g", staticmethod(lambda x: 2.0 * x)),
+    ),
+    # a global rebound to another class (same name, other methods)
+    "global rebound to another class": (
+        _fp_reads_rebound_global,
+        lambda mp: mp.setitem(globals(), "_FpRole", _FpTriple),
+    ),
+    # an attribute of a base class, read through an instance of a subclass
+    "base class attribute via instance": (_FpDerived(), lambda mp: mp.setattr(_FpBase, "s", 2.0)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(_FP_CASES))
+def test_fingerprint_hashes_classes_reached_through_globals_and_bases(case, monkeypatch):
+    """Review finding 1: a class reached through visit() (a global, a closure cell, a base class) was
+    memoised before _class() looked at it, so it was hashed as a bare reference to itself: changing its
+    attributes, or rebinding the global to another class, left the digest unchanged (checkpoints of
+    another study were resumed, compiled kernels served stale)."""
+    obj, change = _FP_CASES[case]
+    before = _fp(obj)
+    assert _fp(obj) == before  # deterministic
+    change(monkeypatch)
+    assert _fp(obj) != before
+
+
+def test_fingerprint_hashes_classes_read_through_a_closure():
+    def make(cls):
+        return lambda k: cls.s * jr.normal(k, (2,))
+
+    class K:
+        s = 1.0
+
+    class L:
+        s = 1.0
+
+    f = make(K)
+    before = _fp(f)
+    K.s = 2.0
+    assert _fp(f) != before
+    K.s = 1.0
+    assert _fp(f) == before
+    assert _fp(make(L)) != before  # another class with the same content but another name
+
+
+class _FpSelf:
+    scale = 1.0
+
+    def draw(self, k):
+        return _FpSelf.scale * jr.normal(k, (2,))  # the class refers to itself through a global
+
+    @classmethod
+    def make(cls):
+        return cls()
+
+
+class _FpPing:
+    s = 1.0
+
+    def other(self):
+        return _FpPong  # mutually recursive classes
+
+
+class _FpPong:
+    s = 1.0
+
+    def other(self):
+        return _FpPing
+
+
+def _fp_reads_ping(k):
+    return _FpPing.s * jr.normal(k, (2,))
+
+
+def test_fingerprint_of_self_referencing_classes_terminates(monkeypatch):
+    """Classes that refer to themselves or to each other are walked once (a later visit is a
+    reference), and their attributes still enter the digest."""
+    a = _fp(_FpSelf().draw)
+    b = _fp(_fp_reads_ping)
+    assert _fp(_FpSelf().draw) == a and _fp(_fp_reads_ping) == b
+    monkeypatch.setattr(_FpSelf, "scale", 2.0)
+    assert _fp(_FpSelf().draw) != a
+    monkeypatch.setattr(_FpPong, "s", 2.0)  # reached only through _FpPing.other's global
+    assert _fp(_fp_reads_ping) != b
+
+
+def test_fingerprint_of_classes_with_slots_named_tuples_and_cached_properties_is_complete():
+    """Now that a class reached through a global is hashed by content, its layout descriptors (a slot's,
+    a named tuple field's accessor) and a cached_property's lock must not make it opaque (a checkpoint
+    would be refused without a study_id)."""
+    import functools
+    from typing import NamedTuple
+
+    class Slotted:
+        __slots__ = ("a",)
+
+        def __init__(self):
+            self.a = 1.0
+
+    class Pair(NamedTuple):
+        x: float
+        y: float
+
+    class Lazy:
+        @functools.cached_property
+        def c(self):
+            return 2.0
+
+    for cls in (Slotted, Pair, Lazy, Slotted()):
+        _fp(cls)  # asserts that nothing is opaque
+
+
+class _McScale:
+    s = 1.0
+
+
+def _x0_class_scaled(key):
+    return _McScale.s * jr.normal(key, (1,))
+
+
+def test_changed_class_attribute_is_neither_a_stale_kernel_nor_a_resumed_checkpoint(tmp_path, monkeypatch):
+    """End to end (review finding 1): after ``_McScale.s = 100`` a new study must draw x0 at the new
+    scale (before the fix the kernel compiled at scale 1 was served: ‖x̃(0)‖ 100× too small), and a
+    checkpoint written at scale 1 must be refused, not resumed."""
+    kw = dict(x0_sampler=_x0_class_scaled, xhat0_sampler=jnp.zeros(1), ts=np.linspace(0.0, 1.0, 3),
+              chunk_size=4, progress=False, simulate_kwargs=dict(adaptive=False, dt0=0.25))  # fmt: skip
+    key = jr.PRNGKey(3)
+    first = obsjax.monte_carlo(SCALAR_MODEL, SCALAR_OBS, key, 4, checkpoint=tmp_path / "ck", **kw)
+    monkeypatch.setattr(_McScale, "s", 100.0)
+    again = obsjax.monte_carlo(SCALAR_MODEL, SCALAR_OBS, key, 4, **kw)
+    np.testing.assert_allclose(again.error_norm[:, 0], 100.0 * first.error_norm[:, 0], rtol=1e-12)
+    with pytest.raises(ValueError, match="holds a different study"):
+        obsjax.monte_carlo(SCALAR_MODEL, SCALAR_OBS, key, 4, checkpoint=tmp_path / "ck", **kw)
+
+
+def test_sampler_form_counts_required_positional_parameters_only():
+    """Review finding 2: ``def s(k, sigma=0.5)`` was taken as the (key, x0) form and called with x0 as
+    sigma; a parameter with a default is the user's setting, not the slot for x0."""
+    from obsjax.montecarlo._montecarlo import _n_positional
+
+    def spread(k, sigma=0.5):
+        return sigma * jr.normal(k, (1,))
+
+    assert _n_positional(spread) == 1
+    assert _n_positional(lambda k, x0: x0) == 2
+    assert _n_positional(lambda k, x0, scale=2.0: x0) == 2
+    assert _n_positional(lambda *a: a[0]) == 99
+    key = jr.PRNGKey(5)
+    x0 = jnp.array([10.0])
+    res = obsjax.monte_carlo(SCALAR_MODEL, SCALAR_OBS, key, 3, x0_sampler=x0, xhat0_sampler=spread,
+                             ts=np.linspace(0.0, 1.0, 3), chunk_size=4, progress=False,
+                             simulate_kwargs=dict(adaptive=False, dt0=0.25))  # fmt: skip
+    for i in range(3):
+        kh = jr.split(jr.fold_in(key, i), 4)[1]
+        expected = float(jnp.linalg.norm(x0 - 0.5 * jr.normal(kh, (1,))))
+        assert res.error_norm[i, 0] == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    "overrides,match",
+    [
+        (dict(x0_sampler=lambda k: jr.normal(k, (2,)) * (1 + 1j)), r"`x0_sampler` must return a real .*complex128"),
+        (dict(xhat0_sampler=lambda k: jnp.ones(2) * 1j), r"`xhat0_sampler` must return a real .*complex128"),
+        (dict(xhat0_sampler=lambda k, x0: x0 + 1j), r"`xhat0_sampler` must return a real .*complex128"),
+        (dict(xhat0_sampler=np.array([0.0, 5j])), r"`xhat0_sampler` given as an array must be real.*complex128"),
+        (dict(x0_sampler=np.array([1.0 + 0j, 0.0])), r"`x0_sampler` given as an array must be real.*complex128"),
+    ],
+)
+def test_complex_sampler_output_is_refused(overrides, match):
+    """Review finding 3: complex sampler output was cast to its real part (x̂0 = (0, 5j) gave
+    ‖x̃(0)‖ = 1 instead of a refusal, as simulate refuses a complex x̂0)."""
+    with pytest.raises(ValueError, match=match):
+        run(n=2, chunk_size=2, ts=TS[:2], **overrides)

@@ -510,6 +510,37 @@ def test_bad_argument_is_named_before_tracing(overrides, match):
         _bad_call(**overrides)
 
 
+def test_empty_batch_is_refused_naming_x0s():
+    """Review finding 4: x0s and xhat0s of shape (0, n) passed the checks and risk_weights then divided
+    by zero (ZeroDivisionError)."""
+    with pytest.raises(ValueError, match=r"`x0s` and `xhat0s` must hold at least one scenario .*\(0, 2\)"):
+        _bad_call(x0s=X0S[:0], xhat0s=XH0S[:0])
+
+
+def test_where_selecting_a_leaf_twice_is_refused():
+    """Review finding 5: ``where=lambda o: (o.poles, o.poles)`` was accepted; eqx.tree_at kept the last
+    assignment only, so entry 0 was reported in the history but never used."""
+    with pytest.raises(ValueError, match="`where` must select each leaf at most once, got entries 0 and 1"):
+        _bad_call(where=lambda o: (o.poles, o.poles))
+    with pytest.raises(ValueError, match="entries 0 and 2"):
+        _bad_call(where=lambda o: (o.poles, o.model.A, o.poles))
+
+
+def test_where_may_select_two_fields_that_hold_one_array_object():
+    """Two fields holding the same array object are two leaves for eqx.tree_at (it tells positions
+    apart): selecting both is not a duplicate."""
+    from obsjax.tuning._tune import _selected_leaves
+
+    obs = obsjax.LeastSquaresReset(obsjax.chen_yen_example(), gamma=20.0, p0=0.1, T=0.3337)
+    shared = jnp.array(0.5)
+    obs = eqx.tree_at(lambda o: (o.gamma, o.p0), obs, (shared, shared))
+    assert obs.gamma is obs.p0
+    leaves, single = _selected_leaves(obs, lambda o: (o.gamma, o.p0))
+    assert len(leaves) == 2 and not single
+    with pytest.raises(ValueError, match="at most once"):
+        _selected_leaves(obs, lambda o: (o.gamma, o.gamma))
+
+
 def test_where_selecting_a_method_is_refused():
     kb = obsjax.KalmanBucy(PLANT, Qw=0.1 * jnp.eye(2), Rv=0.01 * jnp.eye(1), P0=jnp.eye(2))
     with pytest.raises(ValueError, match="selects a method that is not an array leaf"):

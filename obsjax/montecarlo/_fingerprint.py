@@ -8,6 +8,9 @@ or two noise models that differ by a static grid spacing give different results.
 - arrays by dtype, shape and bytes; numbers, strings, tuples, lists, dicts and sets by value;
 - dataclasses (every ``eqx.Module``: plants, observers, noise models, diffrax solvers) field by
   field, static fields included, plus the code of the methods of user-defined classes;
+- user-defined classes wherever they are reached (the class of an instance, a global or closure value
+  that is a class, a base class) by name and by their attributes and methods, recursively; a class met
+  again (one that refers to itself, or mutually recursive classes) is a reference to its first visit;
 - user functions by their bytecode (constants, names, nested functions), their closure values, their
   default arguments and the values of the globals they read, recursively, including the attributes
   they may read from a user's module (a settings module read as ``cfg.SCALE`` or
@@ -26,6 +29,7 @@ caller refuses to checkpoint unless the user names the study with an explicit ``
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import enum
 import functools
@@ -45,8 +49,11 @@ FORMAT = 2  # checkpoint format: content fingerprints and per-file checksums
 #: tolerance relative to the horizon, max_steps per segment in the masked loop, a reset on a plant jump
 #: as one target there.  3: the Kalman–Bucy filter and the least-squares observer subtract an LTI
 #: model's feedthrough D u; switching_ltv_example keeps switching after its declared horizon; the
-#: padding of stacked recorded experiments (cubic hold, spacing).
-RESULTS_REVISION = 3
+#: padding of stacked recorded experiments (cubic hold, spacing).  4: fixed steps keep a plant jump
+#: where the plant switches (and cut the interval around one within the tolerance of t0 or t1); an
+#: overflowing candidate step is rejected instead of leaving a NaN step size; the Lovass-Nagy and min-max
+#: checks are relative (a T accepted or refused differently), min-max estimates are solved on scaled ψ.
+RESULTS_REVISION = 4
 
 # Top-level packages hashed by name (their version is part of the fingerprint header).
 _LIBRARIES = frozenset(
@@ -180,6 +187,11 @@ def _canonical_node_data(data):
     return data
 
 
+_TUPLEGETTER = type(collections.namedtuple("_T", "a").a)
+#: attributes of a class that only describe its layout (the accessor of a slot, of a named tuple's field)
+_LAYOUT_DESCRIPTORS = (types.MemberDescriptorType, types.GetSetDescriptorType, _TUPLEGETTER)
+
+
 class _Hasher:
     """Feeds a canonical, length-prefixed encoding of an object graph into SHA-256."""
 
@@ -219,6 +231,12 @@ class _Hasher:
         if isinstance(obj, (np.dtype, type(Ellipsis))):
             self.put(type(obj).__name__, str(obj))
             return
+        if isinstance(obj, type):
+            # before the memo: _class memoises the class itself (and writes "ref" for a class seen
+            # before, which ends the walk of a class that refers to itself); marked seen here, it was
+            # hashed as a bare "ref" to itself, without its name or attributes
+            self._class(obj, path)
+            return
         if self._seen(obj):
             return
         if isinstance(obj, (tuple, list)):
@@ -245,9 +263,6 @@ class _Hasher:
             if self.strict_modules and not _is_library(obj.__name__):
                 self.opaque.append(f"{path} (module {obj.__name__}, not hashed by content)")
             self.put("module", obj.__name__)
-            return
-        if isinstance(obj, type):
-            self._class(obj, path)
             return
         if isinstance(obj, types.CodeType):
             self._code(obj, path)
@@ -470,6 +485,14 @@ class _Hasher:
                 value = value.__func__
             elif isinstance(value, property):
                 value = (value.fget, value.fset)
+            elif isinstance(value, functools.cached_property):
+                value = value.func  # (not its lock)
+            elif isinstance(value, _LAYOUT_DESCRIPTORS):
+                # a slot's or a named tuple's field accessor: the class's layout, named by the key
+                # (a named tuple's accessor also by its index)
+                layout = value.__reduce__()[1][0] if isinstance(value, _TUPLEGETTER) else ""
+                self.put("descriptor", f"{type(value).__name__}{layout}")
+                continue
             self.visit(value, f"{name}.{key}")
 
     def _instance(self, obj, path: str) -> None:

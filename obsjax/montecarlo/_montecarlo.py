@@ -39,6 +39,8 @@ DEFAULT_QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
 
 
 def _n_positional(fn) -> int:
+    """The number of *required* positional parameters of `fn` (99 for ``*args``): a parameter with a
+    default (``def s(k, sigma=0.5)``) is the user's own setting, never the slot for x0."""
     try:
         sig = inspect.signature(fn)
     except (TypeError, ValueError):
@@ -46,10 +48,23 @@ def _n_positional(fn) -> int:
     count = 0
     for p in sig.parameters.values():
         if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD):
-            count += 1
+            if p.default is p.empty:
+                count += 1
         elif p.kind == p.VAR_POSITIONAL:
             return 99
     return count
+
+
+def _real_draw(value, name):
+    """A sampler's output as a float array; complex output is refused (its imaginary part would be
+    dropped), at trace time, as ``simulate`` refuses a complex x0 or x̂0."""
+    arr = jnp.asarray(value)
+    if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+        raise ValueError(
+            f"`{name}` must return a real (n,) array, got an array of dtype {arr.dtype} "
+            "(complex values are not a state)."
+        )
+    return jnp.asarray(arr, dtype=float)
 
 
 class _Fixed:
@@ -57,6 +72,10 @@ class _Fixed:
 
     def __init__(self, value, name):
         arr = np.asarray(as_float_array(value, name))
+        if np.iscomplexobj(arr):
+            raise ValueError(
+                f"`{name}` given as an array must be real, got an array of dtype {arr.dtype}."
+            )
         if arr.ndim != 1:
             raise ValueError(
                 f"`{name}` given as an array must be a vector (n,), got shape {arr.shape}."
@@ -578,9 +597,9 @@ def _draw(dyn, cfg: _Config, key, i):
     kx, kh, kn, kp = jr.split(k, 4)
     if cfg.param_sampler is not None:
         plant = cfg.param_sampler(kp, plant)
-    x0 = jnp.asarray(cfg.x0_sampler(kx), dtype=float)
+    x0 = _real_draw(cfg.x0_sampler(kx), "x0_sampler")
     xhat0 = cfg.xhat0_sampler(kh, x0) if cfg.xhat0_takes_x0 else cfg.xhat0_sampler(kh)
-    return plant, x0, jnp.asarray(xhat0, dtype=float), kn
+    return plant, x0, _real_draw(xhat0, "xhat0_sampler"), kn
 
 
 def _one(dyn, cfg: _Config, key, i):
@@ -810,8 +829,12 @@ def monte_carlo(
     - `observer`: any :class:`obsjax.AbstractObserver`.
     - `key`: a JAX PRNG key.
     - `n`: number of trajectories.
-    - `x0_sampler`: ``key -> (n_x,)`` initial plant state (or a fixed array).
+    - `x0_sampler`: ``key -> (n_x,)`` initial plant state (or a fixed array).  Real: a complex
+      output (or fixed array) is refused with a ``ValueError`` naming the sampler, as for `xhat0_sampler`.
     - `xhat0_sampler`: ``key -> (n_x,)`` or ``(key, x0) -> (n_x,)`` initial estimate (or a fixed array).
+      The form is decided by the sampler's *required* positional parameters only: two or more (or
+      ``*args``) make it ``(key, x0)``; a parameter with a default is not counted, so
+      ``def s(k, sigma=0.5)`` is the ``key`` form, called as ``s(k)``.
     - `ts`: (T,) save times (the statistics live on this grid).
     - `noise`: measurement noise (:class:`obsjax.noise.BandLimitedNoise` or ``WhiteNoise``), an independent
       realisation per trajectory (``simulate(..., noise=noise, key=k_noise)``).  For band-limited noise,

@@ -346,6 +346,11 @@ def _check_data(plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_k
             f"{tuple(x0s.shape)} and "
             f"{tuple(xhat0s.shape)}."
         )
+    if x0s.shape[0] < 1:
+        raise ValueError(
+            "`x0s` and `xhat0s` must hold at least one scenario (batch >= 1), got shapes "
+            f"{tuple(x0s.shape)} and {tuple(xhat0s.shape)}."
+        )
     if not plant_batched and x0s.shape[1] != plant.n:
         raise ValueError(
             f"`x0s` must be (batch, {plant.n}) for a plant with n = {plant.n}, got "
@@ -403,12 +408,43 @@ def _selected_leaves(observer, where):
                 "stored gains and cannot be set): select the stored gains, e.g. "
                 "lambda o: o.poles or lambda o: (o.gamma, o.T)."
             )
+    _check_distinct(observer, where, selection)
     # strongly typed copies: a weakly typed leaf (jnp.asarray(1.0)) would retrace after the first
     # update
     leaves0 = tuple(
         jnp.asarray(leaf, dtype=jnp.asarray(leaf).dtype) for leaf in _as_tuple(selection)
     )
     return leaves0, not isinstance(selection, (tuple, list))
+
+
+class _Position:
+    """A stand-in for one leaf position of the observer (one object per position)."""
+
+    __slots__ = ()
+
+
+def _check_distinct(observer, where, selection) -> None:
+    """Refuse a `where` that selects one leaf position twice: ``eqx.tree_at`` would set it twice, the
+    last assignment winning, and the other entry would be tuned and reported in the history but never
+    used.  Positions are told apart as ``eqx.tree_at`` does, by applying `where` to the observer with
+    a distinct stand-in at each leaf, so two fields that hold the same array object stay two leaves;
+    should `where` fail on the stand-ins, the selected arrays are compared by identity."""
+    picked = _as_tuple(selection)
+    try:
+        tagged = jax.tree_util.tree_map(lambda _: _Position(), observer)
+        marks = _as_tuple(where(tagged))
+        if len(marks) != len(picked) or not all(isinstance(m, _Position) for m in marks):
+            raise TypeError
+    except Exception:  # noqa: BLE001 - `where` needs the arrays themselves
+        marks = picked
+    first: dict[int, int] = {}
+    for i, m in enumerate(marks):
+        j = first.setdefault(id(m), i)
+        if j != i:
+            raise ValueError(
+                f"`where` must select each leaf at most once, got entries {j} and {i} that are the "
+                "same leaf of the observer: select it once."
+            )
 
 
 def _log_parametrisation(leaves0):
@@ -526,7 +562,7 @@ def tune(
       (sampled plants, model uncertainty) matching ``x0s``.
     - `where`: ``lambda obs: obs.poles`` or ``lambda obs: (obs.gamma, obs.T)``: the tuned leaves,
       which must be array leaves stored in the observer (not ``None``, not a derived property such
-      as ``gain``).
+      as ``gain``), each selected once (``(o.gamma, o.gamma)`` is refused).
     - `loss`: trajectory -> real scalar, e.g. :func:`obsjax.losses.ise`.
     - `x0s`, `xhat0s`: (batch, n) initial states and estimates.
     - `ts`: save times (concrete, strictly increasing): the points where the loss sees the
@@ -586,8 +622,13 @@ def tune(
     transformation, a float ``steps``, …).  A loss that does not return a real scalar is refused
     when the first evaluation is traced, before any step. The initial observer must be valid and
     give a finite loss.  Every later point is *accepted* only when the updated observer passes its
-    ``check()`` (``eqx.tree_at`` skips ``__check_init__``, so e.g. a pole stepped into the right
-    half-plane with ``positive=False`` or a negative reset period is caught there) and J and ∇J are
+    ``check()`` (``eqx.tree_at`` skips ``__check_init__``, so what the observer's own ``check()``
+    validates is caught there: e.g. a reset period, γ or p0 of :class:`obsjax.LeastSquaresReset`
+    stepped to zero or below, filter poles of the adaptive observers (``MinimalAdaptiveObserver``,
+    ``NonMinimalAdaptiveObserver``, ``Kreisselmeier``) or a ``KudvaNarendra`` K stepped out of the
+    left half-plane; a :class:`obsjax.Luenberger` pole stepped into the right half-plane with
+    ``positive=False`` is *not* refused by ``check()``, since an unstable observer is a valid one: such
+    a point is accepted when its loss is finite, and only compares worse) and J and ∇J are
     finite (every trajectory has status 0).  A rejected point is recorded in the history, announced
     by a :class:`obsjax.TuneWarning`, and the step is retried from the last accepted point with the
     optimizer's update scaled by ``BACKTRACK`` = 1/2 (the optimizer's state is not advanced, and no

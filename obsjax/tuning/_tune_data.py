@@ -126,7 +126,8 @@ def tune_on_data(
 
     - `observer`: the observer to tune.
     - `datasets`: a :class:`obsjax.Measurements`, a list of them (stacked with padding), or a stacked batch.
-    - `where`: the tuned leaves, e.g. ``lambda o: o.poles`` or ``lambda o: (o.Qw, o.Rv)``.
+    - `where`: the tuned leaves, e.g. ``lambda o: o.poles`` or ``lambda o: (o.Qw, o.Rv)``, each
+      selected once.
     - `xhat0`: the initial estimate, (n,) for every experiment or (batch, n).
     - `loss`: Estimate -> real scalar (default :func:`obsjax.losses.output_error`).
     - `positive`: leaf = sign(leaf₀)·exp(θ) entrywise, as for :func:`obsjax.tune`, except that entries that
