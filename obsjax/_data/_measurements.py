@@ -71,9 +71,10 @@ def _warn_time_resolution(v):
     if res > TIME_RESOLUTION_WARN:
         import warnings
 
+        big = float(np.max(np.abs(v)))
         warnings.warn(
-            f"`ts` runs from {float(v[0])!r} to {float(v[-1])!r}: at |t| = {float(np.max(np.abs(v))):.3g}, float64 "
-            f"resolves time to {float(np.spacing(np.max(np.abs(v)))):.2g}, {res:.1e} of the shortest sampling "
+            f"`ts` runs from {float(v[0])!r} to {float(v[-1])!r}: at |t| = {big:.3g}, float64 resolves "
+            f"time to {float(np.spacing(big)):.2g}, {res:.1e} of the shortest sampling "
             f"interval ({dt:.3g}), and the holds and the solver lose that much relative accuracy. Subtract "
             "the first time stamp (ts − ts[0]) unless the model depends on absolute time.",
             UserWarning,

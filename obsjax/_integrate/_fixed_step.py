@@ -15,10 +15,9 @@ event times; a reset or event within the schedule's tolerance of a save time is 
 never is); each interval between consecutive nodes is cut into ⌈Δ/dt0⌉ equal steps.  An interval that ends
 at a plant jump ends one float before it, as the segmented back-end does, so no stage sees the vector field
 after the jump; a jump within the tolerance of t0 or t1, which the schedule leaves out, cuts the interval
-around it too (:func:`edge_jumps`).  An outer
-``lax.scan`` over intervals (with ``jax.checkpoint``, so reverse mode stores one state per interval) runs an
-inner ``lax.scan`` of K steps, K the largest step count of any interval (shorter intervals mask their extra
-steps).  The jump of a breakpoint (reset, then event update) is applied at the start of the interval it
+around it too (:func:`edge_jumps`).  An outer ``lax.scan`` over intervals (with ``jax.checkpoint``, so
+reverse mode stores one state per interval) runs an inner ``lax.scan`` of K steps, K the largest step count
+of any interval (shorter intervals mask their extra steps).  The jump of a breakpoint (reset, then event update) is applied at the start of the interval it
 opens, before the state there is saved (right-continuous, like the segmented back-end).
 
 With traced breakpoints (a reset period T being tuned, traced event times) and concrete save times and dt0,
@@ -104,9 +103,10 @@ def grid(ts, dt0, breakpoints, tol, jumps=()):
     """The concrete step grid, or ``None`` when the save times or dt0 are traced.
 
     `breakpoints`: ``Schedule.concrete``, i.e. NumPy (times, reset, event, jump) sorted by time; `tol`: the
-    schedule's tolerance; `jumps`: :func:`edge_jumps`.  Returns a dict of NumPy arrays over the intervals between consecutive nodes:
-    ``start``, ``end``, ``h`` step size, ``nsteps``, ``reset`` and ``event`` (what to apply at the interval's start);
-    ``save_idx`` (len(ts),) the node of each save time; ``K`` the largest step count.
+    schedule's tolerance; `jumps`: :func:`edge_jumps`.  Returns a dict of NumPy arrays over the intervals
+    between consecutive nodes: ``start``, ``end``, ``h`` step size, ``nsteps``, ``reset`` and ``event`` (what
+    to apply at the interval's start); ``save_idx`` (len(ts),) the node of each save time; ``K`` the largest
+    step count.
     """
     ts = concrete_value(ts)
     dt0 = concrete_value(dt0)
@@ -264,8 +264,8 @@ def integrate_traced(args: _system.Args, state0, sched, ts_np, dt0, tableau, tol
     """Fixed steps on a grid whose breakpoints are traced (a tuned reset period T, traced event times).
 
     The same grid as :func:`grid` (nodes: the save times and the breakpoints, a reset or event within `tol`
-    of a save time moved onto it; every interval cut into max(1, ⌈Δ/dt0⌉) equal steps; an interval that ends at a
-    plant jump ends one float before it), but built inside the trace: the nodes are sorted by value, and one
+    of a save time moved onto it; every interval cut into max(1, ⌈Δ/dt0⌉) equal steps; an interval that ends
+    at a plant jump ends one float before it; edge jumps cut as there), but built inside the trace: the nodes are sorted by value, and one
     ``lax.scan`` of a fixed length (:func:`traced_steps`) walks the intervals step by step, applying each
     breakpoint's jump at the first step of the interval it opens; steps past the grid's last are masked.
     Returns ((xs, zs) at the save times, status code): ``SOLVER_FAILED`` if the grid had more steps than the

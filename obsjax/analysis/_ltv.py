@@ -269,8 +269,11 @@ def _periods_end(plant, ends, T, rtol, atol):
     def one(b):
         ell, Psi, G, ok = _period_end(plant, b, T, rtol, atol, _END_MAX_STEPS)
         log_sv = ell + jnp.log(jnp.linalg.norm(Psi, ord=2))
-        log_ew = 2.0 * ell + jnp.log(jnp.linalg.eigvalsh(G)[-1])
-        return log_sv, log_ew, jnp.exp(2.0 * ell) * G, ok
+        ew = jnp.linalg.eigvalsh(G)
+        log_ew = 2.0 * ell + jnp.log(ew[-1])
+        # the smallest eigenvalue relative to the largest (accurate when W_o^end is well conditioned)
+        ratio = jnp.maximum(ew[0], 0.0) / jnp.where(ew[-1] > 0, ew[-1], 1.0)
+        return log_sv, log_ew, jnp.exp(2.0 * ell) * G, ok, ratio
 
     return jax.vmap(one)(ends)
 
@@ -332,7 +335,7 @@ def observability_gramian(plant, k, T, *, t0=0.0, reference="start", rtol=_RTOL,
         return _periods(plant, a_, jnp.asarray(T), 2, rtol, atol, where="observability_gramian")[2][0]
     # Φ(kT − T, kT) by a scaled backward solve (not inv(Φ(kT, kT − T)): the small singular values of
     # Φ(kT, kT − T) are lost to the absolute tolerance when a fast stable mode decays over the window)
-    log_sv, _, W, ok = _periods_end(plant, _pad(jnp.asarray([a + T])), jnp.asarray(T), rtol, atol)
+    log_sv, _, W, ok, _ = _periods_end(plant, _pad(jnp.asarray([a + T])), jnp.asarray(T), rtol, atol)
     log_sv, W, ok = log_sv[0], W[0], ok[0]
     okv, Wv = concrete_value(ok), concrete_value(W)
     if okv is None:
@@ -382,9 +385,10 @@ class UniformObservability(NamedTuple):
 
     The paper's constants are the extremes over k: μ = max mu, α1 = min alpha1, m1 = min m1, etc.
 
-    m1 = 1/‖Φ(t_k, t_k + T)‖ and α2 come from a scaled backward solve, α1 = 1/λ_max(Φ_T (W_o^z)⁻¹ Φ_Tᵀ)
-    from the forward one, so that each is accurate relative to itself even when a fast stable mode makes
-    W_o^end ill-conditioned beyond float64 (m1 = e^{−100} is returned as 3.7e-44, not at the absolute
+    m1 = 1/‖Φ(t_k, t_k + T)‖ and α2 come from a scaled backward solve; α1 from the backward W_o^end, or as
+    1/λ_max(Φ_T (W_o^z)⁻¹ Φ_Tᵀ) from the forward solve where W_o^z is the better conditioned of the two, so
+    that each is accurate relative to itself even when a fast stable mode makes W_o^end ill-conditioned
+    beyond float64 (m1 = e^{−100} is returned as 3.7e-44, not at the absolute
     tolerance); m1 is 0 and α2 is ∞ only where the exact values lie outside float64's range.
     """
 
@@ -442,19 +446,25 @@ def uniform_observability_constants(
     where = "uniform_observability_constants"
     mu, PhiT, Wz = _periods(plant, _pad(starts), jnp.asarray(T), n_grid, rtol, atol, where=where)
     mu, PhiT, Wz = mu[:K], PhiT[:K], Wz[:K]
-    log_sv, log_ew, _, ok = _periods_end(plant, _pad(starts + T), jnp.asarray(T), rtol, atol)
+    log_sv, log_ew, _, ok, ratio = _periods_end(plant, _pad(starts + T), jnp.asarray(T), rtol, atol)
     _end_failed(ok[:K], "uniform_observability_constants")
     # m1 = 1/‖Φ(t_k, t_k + T)‖ and α2 = λ_max(W_o^end) from the scaled backward solve: forward, the small
     # singular values of Φ(t_k + T, t_k) sit at the absolute tolerance (a mode e^{−50·2} gave 3e-14
     # for 4e-44).  exp rounds them to 0 or ∞ only where float64 cannot hold them.
     m1, alpha2 = jnp.exp(-log_sv[:K]), jnp.exp(log_ew[:K])
     m2 = jnp.linalg.norm(PhiT, ord=2, axis=(1, 2))
-    # α1 = λ_min(W_o^end) = 1/λ_max(Φ_T (W_o^z)⁻¹ Φ_Tᵀ) (Appendix: W_o^z = Φ_Tᵀ W_o^end Φ_T): the largest
-    # eigenvalue of forward quantities, accurate where W_o^end's own smallest eigenvalue is not
+    # α1 = λ_min(W_o^end) two ways, each accurate where its matrix is well conditioned: from the backward
+    # W_o^end itself (its error ~ tol·α2), or as 1/λ_max(Φ_T (W_o^z)⁻¹ Φ_Tᵀ) (Appendix: W_o^z =
+    # Φ_Tᵀ W_o^end Φ_T), a largest eigenvalue of forward quantities (its error ~ tol·cond W_o^z): a fast
+    # stable mode makes W_o^end ill-conditioned, an unstable one W_o^z.  The better conditioned one is used.
     ez, U = jnp.linalg.eigh(Wz)
     inv_sqrt = jnp.where(ez > 0, 1.0 / jnp.sqrt(jnp.where(ez > 0, ez, 1.0)), jnp.inf)
     s_max = jnp.linalg.norm((PhiT @ U) * inv_sqrt[:, None, :], ord=2, axis=(1, 2))
-    alpha1 = jnp.where(ez[:, 0] > 0, 1.0 / s_max**2, 0.0)
+    alpha1_fwd = jnp.where(ez[:, 0] > 0, 1.0 / s_max**2, 0.0)
+    ratio = ratio[:K]
+    alpha1_end = ratio * alpha2
+    inv_cond_z = jnp.maximum(ez[:, 0], 0.0) / jnp.where(ez[:, -1] > 0, ez[:, -1], 1.0)
+    alpha1 = jnp.where(ratio >= inv_cond_z, alpha1_end, alpha1_fwd)
     return UniformObservability(starts, mu, alpha1, alpha2, m1, m2, ez[:, 0], ez[:, -1])
 
 
