@@ -51,6 +51,11 @@ SHAPE_CASES = {
         lambda: sim(obsjax.LTI(A28, B28, np.eye(2)), OBS, X0, XH0, TS),
         "`observer` expects m = 1",
     ),
+    # the plant's inputs against the observer model's: the message was an inner dot_general error
+    "observer p": (
+        lambda: sim(obsjax.LTI(A28, np.ones((2, 2)), C28), OBS, X0, XH0, TS),
+        "`observer` expects p = 1 input(s) (its model's inputs) but `plant` has p = 2",
+    ),
     "u": (lambda: sim(PLANT, OBS, X0, XH0, TS, u=lambda t: jnp.ones(2)), "`u(t)`"),
     "controller": (
         lambda: sim(PLANT, OBS, X0, XH0, TS, controller=lambda t, xh: jnp.ones(3)),
@@ -100,6 +105,9 @@ VALUE_CASES = {
     "dt0 = 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, dt0=0.0, adaptive=False), "`dt0`"),
     "dt0 < 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, dt0=-0.1), "`dt0`"),
     "rtol = 0": (lambda: sim(PLANT, OBS, X0, XH0, TS, rtol=0.0), "`rtol`"),
+    # a string tolerance raised numpy's TypeError from `isfinite`, naming nothing
+    "rtol str": (lambda: sim(PLANT, OBS, X0, XH0, TS, rtol="1e-6"), "`rtol` must be a finite number"),
+    "atol None": (lambda: sim(PLANT, OBS, X0, XH0, TS, atol=None), "`atol` must be a finite number"),
     "ts nan": (lambda: sim(PLANT, OBS, X0, XH0, np.array([0.0, np.nan, 1.0])), "`ts`"),
     "ts decreasing": (lambda: sim(PLANT, OBS, X0, XH0, TS[::-1]), "`ts` must be strictly increasing"),
     "x0 complex": (lambda: sim(PLANT, OBS, X0 + 1j, XH0, TS), "`x0` must be real"),
@@ -141,6 +149,10 @@ def test_decreasing_ts_under_jit_never_integrates_backwards():
         jax.block_until_ready(f(jnp.asarray(TS[::-1])))
     with pytest.raises(Exception, match="strictly increasing"):
         jax.block_until_ready(f(jnp.asarray(TS).at[3].set(TS[2])))
+    # an infinite time increases too: it ended in status 1 with advice to raise max_steps
+    for bad in (jnp.asarray(TS).at[-1].set(jnp.inf), jnp.asarray(TS).at[0].set(-jnp.inf)):
+        with pytest.raises(Exception, match="`ts` must hold finite save times"):
+            jax.block_until_ready(f(bad))
 
 
 @pytest.mark.extended

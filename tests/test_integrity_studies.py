@@ -401,6 +401,101 @@ def test_what_cannot_be_fingerprinted_is_refused_unless_the_study_is_named(tmp_p
         study(PLANT_A, NOISE_A, X0_A, tmp_path / "other", study_id="")
 
 
+# ---- what a sampler reads from the process: environment variables, hidden random generators
+
+
+def x0_env_scale(k):
+    return float(os.environ.get("OBSJAX_TEST_X0_SCALE", "1.0")) * jr.normal(k, (2,))
+
+
+def x0_getenv_scale(k):
+    return float(os.getenv("OBSJAX_TEST_X0_SCALE", "1.0")) * jr.normal(k, (2,))
+
+
+def x0_random_module(k):
+    import random
+
+    return (1.0 + random.random()) * jr.normal(k, (2,))
+
+
+def x0_numpy_global(k):
+    return (1.0 + np.random.random()) * jr.normal(k, (2,))
+
+
+def test_environment_variables_read_by_a_sampler_enter_the_fingerprint(tmp_path, monkeypatch):
+    """A sampler scaled by an environment variable (a cluster job's parameter): with the variable
+    changed, a checkpoint was resumed with n_computed = 0 and the old result (12.43 for 21.13), and in
+    one process the kernel compiled for the old value was served."""
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    monkeypatch.setenv("OBSJAX_TEST_X0_SCALE", "1.0")
+    for f in (x0_env_scale, x0_getenv_scale):
+        before = fingerprint({"s": f})[0]
+        monkeypatch.setenv("OBSJAX_TEST_UNRELATED", "x")  # a variable the sampler does not name
+        assert fingerprint({"s": f})[0] == before
+        monkeypatch.setenv("OBSJAX_TEST_X0_SCALE", "1.7")
+        assert fingerprint({"s": f})[0] != before
+        monkeypatch.setenv("OBSJAX_TEST_X0_SCALE", "1.0")
+        assert fingerprint({"s": f})[0] == before
+    ck = tmp_path / "ck"
+    first = study(PLANT_A, None, x0_env_scale, ck)
+    monkeypatch.setenv("OBSJAX_TEST_X0_SCALE", "3.0")
+    with pytest.raises(ValueError, match="holds a different study"):
+        study(PLANT_A, None, x0_env_scale, ck)
+    second = study(PLANT_A, None, x0_env_scale, None)  # not the kernel traced for 1.0
+    np.testing.assert_allclose(second.error_norm[:, 0], 3.0 * first.error_norm[:, 0], rtol=1e-12)
+
+
+def test_the_state_of_a_python_random_generator_enters_the_fingerprint(tmp_path):
+    """A sampler drawing from a ``random.Random`` when it is traced: its Mersenne Twister's state lives
+    in C, so the generator was hashed by its empty ``__dict__``; reseeded, a checkpoint of the other
+    seed was resumed (10.50 for 7.74).  The state is hashed now: the same seed resumes, another is
+    refused, and the draw of a user's own generator does not depend on the ``random`` module's."""
+    import random
+
+    from obsjax.montecarlo._fingerprint import fingerprint
+
+    rng = random.Random(0)
+
+    def x0_own_generator(k):
+        return (1.0 + rng.random()) * jr.normal(k, (2,))
+
+    before = fingerprint({"s": x0_own_generator})[0]
+    random.seed(1)  # the module's hidden generator: not read by this sampler
+    assert fingerprint({"s": x0_own_generator})[0] == before
+    rng.seed(5)
+    assert fingerprint({"s": x0_own_generator})[0] != before
+    rng.seed(0)
+    assert fingerprint({"s": x0_own_generator})[0] == before
+    # the random module's functions (imported inside the sampler, or by name) and NumPy's legacy
+    # global generator: their hidden state
+    from random import gauss
+
+    def x0_gauss(k):
+        return gauss(1.0, 0.1) * jr.normal(k, (2,))
+
+    for f, seed in ((x0_random_module, random.seed), (x0_gauss, random.seed), (x0_numpy_global, np.random.seed)):
+        seed(0)
+        a = fingerprint({"s": f})[0]
+        seed(0)
+        assert fingerprint({"s": f})[0] == a, f.__name__
+        seed(1)
+        assert fingerprint({"s": f})[0] != a, f.__name__
+    assert fingerprint({"s": random.SystemRandom()})[1]  # no state: refused unless named
+    ck = tmp_path / "ck"
+    rng.seed(0)
+    first = study(PLANT_A, None, x0_own_generator, ck, max_chunks=1)
+    assert first.n_done == CHUNK
+    rng.seed(5)
+    with pytest.raises(ValueError, match="holds a different study"):
+        study(PLANT_A, None, x0_own_generator, ck)
+    rng.seed(0)
+    resumed = study(PLANT_A, None, x0_own_generator, ck)
+    assert resumed.complete and resumed.n_computed == N - CHUNK
+    rng.seed(0)
+    np.testing.assert_array_equal(resumed.error_norm, study(PLANT_A, None, x0_own_generator, None).error_norm)
+
+
 # ---- damaged files: named, recomputed
 # ---------------------------------------------------------------------
 

@@ -187,6 +187,19 @@ def test_under_jit_bad_values_raise():
         g(jnp.asarray(Au), jnp.asarray(Cu)).block_until_ready()
 
 
+@pytest.mark.extended
+def test_traced_repeated_poles_without_their_pattern_say_how_to_place_them():
+    """A placeable repeated real pole (multiplicity 2 = m) traced without its pattern is refused; the
+    message said only that "a repeated pole exceeds the number of outputs", which is false here."""
+    Ac = np.array([[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [-1, -2, -3, -4.0]])
+    Cc = np.array([[1, 0, 0, 0], [0, 0, 1, 0.0]])
+    rep = jnp.array([-2.0, -2.0, -3.0, -4.0])
+    with pytest.raises(Exception, match=r"`structure=obsjax\.design\.pole_structure\(poles\)`"):
+        jax.jit(lambda p: place(Ac, Cc, p))(rep).block_until_ready()
+    L = jax.jit(lambda p: place(Ac, Cc, p, structure=pole_structure(rep)))(rep)
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(Ac - np.asarray(L) @ Cc).real), [-4, -3, -2, -2], atol=1e-6)
+
+
 def test_design_refuses_float32_mode():
     """With OBSJAX_NO_X64=1 a design raises instead of returning a float32 gain."""
     import subprocess

@@ -75,6 +75,11 @@ def check_ts(ts):
                 f"`ts` must be strictly increasing, got ts[{i}] = {v[i]} followed by ts[{i + 1}] = {v[i + 1]}."
             )
         return ts
+    ts = eqx.error_if(
+        ts,
+        ~jnp.all(jnp.isfinite(ts)),
+        "`ts` must hold finite save times (a NaN or an infinite time reached a traced `ts`).",
+    )
     return eqx.error_if(
         ts,
         ~jnp.all(jnp.diff(ts) > 0),
@@ -92,7 +97,13 @@ def check_state(x, name, shape_text, ndim):
 
 def check_options(rtol, atol, dt0, adaptive, max_steps, noise):
     for name, v in (("rtol", rtol), ("atol", atol)):
+        if isinstance(v, (str, bytes, bool)) or v is None:
+            raise ValueError(f"`{name}` must be a finite number > 0, got {v!r}.")
         c = concrete_value(v)
+        if c is not None and not np.issubdtype(np.asarray(c).dtype, np.number):
+            raise ValueError(f"`{name}` must be a finite number > 0, got {v!r}.")
+        if c is not None and np.iscomplexobj(c):
+            raise ValueError(f"`{name}` must be real, got {v!r}.")
         if c is not None and not (np.all(np.isfinite(c)) and np.all(c > 0)):
             raise ValueError(f"`{name}` must be finite and > 0, got {c}.")
     if max_steps is not None and (
@@ -159,10 +170,18 @@ def check_dimensions(plant, observer, x0, xhat0, t0, u, controller, noise):
             f"`observer` estimates shape {xh.shape} but its target for the plant's state (n = {n}) has shape "
             f"{tg.shape}."
         )
-    dz = _shape(
-        lambda: observer.vector_field(t0, zbar, ybar, jnp.zeros((p,))),
-        f"`observer.vector_field` with the plant's measurement (m = {m}) and input (p = {p})",
-    )
+    try:
+        dz = jax.eval_shape(lambda: observer.vector_field(t0, zbar, ybar, jnp.zeros((p,))))
+    except Exception as e:  # noqa: BLE001
+        p_model = getattr(model, "p", None)
+        if isinstance(p_model, (int, np.integer)) and p_model != p:
+            raise ValueError(
+                f"`observer` expects p = {p_model} input(s) (its model's inputs) but `plant` has p = {p}."
+            ) from None
+        raise ValueError(
+            f"`observer.vector_field` with the plant's measurement (m = {m}) and input (p = {p}) failed: "
+            f"{type(e).__name__}: {e}"
+        ) from None
     if jax.tree_util.tree_structure(dz) != jax.tree_util.tree_structure(z0) or any(
         a.shape != b.shape for a, b in zip(jax.tree_util.tree_leaves(dz), jax.tree_util.tree_leaves(z0))
     ):

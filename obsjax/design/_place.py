@@ -359,7 +359,9 @@ def _finish(L, err, kappa, rtol: float, who: str, finite=None):
         ~ok,
         f"{who}: the computed gain does not place the poles to `rtol` (non-finite gain or a-posteriori "
         "eigenvalue error above rtol): (A, C) is nearly unobservable, the poles ask for an "
-        "ill-conditioned eigenstructure, or a repeated pole exceeds the number of outputs.",
+        "ill-conditioned eigenstructure, a repeated pole exceeds the number of outputs, or traced "
+        "poles repeat without their pattern: under jit poles are taken as distinct unless "
+        "`structure=obsjax.design.pole_structure(poles)` is given.",
     )
 
 

@@ -15,6 +15,10 @@ or two noise models that differ by a static grid spacing give different results.
   default arguments and the values of the globals they read, recursively, including the attributes
   they may read from a user's module (a settings module read as ``cfg.SCALE`` or
   ``getattr(cfg, "SCALE")``: those named in the function's code, as names or string constants);
+- what a user function reads from the process: the environment variables its code names as string
+  constants (``os.environ["SCALE"]``, ``os.getenv("SCALE")``; a computed name is not seen), the state
+  of a ``random.Random`` (``getstate()``), of the ``random`` module's hidden generator when the code
+  calls one of its functions, and of NumPy's legacy global ``RandomState`` (``np.random.normal``);
 - the JAX settings that change the random draws or the precision (``jax_threefry_partitionable``,
   the PRNG implementation, ``jax_enable_x64``), in the header beside the versions;
 - functions, classes and modules of the numerical libraries (jax, numpy, scipy, diffrax, equinox,
@@ -35,6 +39,8 @@ import enum
 import functools
 import hashlib
 import importlib.metadata
+import os
+import random as _pyrandom
 import struct
 import sys
 import types
@@ -95,6 +101,71 @@ _WRAPPER_SKIP = frozenset(
     {"__wrapped__", "__doc__", "__name__", "__qualname__", "__module__", "__annotations__",
      "__type_params__", "__dict__", "__signature__"}
 )  # fmt: skip
+
+
+#: Names through which a function reads the process environment (``os.environ[...]``,
+#: ``os.environ.get``, ``os.getenv``): the variables its code names as string constants are hashed
+#: by value (a computed variable name is not seen).
+_ENV_READERS = frozenset({"environ", "environb", "getenv", "getenvb"})
+
+
+def _hidden_generators(fn: types.FunctionType) -> set[str]:
+    """Which hidden global generators a function's code draws from: ``"random"`` for the ``random``
+    module's functions (``random.gauss(...)``, ``rnd.random()`` after ``import random as rnd``, also
+    inside the function), ``"numpy"`` for NumPy's legacy ``np.random.normal(...)``.  Read from the
+    bytecode: a module loaded as a global, closure value or local import, then the attributes loaded
+    from it, resolved; a method of the user's own ``random.Random`` (``rng.random()``) is not one."""
+    import dis
+
+    glb = fn.__globals__
+    cells = {}
+    for name, cell in zip(fn.__code__.co_freevars, fn.__closure__ or ()):
+        try:
+            cells[name] = cell.cell_contents
+        except ValueError:
+            pass
+    found: set[str] = set()
+
+    def scan(co):
+        local_mods: dict[str, object] = {}
+        cur = None
+        pending_import = None
+        for ins in dis.get_instructions(co):
+            op, arg = ins.opname, ins.argval
+            if op == "IMPORT_NAME":
+                pending_import = sys.modules.get(str(arg).split(".")[0])
+                cur = None
+                continue
+            if op in ("STORE_FAST", "STORE_NAME", "STORE_DEREF", "STORE_GLOBAL") and pending_import is not None:
+                local_mods[arg] = pending_import
+                pending_import = None
+                cur = None
+                continue
+            pending_import = None
+            if op in ("LOAD_GLOBAL", "LOAD_NAME"):
+                cur = glb.get(arg)
+            elif op in ("LOAD_DEREF", "LOAD_CLOSURE"):
+                cur = cells.get(arg, local_mods.get(arg))
+            elif op in ("LOAD_FAST", "LOAD_FAST_CHECK"):
+                cur = local_mods.get(arg)
+            elif op in ("LOAD_ATTR", "LOAD_METHOD") and isinstance(cur, types.ModuleType):
+                cur = getattr(cur, str(arg), None)
+            else:
+                cur = None
+                continue
+            owner = getattr(cur, "__self__", None)
+            if owner is not None and owner is getattr(_pyrandom, "_inst", None):
+                found.add("random")
+            elif owner is not None and owner is getattr(np.random.mtrand, "_rand", None):
+                found.add("numpy")
+            if not isinstance(cur, types.ModuleType):
+                cur = None
+        for c in co.co_consts:
+            if isinstance(c, types.CodeType):
+                scan(c)
+
+    scan(fn.__code__)
+    return found
 
 
 #: Python's standard library, hashed by name too (its version is the header's Python version): a user
@@ -284,6 +355,9 @@ class _Hasher:
             self.visit(obj.args, f"{path}.args")
             self.visit(obj.keywords, f"{path}.keywords")
             return
+        if isinstance(obj, _pyrandom.Random):
+            self._pyrandom_state(obj, path)
+            return
         if isinstance(obj, enum.Enum):
             self.put("enum", f"{type(obj).__module__}.{type(obj).__qualname__}.{obj.name}")
             return
@@ -425,6 +499,7 @@ class _Hasher:
                         self.opaque.append(f"{path} (imports module {mod_name}, which cannot be found)")
                         continue
                 self._module_attributes(mod, names, f"{path}.<import {mod_name}>", set())
+            self._process_state(fn, names, path)
         self.visit(fn.__defaults__, f"{path}.__defaults__")
         self.visit(fn.__kwdefaults__, f"{path}.__kwdefaults__")
         for name, cell in zip(fn.__code__.co_freevars, fn.__closure__ or ()):
@@ -435,6 +510,41 @@ class _Hasher:
                 self.put("empty-cell")
                 continue
             self._read(value, names, f"{path}.<closure {name}>")
+
+    def _pyrandom_state(self, rng, path: str) -> None:
+        """A ``random.Random`` by its class and its generator's state (``getstate()``: the Mersenne
+        Twister's words live in C, not in ``__dict__``); a generator without a state
+        (``random.SystemRandom``) cannot be hashed by content."""
+        cls = type(rng)
+        try:
+            state = rng.getstate()
+        except (NotImplementedError, AttributeError, TypeError):
+            self.opaque.append(f"{path} ({cls.__module__}.{cls.__qualname__}, a generator without a state)")
+            self.put("opaque", f"{cls.__module__}.{cls.__qualname__}")
+            return
+        self._class(cls, f"{path}.<class>")
+        self.put("random-state")
+        self.visit(state, f"{path}.<state>")
+        if getattr(rng, "__dict__", None):
+            self.visit(dict(vars(rng)), f"{path}.__dict__")
+
+    def _process_state(self, fn: types.FunctionType, names: set, path: str) -> None:
+        """What a function may read from the process rather than from its code and values: the
+        environment variables its code names (``os.environ["SCALE"]``, ``os.getenv("SCALE")``), the
+        state of the ``random`` module's hidden generator when it calls one of its functions
+        (``random.gauss``), and NumPy's global ``RandomState`` when it calls a legacy ``np.random``
+        function (``np.random.normal``).  (Such a function imported by name, ``from random import
+        gauss``, is a bound method of the hidden generator and is hashed with its state anyway.)"""
+        if names & _ENV_READERS:
+            for key in sorted(_string_constants(fn.__code__)):
+                self.put("env", f"{key}\0{os.environ.get(key)!r}")
+        hidden = _hidden_generators(fn)
+        if "random" in hidden:
+            self.put("random-module")
+            self._pyrandom_state(_pyrandom._inst, f"{path}.<random module's generator>")
+        if "numpy" in hidden:
+            self.put("numpy-global-random")
+            self.visit(np.random.get_state(), f"{path}.<numpy's global RandomState>")
 
     def _read(self, value, names: set, path: str) -> None:
         """A value a function reads (a global or a closure cell), and, for a module, the attributes of
@@ -570,6 +680,17 @@ def _global_names(co: types.CodeType) -> set[str]:
         elif isinstance(c, str) and c.isidentifier():
             names.add(c)
     return names
+
+
+def _string_constants(co: types.CodeType) -> set[str]:
+    """Every string constant of a function's code, nested functions included."""
+    out = set()
+    for c in co.co_consts:
+        if isinstance(c, types.CodeType):
+            out |= _string_constants(c)
+        elif isinstance(c, str):
+            out.add(c)
+    return out
 
 
 def fingerprint(parts: dict, *, strict_modules: bool = False) -> tuple[str, list[str]]:
