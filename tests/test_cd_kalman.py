@@ -32,10 +32,16 @@ def discretise(A, B, Qw, h):
     return F[:n, :n], F[:n, n:], V[n:, n:].T @ V[:n, n:]
 
 
-def discrete_kalman(y, u, x0, P0, Ad, Bd, Qd, C, Rv):
-    """Filtered means and covariances x̂_k|k, P_k|k (the prior at the first sample is x0, P0)."""
+def discrete_kalman(y, u, x0, P0, Ad, Bd, Qd, C, Rv, update=None):
+    """Filtered means and covariances x̂_k|k, P_k|k (the prior at the first sample is x0, P0); no
+    update where ``update[k]`` is False (a missing measurement)."""
     x, P, xs, Ps = x0.copy(), P0.copy(), [], []
     for k in range(len(y)):
+        if update is not None and not update[k]:
+            xs.append(x.copy())
+            Ps.append(P.copy())
+            x, P = Ad @ x + Bd @ u[k], Ad @ P @ Ad.T + Qd
+            continue
         S = C @ P @ C.T + Rv
         K = np.linalg.solve(S, C @ P).T
         x = x + K @ (y[k] - C @ x)
@@ -70,6 +76,29 @@ def test_continuous_discrete_equals_discrete_kalman_of_the_exact_discretisation(
     prior = np.concatenate([xh0[None], np.asarray(est.xhat[:-1]) @ discretise(A, B, QW, H)[0].T
                             + np.asarray(data.u[:-1]) @ discretise(A, B, QW, H)[1].T])
     np.testing.assert_allclose(np.asarray(est.innovation), np.asarray(data.y) - prior @ C.T, atol=1e-8)
+
+
+def test_missing_measurements_skip_the_update_and_keep_the_input():
+    """missing="skip" dropped a sample with a missing output together with its recorded input: the
+    zero-order hold then applied the previous input over the gap (0.82 off the filter that skips the
+    update only).  Now the sample stays (the estimate is aligned with the recorded times), its update is
+    skipped and its input is used."""
+    data = experiment(41, 3)
+    y = np.asarray(data.y).copy()
+    missing = [5, 6, 20]
+    y[missing] = np.nan
+    gappy = obsjax.Measurements(np.asarray(data.ts), y, np.asarray(data.u), missing="skip")
+    assert gappy.K == 41 and np.flatnonzero(~np.asarray(gappy.mask)).tolist() == missing
+    kf = obsjax.observers.ContinuousDiscreteKalman(MODEL, QW, RV, P0)
+    xh0 = np.array([0.3, -0.2])
+    est = obsjax.estimate(kf, gappy, xh0, solver=diffrax.Dopri8(), rtol=1e-12, atol=1e-13)
+    update = np.ones(41, bool)
+    update[missing] = False
+    xs, Ps = discrete_kalman(
+        np.nan_to_num(y), np.asarray(data.u), xh0, P0, *discretise(A, B, QW, H), C, RV, update=update
+    )
+    np.testing.assert_allclose(np.asarray(est.xhat), xs, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(np.asarray(est.z.P), Ps, rtol=0, atol=1e-8)
 
 
 @pytest.mark.extended

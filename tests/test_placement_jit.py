@@ -501,3 +501,38 @@ def test_canonical_form_refuses_indices_that_do_not_fit_the_pair():
         jax.block_until_ready(f(A, C))
     good = jax.jit(lambda A, C: observable_canonical_form(A, C, indices=(2, 1)).A)(A, C)
     np.testing.assert_allclose(np.asarray(good), np.asarray(observable_canonical_form(A, C).A), atol=1e-12)
+
+
+@pytest.mark.extended
+def test_robust_gain_without_a_derivative_is_refused_when_differentiated():
+    """m > (n+1)/2: the Tits-Yang minimiser is not isolated (a family of equally conditioned eigenvector
+    matrices), the gain returned is one member and does not move smoothly; the implicit derivative gave
+    16.6 where central differences give 1.68 (n = 4, m = 3), silently.  Now differentiating it raises,
+    eagerly and under jit; the placement itself stays exact; method='canonical' differentiates; and at
+    m = (n+1)/2 (isolated) the robust derivative still equals central differences."""
+    for n, m, seed, isolated in ((4, 3, 1, False), (5, 3, 4, True)):
+        rng = np.random.default_rng(seed)
+        A, C = rng.standard_normal((n, n)), rng.standard_normal((m, n))
+        p0, W, D = -np.arange(1.0, n + 1), rng.standard_normal((n, m)), rng.standard_normal(n)
+        L = np.asarray(place(A, C, p0))
+        np.testing.assert_allclose(np.sort(np.linalg.eigvals(A - L @ C).real), np.sort(p0), atol=1e-8)
+
+        def fd(f, h=1e-5):
+            return (float(f(p0 + h * D)) - float(f(p0 - h * D))) / (2 * h)
+
+        def robust(p):
+            return jnp.sum(W * place(A, C, p))
+
+        if isolated:
+            ad = float(jax.grad(robust)(jnp.asarray(p0)) @ D)
+            assert ad == pytest.approx(fd(robust), rel=1e-6)
+            continue
+        for g in (jax.grad(robust), jax.jit(jax.grad(robust))):
+            with pytest.raises(Exception, match="not differentiable here.*method='canonical'"):
+                jax.block_until_ready(g(jnp.asarray(p0)))
+
+        def canonical(p):
+            return jnp.sum(W * place(A, C, p, method="canonical"))
+
+        ad = float(jax.grad(canonical)(jnp.asarray(p0)) @ D)
+        assert ad == pytest.approx(fd(canonical), rel=1e-6)

@@ -228,13 +228,17 @@ def test_nan_samples_are_refused_or_skipped():
     u2[1, 0] = np.inf
     with pytest.raises(ValueError, match=r"`u` holds non-finite samples .* sample 1"):
         obsjax.Measurements(ts, np.sin(ts), u2)
-    d = obsjax.Measurements(ts, y, u2, missing="skip")
-    assert d.K == 4 and np.all(np.isfinite(np.asarray(d.y))) and 3 not in np.flatnonzero(np.isin(ts, d.ts))
+    d = obsjax.Measurements(ts, y, u2, missing="skip")  # bridged by the hold; the missing output masked
+    assert d.K == 6 and np.all(np.isfinite(np.asarray(d.y))) and np.all(np.isfinite(np.asarray(d.u)))
+    assert np.flatnonzero(~np.asarray(d.mask)).tolist() == [3]
+    assert float(d.y[3, 0]) == y[2, 0] and float(d.u[1, 0]) == u[0, 0]  # zero-order hold: last value
+    dl = obsjax.Measurements(ts, y, u2, missing="skip", hold="linear")  # linear: the line between
+    assert float(dl.y[3, 0]) == pytest.approx((y[2, 0] * (ts[4] - ts[3]) + y[4, 0] * (ts[3] - ts[2])) / (ts[4] - ts[2]))
     with pytest.raises(ValueError, match=r"`missing` must be one of 'raise', 'skip', got 'drop'"):
         obsjax.Measurements(ts, y, u, missing="drop")
     y3 = np.full_like(y, np.nan)
     y3[2, 0] = 1.0
-    with pytest.raises(ValueError, match=r"`missing='skip'` dropped 5 of 6 samples .* 1 remain"):
+    with pytest.raises(ValueError, match=r"`missing='skip'`: 5 of 6 samples lack an output .* 1 remain"):
         obsjax.Measurements(ts, y3, u, missing="skip")
     with pytest.raises(ValueError, match=r"`mask` must hold booleans .* got values \[0, 1, 2\]"):
         obsjax.Measurements(ts, np.sin(ts), u, mask=[1, 2, 0, 1, 1, 1])
@@ -333,7 +337,8 @@ def test_from_csv_and_from_dataframe(tmp_path):
     _write_csv(p, ["time", "theta", "volts", "omega"], rows.tolist())
     with pytest.raises(ValueError, match=r"`y` holds non-finite samples .* sample 2"):
         obsjax.Measurements.from_csv(p, t="time", y=["theta"], u=["volts"])
-    assert obsjax.Measurements.from_csv(p, t="time", y=["theta"], u=["volts"], missing="skip").K == 5
+    skipped = obsjax.Measurements.from_csv(p, t="time", y=["theta"], u=["volts"], missing="skip")
+    assert skipped.K == 6 and np.flatnonzero(~np.asarray(skipped.mask)).tolist() == [2]
     rows[3, 2] = "n/a"
     _write_csv(p, ["time", "theta", "volts", "omega"], rows.tolist())
     with pytest.raises(ValueError, match=r"line 5, column 'volts' is not a number: 'n/a'"):
@@ -484,3 +489,24 @@ def test_epoch_time_stamps_warn_of_their_resolution():
         warnings.simplefilter("error")
         obsjax.Measurements(ts - ts[0], y)
         obsjax.Measurements(1e3 + 1e-3 * np.arange(50), y)  # 1.1e-10 of the interval
+
+
+@pytest.mark.extended
+def test_tune_on_data_warns_of_reset_instants_on_the_samples_of_any_experiment():
+    """Samples on reset instants t0 + kT make the derivative in T unreliable; only the first
+    experiment of a batch was checked, so a coincidence in the second went without a warning."""
+    import optax
+
+    model = obsjax.LTI([[0.0, 1.0], [-2.0, -0.5]], [[0.0], [1.0]], [[1.0, 0.0]])
+    obs = obsjax.LeastSquaresReset(model, 5.0, 1.0, 0.25)
+    rng = np.random.default_rng(1)
+    t_irregular = np.sort(np.r_[0.0, rng.uniform(0.0, 1.97, 39), 1.97]) + 0.0123
+    t_grid = 0.05 * np.arange(41)  # 0.25, 0.5, ... are reset instants
+
+    def mk(ts):
+        return obsjax.Measurements(ts, np.sin(3 * ts)[:, None], np.cos(ts)[:, None])
+
+    for order in ((t_irregular, t_grid), (t_grid, t_irregular)):
+        with pytest.warns(obsjax.TuneWarning, match=r"save times 0\.25, 0\.5, 0\.75, 1, 1\.25, \.\.\. coincide"):
+            obsjax.tune_on_data(obs, [mk(t) for t in order], where=lambda o: o.T, xhat0=jnp.zeros(2),
+                                optimizer=optax.sgd(0.0), steps=1, progress=False)

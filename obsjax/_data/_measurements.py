@@ -136,6 +136,27 @@ def _samples(x, name, K, what):
     return arr
 
 
+def _bridge(v: np.ndarray, ts: np.ndarray, hold: str, name: str) -> np.ndarray:
+    """Column by column, the non-finite entries of `v` (K, q) bridged from the finite ones as the hold
+    would bridge a gap: the last value before it (``"zoh"``; the first value for a leading gap), or the
+    straight line between its neighbours (``"linear"``, ``"cubic"``; constant beyond the ends)."""
+    out = v.copy()
+    for j in range(v.shape[1]):
+        ok = np.isfinite(v[:, j])
+        if ok.all():
+            continue
+        if not ok.any():
+            raise ValueError(f"`missing='skip'`: column {j} of `{name}` holds no finite sample.")
+        if hold == "zoh":
+            idx = np.where(ok, np.arange(len(ok)), -1)
+            idx = np.maximum.accumulate(idx)
+            idx[idx < 0] = np.flatnonzero(ok)[0]
+            out[:, j] = v[idx, j]
+        else:
+            out[:, j] = np.interp(ts, ts[ok], v[ok, j])
+    return out
+
+
 def _finite_rows(arrays, ts, missing):
     """Rows whose samples are all finite; ``missing="raise"`` refuses any NaN/inf, naming the argument."""
     keep = np.ones(len(ts), bool)
@@ -144,7 +165,7 @@ def _finite_rows(arrays, ts, missing):
         if v is None:
             if missing == "skip":
                 raise ValueError(
-                    f"`missing='skip'` needs concrete samples (it drops rows): `{name}` is traced (inside jit)."
+                    f"`missing='skip'` needs concrete samples (it bridges and masks them): `{name}` is traced (inside jit)."
                 )
             continue
         ok = np.all(np.isfinite(v), axis=1)
@@ -152,14 +173,9 @@ def _finite_rows(arrays, ts, missing):
             i = int(np.flatnonzero(~ok)[0])
             raise ValueError(
                 f"`{name}` holds non-finite samples ({int((~ok).sum())} of them), the first at sample {i} "
-                f"(t = {float(ts[i])!r}): clean the data, or pass missing='skip' to drop those samples."
+                f"(t = {float(ts[i])!r}): clean the data, or pass missing='skip' to bridge and mask them."
             )
         keep &= ok
-    if missing == "skip" and int(keep.sum()) < 2:
-        raise ValueError(
-            f"`missing='skip'` dropped {int((~keep).sum())} of {len(keep)} samples (non-finite y, u or x_ref): "
-            f"{int(keep.sum())} remain, and at least 2 sample times are needed."
-        )
     return keep
 
 
@@ -236,8 +252,11 @@ class Measurements(eqx.Module):
     - `u`: (K, p) sampled inputs, or ``None`` (p = 0).
     - `hold`: ``"zoh"`` (default), ``"linear"`` or ``"cubic"``.
     - `missing`: ``"raise"`` (default) refuses a NaN/inf sample, naming the argument and the first
-      sample; ``"skip"`` drops every sample (row) where y, u or `x_ref` is not finite (the hold then
-      bridges the gap; needs concrete values).
+      sample; ``"skip"`` keeps every sample and bridges each missing value from its column's
+      neighbours as the hold bridges a gap (the last value for ``"zoh"``, the straight line between
+      the neighbours otherwise), and masks a sample whose output (any channel) or `x_ref` is missing:
+      no discrete update and no loss term there, while the observer still sees the recorded input
+      (needs concrete values).  A sample whose input alone is missing stays in use.
     - `x_ref`: optional (K, q) states measured for validation only (a tachometer in the lab), never fed to
       the observer; `x_index` (q integers) says which states of x they are.  :func:`obsjax.estimate` then
       returns ``state_error`` and :func:`obsjax.losses.state_error` can tune on it.
@@ -285,6 +304,27 @@ class Measurements(eqx.Module):
             raise ValueError(f"`ts` must hold finite times, got {tv[bad]} at sample {bad}.")
         checked = [("y", y), ("u", u)] + ([("x_ref", x_ref)] if x_ref is not None else [])
         keep = _finite_rows(checked, np.asarray(tv) if tv is not None else np.zeros(K), missing)
+        unmeasured = None
+        if missing == "skip" and not np.all(keep):
+            # every sample is kept (the estimate stays aligned with the recorded times); a missing value
+            # is bridged by the hold from its column's neighbours, and a sample whose output (or
+            # validation state) is missing is masked: no discrete update there, no loss term.  A
+            # missing input alone leaves the measurement in use.
+            tnp = np.asarray(tv, dtype=float)
+            y_np, u_np = np.asarray(concrete_value(y), float), np.asarray(concrete_value(u), float)
+            unmeasured = ~np.all(np.isfinite(y_np), axis=1)
+            y = jnp.asarray(_bridge(y_np, tnp, self.hold, "y"))
+            u = jnp.asarray(_bridge(u_np, tnp, self.hold, "u"))
+            if x_ref is not None:
+                x_np = np.asarray(concrete_value(x_ref), float)
+                unmeasured |= ~np.all(np.isfinite(x_np), axis=1)
+                x_ref = jnp.asarray(_bridge(x_np, tnp, self.hold, "x_ref"))
+            if int((~unmeasured).sum()) < 2:
+                raise ValueError(
+                    f"`missing='skip'`: {int(unmeasured.sum())} of {K} samples lack an output (or x_ref) "
+                    f"value, {int((~unmeasured).sum())} remain, and at least 2 measured samples are needed."
+                )
+            keep = np.ones(K, bool)
         if mask is not None:
             mv = concrete_value(mask)
             if mv is not None and np.asarray(mv).dtype != bool and not np.all(np.isin(np.asarray(mv), (0, 1))):
@@ -307,6 +347,8 @@ class Measurements(eqx.Module):
         self.x_ref = None if x_ref is None else _traced_finite(x_ref, "x_ref")
         self.x_index = x_index
         self.mask = jnp.ones(self.ts.shape, bool) if mask is None else mask
+        if unmeasured is not None:
+            self.mask = self.mask & jnp.asarray(~unmeasured)
         mv = concrete_value(self.mask)
         if mv is not None and not np.any(mv):
             raise ValueError(

@@ -494,6 +494,13 @@ def place(
     **Returns:** L (n, m), float64, differentiable in A, C and the poles (the derivative of the
     minimiser, by implicit differentiation of its optimality condition); jit- and vmap-compatible.
 
+    **Many outputs.**  When the Tits-Yang minimiser is not isolated (typically m > (n+1)/2 with
+    distinct poles: the best-conditioned eigenvector matrices then form a family), the robust gain is
+    an exact placement and as well conditioned as any, but it is one member of that family: which one
+    depends on rounding, so it can differ between eager and ``jit`` calls or jump under a tiny change
+    of the poles, and it has no derivative.  Differentiating it (``jax.grad``, ``jax.jvp``, ``tune``
+    over the poles) raises; ``method="canonical"`` gives a unique, differentiable gain there.
+
     **Example:** thesis example (2.8), poles {−3, −3}: ``place([[-2, 1], [0, -1]], [[1, 0]], [-3, -3])``
     gives L = [[3], [4]] (a Jordan chain: one output, a double pole).
     """

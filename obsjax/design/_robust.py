@@ -31,6 +31,7 @@ from __future__ import annotations
 import functools
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -38,6 +39,9 @@ import numpy as np
 from ._poles import Block
 
 _MAXITER = 60
+#: Curvature of φ below this fraction of its largest is flat (at a minimiser the symmetries give
+#: |w| ≈ 1e-16 relative; the other curvatures seen on isolated minimisers are above 1e-3).
+_FLAT = 1e-8
 _GTOL = 1e-12
 _LOCAL = 1e-4
 
@@ -442,12 +446,31 @@ def _robust_gain_jvp(m, depth, maxiter, primals, tangents):
         w, V = jnp.linalg.eigh(H + jnp.diag(fixed) * jnp.max(jnp.abs(jnp.diagonal(H))))
         keep = (jnp.arange(w.shape[0]) >= lay.nnull) & (jnp.abs(w) > 1e-11 * jnp.max(jnp.abs(w)))
         dx = -V @ jnp.where(keep, (V.T @ b) / jnp.where(keep, w, 1.0), 0.0)
+        # A minimiser that is not isolated (more flat directions than the symmetries of φ: whole
+        # families of equally good eigenvector matrices, e.g. m > (n+1)/2 for distinct real poles)
+        # has no derivative: which member the Newton runs return depends on rounding, and the implicit
+        # derivative follows none of them.  Where a derivative is asked for, refuse it.
+        flat = jnp.sum(jnp.abs(w) <= _FLAT * jnp.max(jnp.abs(w)))
+        not_isolated = flat > lay.nnull
     else:
         dx = jnp.zeros_like(xs)
+        not_isolated = jnp.asarray(False)
 
     def gain(x, A, C, pr, pi):
         K, Tfix, F = local(A, C, pr, pi)
         T = _T(x, K, Tfix)
         return _gain(A, C, T, F), T, F
 
-    return jax.jvp(gain, (xs, *theta), (dx, *dtheta))
+    (L, T, F), tangents = jax.jvp(gain, (xs, *theta), (dx, *dtheta))
+    # checked on a primal factor of the tangents: in reverse mode under jit the primal output is not
+    # computed when only the gradient is returned, but a factor of the tangents is
+    one = eqx.error_if(
+        jnp.ones((), L.dtype),
+        not_isolated,
+        "place (method='robust'): the gain is not differentiable here. The best-conditioned "
+        "eigenvector matrices form a family (the Tits-Yang minimiser is not isolated; typical when "
+        "the number of outputs m exceeds (n+1)/2), the gain returned is one member of it, and it "
+        "does not move smoothly with A, C or the poles. Use method='canonical' to differentiate "
+        "the placement, or keep the gain fixed.",
+    )
+    return (L, T, F), jax.tree_util.tree_map(lambda t: t * one, tangents)

@@ -503,8 +503,10 @@ def _period_depends_on(build, theta, T0) -> bool:
 
 
 def _warn_kinks(obs, ts, step, warned) -> None:
+    """`ts`: the save times, or a list of them (one per experiment, each with its own t0)."""
     T = obs.reset_period
-    hits = reset_coincidences(T, ts)
+    grids = ts if isinstance(ts, list) else [ts]
+    hits = sorted({t for g in grids for t in reset_coincidences(T, g)})
     key = float(np.asarray(T))
     if hits and key not in warned:
         warned.add(key)
@@ -512,8 +514,9 @@ def _warn_kinks(obs, ts, step, warned) -> None:
         warnings.warn(
             f"tune: at evaluation {step} the save times {shown} coincide with reset instants "
             f"t0 + kT of the observer (T = {key:.12g}); the loss has a kink in T there and "
-            "autodiff returns a one-sided derivative. Choose T off the save grid (or save times "
-            "off the multiples of T).",
+            "autodiff returns a one-sided derivative at best (on recorded data, where these are "
+            "sample instants, the derivative in T is not reliable). Choose T off the save grid "
+            "(or save times off the multiples of T).",
             TuneWarning,
             stacklevel=3,
         )
@@ -781,7 +784,15 @@ def tune(
         if not math.isfinite(val):
             return None, val, None, "the loss is not finite (a trajectory failed or diverged)"
         if not all(bool(jnp.all(jnp.isfinite(g))) for g in grads):
-            return None, val, None, "the gradient is not finite"
+            # the kernel's checks are NaN here: a check that fired only in the derivative (a gain
+            # without a derivative at this point, e.g. a robust placement whose minimiser is not
+            # isolated) leaves the loss finite and the gradient NaN
+            return None, val, None, (
+                "the gradient is not finite (a trajectory's derivative overflowed, or a check fired "
+                "while differentiating: e.g. Luenberger poles placed with method='robust' where that "
+                "gain has no derivative; jax.grad of the same loss through simulate raises the "
+                "check's message)"
+            )
         return obs, val, grads, None
 
     result = _descend(

@@ -206,7 +206,12 @@ def tune_on_data(
             return None, val, None, "the gradient is not finite"
         return obs, val, grads, None
 
-    ts_np = np.asarray(data.ts[0])
+    # every experiment's samples (the padding of a stacked batch left out), each with its own t0
+    ts_all, mask_all = np.asarray(data.ts), np.asarray(data.mask)
+    ts_np = []
+    for t_e, m_e in zip(ts_all, mask_all):
+        last = np.flatnonzero(m_e)
+        ts_np.append(t_e[: last[-1] + 1] if last.size else t_e)
     depends = _period_depends_on(build, theta0, build(theta0).reset_period)
     return _descend(evaluate, depends, to_leaves, theta0, optimizer, steps, rtol, patience, max_rejections, ts_np,
                     progress)
