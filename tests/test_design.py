@@ -644,3 +644,21 @@ def test_place_refuses_a_bad_maxiter(maxiter):
 def test_place_refuses_an_empty_system():
     with pytest.raises(ValueError, match="`A` has no states"):
         place(np.zeros((0, 0)), np.zeros((0, 0)), [])
+
+
+def test_analysis_refuses_complex_and_non_finite_pairs():
+    """A complex pair was cast to its real part with only numpy's ComplexWarning: the observable pair
+    A = diag(1, 1 + i), C = [1, 1] was called unobservable (pbh_margin 0.0 for 0.618); obsv returned NaN
+    for a NaN A without a word."""
+    A, C = np.diag([1.0, 1.0 + 1.0j]), np.array([[1.0, 1.0]])
+    for f in (is_observable, pbh_margin, observability_indices, obsjax.analysis.obsv):
+        with pytest.raises(ValueError, match="`A` must be real"):
+            f(A, C)
+    bad = np.array([[0.0, 1.0], [np.nan, 0.0]])
+    with pytest.raises(ValueError, match="obsv: `A` and `C` must be finite"):
+        obsjax.analysis.obsv(bad, [[1.0, 0.0]])
+    with pytest.raises(Exception, match="obsv: `A` and `C` must be finite"):
+        jax.block_until_ready(jax.jit(obsjax.analysis.obsv)(bad, np.array([[1.0, 0.0]])))
+    np.testing.assert_allclose(
+        np.asarray(obsjax.analysis.obsv([[0.0, 1.0], [-2.0, -3.0]], [[1.0, 0.0]])), [[1.0, 0.0], [0.0, 1.0]]
+    )

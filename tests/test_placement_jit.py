@@ -501,6 +501,14 @@ def test_canonical_form_refuses_indices_that_do_not_fit_the_pair():
         jax.block_until_ready(f(A, C))
     good = jax.jit(lambda A, C: observable_canonical_form(A, C, indices=(2, 1)).A)(A, C)
     np.testing.assert_allclose(np.asarray(good), np.asarray(observable_canonical_form(A, C).A), atol=1e-12)
+    # indices whose rows are independent but not the lexicographic ones: the form dropped terms and
+    # came back finite and wrong (P A ≠ A_z P, another spectrum) under jit
+    rng = np.random.default_rng(0)
+    A4, C4 = rng.standard_normal((4, 4)), rng.standard_normal((2, 4))
+    assert observable_canonical_form(A4, C4).indices == (2, 2)
+    g = jax.jit(lambda A, C: observable_canonical_form(A, C, indices=(3, 1)).A)
+    with pytest.raises(Exception, match=r"P A ≠ A_z P"):
+        jax.block_until_ready(g(A4, C4))
 
 
 @pytest.mark.extended

@@ -194,6 +194,36 @@ def test_reset_observer_on_data_agrees_with_simulate():
     np.testing.assert_allclose(np.asarray(est.z.Phi[i]), np.eye(2), atol=1e-9)
 
 
+@pytest.mark.extended
+def test_derivative_in_T_with_resets_on_sample_instants():
+    """Reset instants 0.25·k on samples 0.05·k: each is a zero-length segment between two breakpoints,
+    whose solve carried no derivative of its ends, so the flow after the reset lost its term −δτ f⁺:
+    with save times between the samples (a smooth loss) autodiff gave +157.9 where central differences
+    give −16.9.  Now the resets move through the jump condition (as in simulate): the smooth loss's
+    derivative equals central differences, and a loss on the samples (a kink at each interior
+    coincidence) gets the derivative from the left, as documented."""
+    model = obsjax.LTI([[0.0, 1.0], [-2.0, -0.5]], [[0.0], [1.0]], [[1.0, 0.0]])
+    obs = obsjax.LeastSquaresReset(model, 5.0, 1.0, 0.25)
+    t = 0.05 * np.arange(13)  # resets at 0.25 and 0.5 on samples; t1 = 0.6
+    data = obsjax.Measurements(t, np.sin(3 * t)[:, None], np.cos(t)[:, None], hold="linear")
+    mid = np.r_[0.0, t[:-1] + 0.025]
+
+    def loss(T, ts):
+        o = eqx.tree_at(lambda q: q.T, obs, T)
+        est = obsjax.estimate(o, data, jnp.zeros(2), ts=ts, rtol=1e-11, atol=1e-12, max_segments=8)
+        return jnp.sum(est.xhat**2) + jnp.sum(est.innovation**2)
+
+    J = jax.jit(lambda T: loss(T, mid))
+    h = 1e-6
+    fd = (float(J(0.25 + h)) - float(J(0.25 - h))) / (2 * h)
+    assert float(jax.grad(J)(jnp.asarray(0.25))) == pytest.approx(fd, rel=1e-4)
+    Js = jax.jit(lambda T: loss(T, jnp.asarray(t)))
+    left = (float(Js(0.25)) - float(Js(0.25 - h))) / h
+    right = (float(Js(0.25 + h)) - float(Js(0.25))) / h
+    assert abs(left - right) > 0.1 * abs(left)  # the premise: a kink
+    assert float(jax.grad(Js)(jnp.asarray(0.25))) == pytest.approx(left, rel=1e-4)
+
+
 # ------------------------------------------------------------------------------------------------ bad data
 
 

@@ -251,9 +251,20 @@ def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
     k0 = jnp.searchsorted(data.ts, t0 - tol, side="left").astype(jnp.int32) - 1
     y0u0 = hold(t0, jnp.maximum(k0, 0))
     z0 = observer.init(t0, xhat0, y0u0[: data.m])
+    drift = None
+    if sched.has_reset:
+        # the reset instants move with T: their derivative through the jump condition at each reset
+        # (as in simulate), not through the ends of the solves.  A reset on a sample instant is a
+        # zero-length segment between the two breakpoints, whose solve carries no derivative of its
+        # ends: the term −δτ f⁺ of the flow after the reset was lost there (d/dT of the wrong sign)
+        def drift(t, carry):
+            z, k, zm = carry
+            return (_vector_field(t, z, (observer, hold, k, data.m, content)), k,
+                    tmap(jnp.zeros_like, zm))
+
     saved, code, _ = _segments.integrate(
         _solver_fn(observer, hold, opt, sched, data.m, content), _act_fn(observer, data, sched), (z0, k0, z0), save_ts,
-        sched, jax.eval_shape(lambda: (z0, z0, k0)),
+        sched, jax.eval_shape(lambda: (z0, z0, k0)), drift=drift,
     )
     est = _assemble(observer, data, hold, save_ts, saved, code, at_samples)
     return _raise_if(est, throw)

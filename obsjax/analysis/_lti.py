@@ -26,15 +26,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array
+import equinox as eqx
+
+from .._checks import concrete_value, real_array
 
 #: Default relative tolerance of the rank decisions (see :func:`observability_staircase`).
 DEFAULT_TOL = 1e-9
 
 
 def _pair(A, C):
-    A = as_float_array(A, "A")
-    C = as_float_array(C, "C")
+    A = real_array(A, "A")  # a complex A or C: refused, not silently cast to its real part
+    C = real_array(C, "C")
     if A.ndim != 2 or A.shape[0] != A.shape[1]:
         raise ValueError(f"`A` must be a square (n, n) matrix, got shape {tuple(A.shape)}.")
     if C.ndim == 1:
@@ -52,6 +54,13 @@ def obsv(A, C) -> jax.Array:
     **Example:** ``obsv([[0., 1.], [0., 0.]], [[1., 0.]])`` → [[1, 0], [0, 1]].
     """
     A, C = _pair(A, C)
+    av, cv = concrete_value(A), concrete_value(C)
+    if av is not None and cv is not None:
+        if not (np.all(np.isfinite(av)) and np.all(np.isfinite(cv))):
+            raise ValueError("obsv: `A` and `C` must be finite, got a NaN or an infinity.")
+    else:
+        A = eqx.error_if(A, ~(jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(C))),
+                         "obsv: `A` and `C` must be finite.")
     n = A.shape[0]
     blocks = [C]
     for _ in range(n - 1):

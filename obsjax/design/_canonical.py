@@ -134,6 +134,12 @@ def _indices_and_scale(A, C, tol, who):
     return st.indices, (jnp.asarray(d), float(sA))
 
 
+#: Under jit, the largest relative residual ‖P A − A_z P‖ / (‖P‖ (‖A‖ + ‖A_z‖)) a form is accepted with
+#: (with the right indices it is at the rounding level times the conditioning of P; wrong indices
+#: whose rows are independent leave a residual of order one).
+_FORM_RTOL = 1e-6
+
+
 def observable_canonical_form(A, C, *, tol: float | None = None, indices=None) -> ObservableCanonicalForm:
     """The multi-output observable canonical form of thesis §3.2, Theorem 1 ((3.1c), Figs. 3.2-3.3).
 
@@ -179,10 +185,15 @@ def observable_canonical_form(A, C, *, tol: float | None = None, indices=None) -
                 )
     cf = _form(A, C, indices, scale)
     if concrete_value(A) is None or concrete_value(C) is None:  # traced: indices that do not fit give NaN
-        bad = ~(jnp.all(jnp.isfinite(cf.P)) & jnp.all(jnp.isfinite(cf.A)))
+        # indices that do not fit give NaN (P singular) or, when the rows they pick are independent
+        # but are not the lexicographic ones, a form whose coefficients drop terms: P A ≠ A_z P
+        res = jnp.linalg.norm(cf.P @ A - cf.A @ cf.P) / (
+            jnp.linalg.norm(cf.P) * (jnp.linalg.norm(A) + jnp.linalg.norm(cf.A)) + jnp.finfo(A.dtype).tiny
+        )
+        bad = ~(jnp.all(jnp.isfinite(cf.P)) & jnp.all(jnp.isfinite(cf.A)) & (res <= _FORM_RTOL))
         msg = (
             "observable_canonical_form: `indices` are not the observability indices of the pair (A, C) "
-            "(the transformation P is singular, the form NaN)."
+            "(the transformation P is singular, or P A ≠ A_z P: the form does not describe the pair)."
         )
         # on every matrix of the form, so that the check is not dead code of a field left unread
         cf = cf._replace(**{k: eqx.error_if(getattr(cf, k), bad, msg) for k in ("P", "A", "C", "R", "Gamma")})

@@ -224,10 +224,10 @@ class LeastSquaresReset(AbstractObserver):
     left).  On the paper's example with x̂(0) = (5, −5), γ = 20, p0 = 0.1 and the ISE on a 0.1 s
     grid over [0, 10], T = 2.3 puts four save times on reset instants: autodiff gives dJ/dT = −11.84
     (the left derivative), the right derivative is −13.97. :func:`obsjax.tune` warns when this
-    happens; keep T off the save grid when tuning it.  On recorded data (:func:`obsjax.estimate`,
-    :func:`obsjax.tune_on_data`) a reset instant on a *sample* instant is worse: the derivative in T
-    autodiff returns there is neither one-sided derivative, so keep T off the sampling grid
-    (:func:`obsjax.tune_on_data` warns, for every experiment of a batch).
+    happens; keep T off the save grid when tuning it.  On recorded data (:func:`obsjax.estimate`)
+    the samples are the save times and the same holds at a reset on a sample instant (the derivative
+    from the left; :func:`obsjax.tune_on_data` warns, for every experiment of a batch).  At t1 itself
+    a reset is not applied, so there the derivative is the one from the right.
 
     **Example:** Fig. 1 of the paper::
 

@@ -514,8 +514,7 @@ def _warn_kinks(obs, ts, step, warned) -> None:
         warnings.warn(
             f"tune: at evaluation {step} the save times {shown} coincide with reset instants "
             f"t0 + kT of the observer (T = {key:.12g}); the loss has a kink in T there and "
-            "autodiff returns a one-sided derivative at best (on recorded data, where these are "
-            "sample instants, the derivative in T is not reliable). Choose T off the save grid "
+            "autodiff returns a one-sided derivative. Choose T off the save grid "
             "(or save times off the multiples of T).",
             TuneWarning,
             stacklevel=3,
