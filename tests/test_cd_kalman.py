@@ -99,6 +99,13 @@ def test_missing_measurements_skip_the_update_and_keep_the_input():
     )
     np.testing.assert_allclose(np.asarray(est.xhat), xs, rtol=0, atol=1e-8)
     np.testing.assert_allclose(np.asarray(est.z.P), Ps, rtol=0, atol=1e-8)
+    # a missing validation state is never fed to the observer: the estimate does not move
+    x_ref = np.asarray(est.xhat)[:, :1].copy()
+    x_ref[[3, 9]] = np.nan
+    with_ref = obsjax.Measurements(np.asarray(data.ts), y, np.asarray(data.u), missing="skip", x_ref=x_ref, x_index=[0])
+    assert np.flatnonzero(~np.asarray(with_ref.mask)).tolist() == missing
+    est2 = obsjax.estimate(kf, with_ref, xh0, solver=diffrax.Dopri8(), rtol=1e-12, atol=1e-13)
+    np.testing.assert_array_equal(np.asarray(est2.xhat), np.asarray(est.xhat))
 
 
 @pytest.mark.extended

@@ -422,6 +422,18 @@ def x0_numpy_global(k):
     return (1.0 + np.random.random()) * jr.normal(k, (2,))
 
 
+def x0_numpy_random_imported_as(k):
+    import numpy.random as npr
+
+    return (1.0 + npr.random()) * jr.normal(k, (2,))
+
+
+def x0_numpy_random_imported_from(k):
+    from numpy import random as npr
+
+    return (1.0 + npr.random()) * jr.normal(k, (2,))
+
+
 def test_environment_variables_read_by_a_sampler_enter_the_fingerprint(tmp_path, monkeypatch):
     """A sampler scaled by an environment variable (a cluster job's parameter): with the variable
     changed, a checkpoint was resumed with n_computed = 0 and the old result (12.43 for 21.13), and in
@@ -474,7 +486,14 @@ def test_the_state_of_a_python_random_generator_enters_the_fingerprint(tmp_path)
     def x0_gauss(k):
         return gauss(1.0, 0.1) * jr.normal(k, (2,))
 
-    for f, seed in ((x0_random_module, random.seed), (x0_gauss, random.seed), (x0_numpy_global, np.random.seed)):
+    cases = (
+        (x0_random_module, random.seed),
+        (x0_gauss, random.seed),
+        (x0_numpy_global, np.random.seed),
+        (x0_numpy_random_imported_as, np.random.seed),
+        (x0_numpy_random_imported_from, np.random.seed),
+    )
+    for f, seed in cases:
         seed(0)
         a = fingerprint({"s": f})[0]
         seed(0)

@@ -254,9 +254,11 @@ class Measurements(eqx.Module):
     - `missing`: ``"raise"`` (default) refuses a NaN/inf sample, naming the argument and the first
       sample; ``"skip"`` keeps every sample and bridges each missing value from its column's
       neighbours as the hold bridges a gap (the last value for ``"zoh"``, the straight line between
-      the neighbours otherwise), and masks a sample whose output (any channel) or `x_ref` is missing:
-      no discrete update and no loss term there, while the observer still sees the recorded input
-      (needs concrete values).  A sample whose input alone is missing stays in use.
+      the neighbours otherwise), and masks a sample whose output (any channel) is missing: no
+      discrete update and no loss term there, while the observer still sees the recorded input
+      (needs concrete values).  A sample whose input alone is missing stays in use; a missing `x_ref`
+      value (validation only, never fed to the observer) is bridged the same way and changes no
+      estimate.
     - `x_ref`: optional (K, q) states measured for validation only (a tachometer in the lab), never fed to
       the observer; `x_index` (q integers) says which states of x they are.  :func:`obsjax.estimate` then
       returns ``state_error`` and :func:`obsjax.losses.state_error` can tune on it.
@@ -315,14 +317,12 @@ class Measurements(eqx.Module):
             unmeasured = ~np.all(np.isfinite(y_np), axis=1)
             y = jnp.asarray(_bridge(y_np, tnp, self.hold, "y"))
             u = jnp.asarray(_bridge(u_np, tnp, self.hold, "u"))
-            if x_ref is not None:
-                x_np = np.asarray(concrete_value(x_ref), float)
-                unmeasured |= ~np.all(np.isfinite(x_np), axis=1)
-                x_ref = jnp.asarray(_bridge(x_np, tnp, self.hold, "x_ref"))
+            if x_ref is not None:  # validation only, never fed to the observer: bridged, not masked
+                x_ref = jnp.asarray(_bridge(np.asarray(concrete_value(x_ref), float), tnp, self.hold, "x_ref"))
             if int((~unmeasured).sum()) < 2:
                 raise ValueError(
-                    f"`missing='skip'`: {int(unmeasured.sum())} of {K} samples lack an output (or x_ref) "
-                    f"value, {int((~unmeasured).sum())} remain, and at least 2 measured samples are needed."
+                    f"`missing='skip'`: {int(unmeasured.sum())} of {K} samples lack an output value, "
+                    f"{int((~unmeasured).sum())} remain, and at least 2 measured samples are needed."
                 )
             keep = np.ones(K, bool)
         if mask is not None:

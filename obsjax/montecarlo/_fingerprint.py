@@ -129,19 +129,26 @@ def _hidden_generators(fn: types.FunctionType) -> set[str]:
     def scan(co):
         local_mods: dict[str, object] = {}
         cur = None
-        pending_import = None
+        pending_import = pending_full = None  # ``import a.b`` binds a; ``from a.b import c`` reads a.b
         for ins in dis.get_instructions(co):
             op, arg = ins.opname, ins.argval
             if op == "IMPORT_NAME":
                 pending_import = sys.modules.get(str(arg).split(".")[0])
+                pending_full = sys.modules.get(str(arg))
+                cur = None
+                continue
+            if op == "IMPORT_FROM":  # ``from numpy import random as r``, ``import numpy.random as r``
+                pending_import = None if pending_full is None else getattr(pending_full, str(arg), None)
                 cur = None
                 continue
             if op in ("STORE_FAST", "STORE_NAME", "STORE_DEREF", "STORE_GLOBAL") and pending_import is not None:
                 local_mods[arg] = pending_import
-                pending_import = None
+                pending_import = None  # (pending_full stays for the next name of a ``from`` import)
                 cur = None
                 continue
             pending_import = None
+            if op not in ("STORE_FAST", "STORE_NAME", "STORE_DEREF", "STORE_GLOBAL"):
+                pending_full = None
             if op in ("LOAD_GLOBAL", "LOAD_NAME"):
                 cur = glb.get(arg)
             elif op in ("LOAD_DEREF", "LOAD_CLOSURE"):

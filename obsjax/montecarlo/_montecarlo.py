@@ -1092,7 +1092,9 @@ def monte_carlo(
         if mismatch:
             raise ValueError(
                 f"checkpoint directory {ckpt!r} holds a different study (its fingerprint differs: "
-                "gains, plant, samplers (code, closures, globals), noise, ts, key, n, chunk size, "
+                "gains, plant, samplers (code, closures, globals, the environment variables and the "
+                "state of the random generators they read: a sampler that draws from a Python or "
+                "NumPy generator while traced advances it), noise, ts, key, n, chunk size, "
                 "simulate_kwargs, study_id, the number of devices of a lock-step study, library "
                 "versions or the revision of obsjax's results changed): delete it or choose another path."
             )
