@@ -295,7 +295,9 @@ def loss_global_scale(traj):
     return SCALE * obsjax.losses.ise(traj)
 
 
-@pytest.mark.parametrize("how", ["adaptive", "fixed", "lockstep", "own-steps", "ltv"])
+@pytest.mark.parametrize(
+    "how", ["adaptive", "fixed", pytest.param("lockstep", marks=pytest.mark.extended), "own-steps", "ltv"]
+)
 def test_simulate_traces_again_after_a_changed_global(how):
     """The same input function (or LTV plant function), a global it reads changed between two calls:
     simulate and simulate_batch must give the trajectory of the new value -- that of a new function

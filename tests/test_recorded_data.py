@@ -91,6 +91,7 @@ def test_experiments_of_different_lengths_batch_with_a_mask(truth):
     assert bb.ts.shape == (3, 21)
 
 
+@pytest.mark.extended  # 15 s
 def test_padding_does_not_run_an_unstable_model_past_the_data():
     """An inverted pendulum's Kalman filter on a 2 s and a 90 s experiment, stacked: the short one was padded
     with samples continuing at its own interval, so its filter predicted open loop over 88 s without an

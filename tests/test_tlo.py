@@ -638,6 +638,7 @@ def test_nonfinite_initial_state_is_a_status_not_an_abort():
         obsjax.design.ltv_observer_canonical_form(lambda t: jnp.zeros((2, 2)), lambda t: jnp.array([[1.0, 0.0]]), 0.0)
 
 
+@pytest.mark.extended  # 13 s
 def test_built_inside_jit_with_a_traced_eps():
     """Built inside jax.jit with ε traced, the observer failed with a TracerArrayConversionError from the
     observability indices (the model's Jacobians were staged, not evaluated).  It is the same observer as

@@ -319,7 +319,8 @@ def test_derivative_in_T_under_band_limited_noise_at_the_default_tolerance(mode,
     assert g == pytest.approx(_noisy_dJ_dT_central_difference(), rel=1e-3)
 
 
-@pytest.mark.parametrize("mode", ["reverse", pytest.param("forward", marks=pytest.mark.extended)])
+@pytest.mark.extended  # 46 s on 2 cores
+@pytest.mark.parametrize("mode", ["reverse", "forward"])
 def test_lockstep_batch_derivative_in_T_under_band_limited_noise(mode):
     """simulate_batch in lock step (its default) moves the resets by the jump condition as the other
     adaptive kernels do: dJ/dT at the default tolerance is that of the exact loss to 1e-3 (measured -28.4958
@@ -340,6 +341,7 @@ def test_lockstep_batch_derivative_in_T_under_band_limited_noise(mode):
     assert g == pytest.approx(_noisy_dJ_dT_central_difference(), rel=1e-3)
 
 
+@pytest.mark.extended  # 23 s
 def test_reset_period_under_white_noise_is_refused_clearly():
     """Under white measurement noise the pathwise loss has no derivative in T: moving a reset by δT changes
     the estimate by O(√δT) through the Brownian increment (per path, central differences of Chen & Yen's ISE
