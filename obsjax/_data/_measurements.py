@@ -309,9 +309,9 @@ class Measurements(eqx.Module):
         unmeasured = None
         if missing == "skip" and not np.all(keep):
             # every sample is kept (the estimate stays aligned with the recorded times); a missing value
-            # is bridged by the hold from its column's neighbours, and a sample whose output (or
-            # validation state) is missing is masked: no discrete update there, no loss term.  A
-            # missing input alone leaves the measurement in use.
+            # is bridged by the hold from its column's neighbours, and a sample whose output is
+            # missing is masked: no discrete update there, no loss term.  A missing input or x_ref
+            # value alone leaves the measurement in use.
             tnp = np.asarray(tv, dtype=float)
             y_np, u_np = np.asarray(concrete_value(y), float), np.asarray(concrete_value(u), float)
             unmeasured = ~np.all(np.isfinite(y_np), axis=1)

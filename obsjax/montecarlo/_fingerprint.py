@@ -109,6 +109,22 @@ _WRAPPER_SKIP = frozenset(
 _ENV_READERS = frozenset({"environ", "environb", "getenv", "getenvb"})
 
 
+_STORES = ("STORE_FAST", "STORE_NAME", "STORE_DEREF", "STORE_GLOBAL")
+
+
+def _bound_to(owner) -> frozenset:
+    """The names of a module's functions that are methods of `owner` (a hidden generator)."""
+    mods = (_pyrandom, np.random)
+    return frozenset(k for m in mods for k, v in vars(m).items() if getattr(v, "__self__", None) is owner)
+
+
+#: The names of the functions that draw from the ``random`` module's and NumPy's hidden generators:
+#: a function whose code names none of them is not scanned.
+_GENERATOR_FUNCTIONS = _bound_to(getattr(_pyrandom, "_inst", None)) | _bound_to(
+    getattr(np.random.mtrand, "_rand", None)
+)
+
+
 def _hidden_generators(fn: types.FunctionType) -> set[str]:
     """Which hidden global generators a function's code draws from: ``"random"`` for the ``random``
     module's functions (``random.gauss(...)``, ``rnd.random()`` after ``import random as rnd``, also
@@ -141,13 +157,13 @@ def _hidden_generators(fn: types.FunctionType) -> set[str]:
                 pending_import = None if pending_full is None else getattr(pending_full, str(arg), None)
                 cur = None
                 continue
-            if op in ("STORE_FAST", "STORE_NAME", "STORE_DEREF", "STORE_GLOBAL") and pending_import is not None:
+            if op in _STORES and pending_import is not None:
                 local_mods[arg] = pending_import
                 pending_import = None  # (pending_full stays for the next name of a ``from`` import)
                 cur = None
                 continue
             pending_import = None
-            if op not in ("STORE_FAST", "STORE_NAME", "STORE_DEREF", "STORE_GLOBAL"):
+            if op not in _STORES:
                 pending_full = None
             if op in ("LOAD_GLOBAL", "LOAD_NAME"):
                 cur = glb.get(arg)
@@ -545,7 +561,7 @@ class _Hasher:
         if names & _ENV_READERS:
             for key in sorted(_string_constants(fn.__code__)):
                 self.put("env", f"{key}\0{os.environ.get(key)!r}")
-        hidden = _hidden_generators(fn)
+        hidden = _hidden_generators(fn) if names & _GENERATOR_FUNCTIONS else set()
         if "random" in hidden:
             self.put("random-module")
             self._pyrandom_state(_pyrandom._inst, f"{path}.<random module's generator>")
