@@ -25,12 +25,23 @@ def spd_solve(A: jax.Array, B: jax.Array) -> jax.Array:
     (see the module docstring); above that, ``jax.scipy.linalg.cho_factor`` / ``cho_solve``.  A matrix that is
     not positive definite gives non-finite values (a square root of a non-positive pivot), which
     :func:`obsjax.simulate` reports as status 2.
+
+    The derivative of the unrolled solve is that of X = A⁻¹ B written with the same factor,
+    dX = A⁻¹ (dB − dA X), where dA is the symmetric matrix whose lower triangle is that of the tangent
+    of A (the triangle the factorisation reads): two substitutions per tangent instead of
+    differentiating the factorisation (fewer operations in forward and reverse mode alike).
     """
     n = A.shape[-1]
     if A.shape != (n, n) or B.shape[0] != n or B.ndim not in (1, 2):
         raise ValueError(f"spd_solve: expected A (n, n) and B (n,) or (n, k), got {A.shape} and {B.shape}.")
     if n > UNROLL_MAX:
         return jsl.cho_solve(jsl.cho_factor(A, lower=True), B)
+    return _spd_solve_unrolled(A, B)
+
+
+def _cholesky(A):
+    """The lower Cholesky factor of A (n × n, lower triangle read) as nested lists of scalars."""
+    n = A.shape[-1]
     L = [[None] * n for _ in range(n)]
     for j in range(n):
         d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), start=jnp.zeros((), A.dtype))
@@ -38,6 +49,12 @@ def spd_solve(A: jax.Array, B: jax.Array) -> jax.Array:
         for i in range(j + 1, n):
             s = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), start=jnp.zeros((), A.dtype))
             L[i][j] = s / L[j][j]
+    return L
+
+
+def _substitute(L, B):
+    """X with L Lᵀ X = B, by forward then backward substitution."""
+    n = len(L)
     ys = []
     for i in range(n):
         ys.append((B[i] - sum((L[i][k] * ys[k] for k in range(i)), start=jnp.zeros_like(B[i]))) / L[i][i])
@@ -46,3 +63,19 @@ def spd_solve(A: jax.Array, B: jax.Array) -> jax.Array:
         r = sum((L[k][i] * xs[k] for k in range(i + 1, n)), start=jnp.zeros_like(B[i]))
         xs[i] = (ys[i] - r) / L[i][i]
     return jnp.stack(xs)
+
+
+@jax.custom_jvp
+def _spd_solve_unrolled(A, B):
+    return _substitute(_cholesky(A), B)
+
+
+@_spd_solve_unrolled.defjvp
+def _spd_solve_unrolled_jvp(primals, tangents):
+    A, B = primals
+    dA, dB = tangents
+    L = _cholesky(A)
+    X = _substitute(L, B)
+    lower = jnp.tril(dA)
+    dA_sym = lower + jnp.tril(dA, -1).T  # the factorisation reads the lower triangle only
+    return X, _substitute(L, dB - dA_sym @ X)
