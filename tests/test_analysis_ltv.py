@@ -431,3 +431,79 @@ def test_error_transition_that_overflows_within_a_period_names_the_cause():
     )
     exact[1, 0] = exact[0, 1]
     np.testing.assert_allclose(We, exact, rtol=1e-9)
+
+
+def test_transition_matrix_derivatives_at_equal_times():
+    """At t = τ, Φ = I with ∂Φ/∂t = A(τ) and ∂Φ/∂τ = −A(τ) (d/dt expm(A (t − τ))); the guard of the tie
+    returned a constant I there, so a loss over a time grid that contains τ lost those terms (d/dτ 0.94
+    for 2.09 by central differences)."""
+    A = np.array([[0.0, 1.0], [-2.0, -0.3]])
+    plant = obsjax.LTI(A, np.zeros((2, 1)), [[1.0, 0.0]])
+    d_t, d_tau = jax.jacrev(lambda t, tau: an.transition_matrix(plant, t, tau), argnums=(0, 1))(1.0, 1.0)
+    np.testing.assert_allclose(d_t, A, atol=1e-9)
+    np.testing.assert_allclose(d_tau, -A, atol=1e-9)
+    assert np.array_equal(np.asarray(an.transition_matrix(plant, 1.0, 1.0)), np.eye(2))
+    x0 = np.array([1.0, -0.5])
+    grid = np.array([0.0, 1.5])
+
+    def loss_np(tau):  # independent: expm
+        return sum(np.sum((scipy.linalg.expm(A * (t - tau)) @ x0) ** 2) for t in grid)
+
+    loss = jax.jit(lambda tau: sum(jnp.sum((an.transition_matrix(plant, t, tau) @ x0) ** 2) for t in grid))
+    h = 1e-6
+    grad = jax.jit(jax.grad(loss))
+    for tau in (0.0, 0.1):  # τ = 0 is a grid time
+        fd = (loss_np(tau + h) - loss_np(tau - h)) / (2 * h)
+        np.testing.assert_allclose(grad(tau), fd, rtol=1e-6)
+
+
+class _FamilyA(__import__("equinox").Module):
+    k: jax.Array
+
+    def __call__(self, t):
+        return jnp.array([[0.0, 1.0], [-self.k, -0.1 * jnp.cos(t)]])
+
+
+def _family_member(k):
+    return obsjax.LTV(_FamilyA(jnp.asarray(k)), lambda t: jnp.array([[1.0, 0.0]]))
+
+
+def test_analysis_over_a_vmapped_plant_family():
+    """``jax.vmap`` over a family of LTV plants (the LTV docstring's promise) crashed in the finiteness
+    probe of A(t) (a NumPy conversion of a batched value); a Python-float period under ``jit`` was called
+    'a tracer'."""
+    make = _family_member
+    ks = [1.0, 2.0]
+    Phis = jax.vmap(lambda k: an.transition_matrix(make(k), 1.0, 0.0))(jnp.asarray(ks))
+    for k, Phi in zip(ks, Phis):
+        A = lambda t: np.array([[0.0, 1.0], [-k, -0.1 * np.cos(t)]])
+        sol = scipy.integrate.solve_ivp(lambda t, y: (A(t) @ y.reshape(2, 2)).ravel(), (0.0, 1.0),
+                                        np.eye(2).ravel(), rtol=1e-12, atol=1e-14)  # fmt: skip
+        np.testing.assert_allclose(Phi, sol.y[:, -1].reshape(2, 2), atol=1e-9)
+    W = jax.jit(lambda k: an.regressor_gramian(make(k), 1, 1.0))(2.0)
+    np.testing.assert_allclose(W, an.regressor_gramian(make(2.0), 1, 1.0), rtol=1e-10)
+
+
+@pytest.mark.extended
+def test_uniform_observability_constants_over_a_vmapped_plant_family():
+    ks = [1.0, 2.0]
+    uo = jax.vmap(lambda k: an.uniform_observability_constants(_family_member(k), 1.0, 2.0))(jnp.asarray(ks))
+    for i, k in enumerate(ks):
+        one = an.uniform_observability_constants(_family_member(k), 1.0, 2.0)
+        for name in ("alpha1", "alpha2", "m1", "m2", "mu"):
+            np.testing.assert_allclose(getattr(uo, name)[i], getattr(one, name), rtol=1e-9)
+
+
+def test_decay_rate_refuses_bad_times_and_complex_errors_and_differentiates_in_the_times():
+    ts = jnp.linspace(0.0, 5.0, 11)
+    err = jnp.exp(-1.3 * ts)
+    with pytest.raises(ValueError, match="`ts` must hold finite times"):
+        an.decay_rate((ts.at[3].set(jnp.nan), err))
+    with pytest.raises(ValueError, match="`error` must be real"):  # was the real part's rate: 1.3, not 0.246
+        an.decay_rate((ts, err + 1j * jnp.exp(-0.2 * ts)))
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        an.decay_rate((jnp.zeros(0), jnp.zeros(0)))
+    assert np.isnan(float(jax.jit(an.decay_rate)((ts.at[3].set(jnp.inf), err))))
+    rate = lambda c: an.decay_rate((c * ts, err))  # λ(c) = 1.3 / c
+    np.testing.assert_allclose(jax.grad(rate)(1.0), -1.3, rtol=1e-12)  # eagerly (it crashed)
+    np.testing.assert_allclose(jax.jit(jax.grad(rate))(1.0), -1.3, rtol=1e-12)

@@ -660,6 +660,9 @@ def test_analysis_refuses_complex_and_non_finite_pairs():
         obsjax.analysis.obsv(bad, [[1.0, 0.0]])
     with pytest.raises(Exception, match="obsv: `A` and `C` must be finite"):
         jax.block_until_ready(jax.jit(obsjax.analysis.obsv)(bad, np.array([[1.0, 0.0]])))
+    # n = 1: O = C does not use A, and the check on A alone was dropped under jit
+    with pytest.raises(Exception, match="obsv: `A` and `C` must be finite"):
+        jax.block_until_ready(jax.jit(obsjax.analysis.obsv)(np.ones((1, 1)), np.array([[np.nan]])))
     np.testing.assert_allclose(
         np.asarray(obsjax.analysis.obsv([[0.0, 1.0], [-2.0, -3.0]], [[1.0, 0.0]])), [[1.0, 0.0], [0.0, 1.0]]
     )

@@ -55,17 +55,18 @@ def obsv(A, C) -> jax.Array:
     """
     A, C = _pair(A, C)
     av, cv = concrete_value(A), concrete_value(C)
-    if av is not None and cv is not None:
-        if not (np.all(np.isfinite(av)) and np.all(np.isfinite(cv))):
-            raise ValueError("obsv: `A` and `C` must be finite, got a NaN or an infinity.")
-    else:
-        A = eqx.error_if(A, ~(jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(C))),
-                         "obsv: `A` and `C` must be finite.")
+    checked = av is not None and cv is not None
+    if checked and not (np.all(np.isfinite(av)) and np.all(np.isfinite(cv))):
+        raise ValueError("obsv: `A` and `C` must be finite, got a NaN or an infinity.")
     n = A.shape[0]
     blocks = [C]
     for _ in range(n - 1):
         blocks.append(blocks[-1] @ A)
-    return jnp.concatenate(blocks, axis=0)
+    O = jnp.concatenate(blocks, axis=0)
+    if not checked:  # on the result, which depends on A and C whatever n (A alone is unused when n = 1)
+        O = eqx.error_if(O, ~(jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(C))),
+                         "obsv: `A` and `C` must be finite.")
+    return O
 
 
 def _obsv_np(A, C) -> np.ndarray:

@@ -78,7 +78,9 @@ def _probe_plant(plant, a, b, n=65):
     if a is None or b is None:
         return
     ts = jnp.linspace(min(float(a), float(b)), max(float(a), float(b)), n)
-    ok = np.asarray(_finite_on(plant, ts))
+    ok = concrete_value(_finite_on(plant, ts))
+    if ok is None:  # a traced plant (a vmapped plant family): the solve's own status checks it
+        return
     if not ok.all():
         raise ValueError(
             f"A(t) or C(t) of the plant is not finite at t = {float(ts[int(np.argmin(ok))]):.6g}: the "
@@ -86,8 +88,16 @@ def _probe_plant(plant, a, b, n=65):
         )
 
 
+def _scalar_value(x):
+    """NumPy value of a Python or NumPy number as given (also under ``jit``, where ``jnp.asarray`` of a
+    constant is traced), else the concrete value of a JAX array (``None`` when traced)."""
+    if isinstance(x, (bool, int, float, complex, np.generic, np.ndarray)):
+        return np.asarray(x)
+    return concrete_value(jnp.asarray(x))
+
+
 def _pos_float(x, name):
-    v = concrete_value(jnp.asarray(x))
+    v = _scalar_value(x)
     if v is None:
         raise ValueError(f"`{name}` must be a concrete number (not traced), got a tracer.")
     if v.ndim != 0 or np.iscomplexobj(v) or not np.isfinite(v) or v <= 0:
@@ -97,11 +107,11 @@ def _pos_float(x, name):
 
 def _finite_float(x, name):
     """A concrete finite scalar (a time origin), else a ValueError naming it."""
-    v = concrete_value(jnp.asarray(x))
+    v = _scalar_value(x)
     if v is None:
         raise ValueError(f"`{name}` must be a concrete number (not traced), got a tracer.")
-    if v.ndim != 0 or not np.isfinite(v):
-        raise ValueError(f"`{name}` must be a finite scalar, got {v.tolist()}.")
+    if v.ndim != 0 or np.iscomplexobj(v) or not np.isfinite(v):
+        raise ValueError(f"`{name}` must be a finite real scalar, got {v.tolist()}.")
     return float(v)
 
 
@@ -135,7 +145,9 @@ def transition_matrix(plant, t, tau, *, rtol=_RTOL, atol=_ATOL, max_steps=65536)
 
     - `plant`: an :class:`obsjax.LTV` or :class:`obsjax.LTI` (anything with ``A_of(t)``); its ``jump_ts``
       are stepped onto exactly.
-    - `t`, `tau`: scalar times (may be traced; the function is jit/vmap/grad compatible).
+    - `t`, `tau`: scalar times (may be traced; the function works under ``jax.jit`` and ``jax.vmap``,
+      also over a plant family, and is differentiable in reverse mode, ``jax.grad``, by diffrax's default
+      adjoint; at t = τ its derivatives are ±A(τ)).
     - `rtol`, `atol`, `max_steps`: solver settings (Dopri8).
 
     **Returns:** the (n, n) matrix Φ(t, τ).
@@ -169,7 +181,9 @@ def _transition(plant, t, tau, rtol, atol, max_steps):
     same = t == tau
     t_end = jnp.where(same, tau + 1.0, t)
     Phi = _solve(rhs, plant, tau, t_end, eye, diffrax.SaveAt(t1=True), rtol, atol, max_steps)[0]
-    return jnp.where(same, eye, Phi)
+    # at t = τ the value is I and the derivatives are ∂Φ/∂t = A(τ), ∂Φ/∂τ = −A(τ): the first-order term
+    # (zero there) keeps them
+    return jnp.where(same, eye + (t - tau) * jnp.asarray(plant.A_of(tau)), Phi)
 
 
 def _period(plant, a, T, n_grid, rtol, atol, max_steps):
@@ -278,13 +292,20 @@ def _periods_end(plant, ends, T, rtol, atol):
     return jax.vmap(one)(ends)
 
 
-def _end_failed(ok, where):
-    if not bool(np.all(np.asarray(ok))):
-        raise ValueError(
-            f"{where}: the backward solve for Φ(t_k, t_k + T) and the end-referenced gramian did not "
-            f"finish within its step budget ({_END_MAX_STEPS} Dopri8 steps per period) at rtol/atol; a "
-            "plant whose A(t) varies this fast needs a shorter period T or looser tolerances."
-        )
+def _end_failed(ok, where, value=None):
+    """A ValueError naming `where` when a backward solve did not finish; `value` returned, with an
+    ``eqx.error_if`` on `ok` when it is traced (a vmapped plant family)."""
+    message = (
+        f"{where}: the backward solve for Φ(t_k, t_k + T) and the end-referenced gramian did not "
+        f"finish within its step budget ({_END_MAX_STEPS} Dopri8 steps per period) at rtol/atol; a "
+        "plant whose A(t) varies this fast needs a shorter period T or looser tolerances."
+    )
+    okv = concrete_value(ok)
+    if okv is None:
+        return None if value is None else eqx.error_if(value, ~jnp.all(ok), message)
+    if not bool(np.all(okv)):
+        raise ValueError(message)
+    return value
 
 
 def _window(k, T, t0):
@@ -447,7 +468,7 @@ def uniform_observability_constants(
     mu, PhiT, Wz = _periods(plant, _pad(starts), jnp.asarray(T), n_grid, rtol, atol, where=where)
     mu, PhiT, Wz = mu[:K], PhiT[:K], Wz[:K]
     log_sv, log_ew, _, ok, ratio = _periods_end(plant, _pad(starts + T), jnp.asarray(T), rtol, atol)
-    _end_failed(ok[:K], "uniform_observability_constants")
+    log_sv = _end_failed(ok[:K], "uniform_observability_constants", log_sv)
     # m1 = 1/‖Φ(t_k, t_k + T)‖ and α2 = λ_max(W_o^end) from the scaled backward solve: forward, the small
     # singular values of Φ(t_k + T, t_k) sit at the absolute tolerance (a mode e^{−50·2} gave 3e-14
     # for 4e-44).  exp rounds them to 0 or ∞ only where float64 cannot hold them.
@@ -659,9 +680,10 @@ def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
     - `floor`: samples with ‖x̃‖ ≤ floor · max ‖x̃‖ (the largest in the window: converged to round-off)
       are left out of the fit.  Relative, so the error's units do not matter.
 
-    **Returns:** scalar λ (positive for a decaying error); jit/vmap compatible.  A window with fewer than
-    two usable samples at distinct times, or with a non-finite error sample (a failed trajectory: its
-    rate is not known), raises ``ValueError`` eagerly and gives NaN traced.
+    **Returns:** scalar λ (positive for a decaying error); jit/vmap compatible and differentiable (also in
+    the times).  A window with fewer than two usable samples at distinct times, a non-finite error sample
+    in the window (a failed trajectory: its rate is not known) or a non-finite time raises ``ValueError``
+    eagerly and gives NaN traced; complex values are refused (fit the modulus).
 
     **Example:**
 
@@ -671,14 +693,25 @@ def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
         ts, err = trajectory
     else:
         ts, err = trajectory.ts, trajectory.error
+    for v, name in ((ts, "ts"), (err, "error")):
+        if jnp.iscomplexobj(v):
+            raise ValueError(
+                f"`{name}` must be real, got complex values (pass the norms |x̃| to fit the rate of the modulus)."
+            )
     ts = jnp.asarray(ts, dtype=float)
     err = jnp.asarray(err, dtype=float)
     if ts.ndim != 1:
         raise ValueError(f"`ts` must be a 1-D array of times, got shape {tuple(ts.shape)}.")
+    if ts.shape[0] < 2:
+        raise ValueError(f"decay_rate needs at least 2 samples, got {ts.shape[0]}.")
     if err.ndim not in (1, 2) or err.shape[0] != ts.shape[0]:
         raise ValueError(
             f"`error` must have {ts.shape[0]} rows (one per time), shape (T, n) or (T,), got shape {err.shape}."
         )
+    ts_c = concrete_value(ts)
+    if ts_c is not None and not np.all(np.isfinite(ts_c)):
+        i = int(np.flatnonzero(~np.isfinite(ts_c))[0])
+        raise ValueError(f"`ts` must hold finite times, got {ts_c[i]!r} at sample {i}.")
     fl = concrete_value(jnp.asarray(floor))
     if fl is not None and not (np.ndim(fl) == 0 and np.isfinite(fl) and 0.0 <= float(fl) < 1.0):
         raise ValueError(
@@ -698,19 +731,19 @@ def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
     if t_max is not None:
         window = window & (ts <= t_max)
     finite = jnp.isfinite(nrm)
-    bad = jnp.any(window & ~finite)
+    bad = jnp.any(window & ~finite) | ~jnp.all(jnp.isfinite(ts))
     top = jnp.max(jnp.where(window & finite, nrm, 0.0))
     mask = window & finite & (nrm > floor * top)
     used, bad_c = concrete_value(mask), concrete_value(bad)
     if bad_c is not None and bool(bad_c):
-        where_bad = np.flatnonzero(np.asarray(concrete_value(window & ~finite)))
+        where_bad = np.flatnonzero(np.asarray(concrete_value(window & ~finite)))  # ts is finite here
         raise ValueError(
-            f"decay_rate: the error is not finite at t = {float(np.asarray(ts)[where_bad[0]]):g} (sample "
+            f"decay_rate: the error is not finite at t = {float(ts_c[where_bad[0]]):g} (sample "
             f"{int(where_bad[0])}) in the fit window: a failed trajectory (check its status), whose decay "
             "rate is not known; fit a window before it, or drop the trajectory."
         )
-    if used is not None:
-        t_used = np.asarray(ts)[np.asarray(used)]
+    if used is not None and ts_c is not None:
+        t_used = ts_c[np.asarray(used)]
         if np.unique(t_used).size < 2:
             raise ValueError(
                 f"decay_rate needs at least 2 samples at distinct times with ‖x̃‖ > floor·max ‖x̃‖ "
