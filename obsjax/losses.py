@@ -15,6 +15,8 @@ On recorded data (an :class:`obsjax.Estimate`, for :func:`obsjax.tune_on_data`):
 - `state_error`: mean of ‖x̂_k − x_ref,k‖² over the states measured for validation.
 
 The integrals use the trapezoid rule on the save grid ``ts``, so a finer grid gives a more accurate loss.
+`peak` is a smooth maximum over the save times: never below the maximum, and above it by at most
+ln k / `sharpness` of it where k save times share the maximum (see :func:`peak`).
 
 Example:
 

@@ -49,6 +49,7 @@ def multisine(amplitudes, frequencies, phases=None) -> Multisine:
         raise ValueError(
             f"`frequencies` must have the shape of `amplitudes` {tuple(a.shape)}, got {tuple(w.shape)}."
         )
+    given = tuple(a.shape)  # the shape phases must have (a scalar amplitude counts as (1,))
     if a.ndim == 1:
         a, w = a[None], w[None]
     if a.ndim != 2:
@@ -57,9 +58,11 @@ def multisine(amplitudes, frequencies, phases=None) -> Multisine:
         ph = jnp.zeros_like(a)
     else:
         ph = require_finite(real_array(phases, "phases"), "phases")
-        if ph.size != a.size:
+        if ph.ndim == 0:
+            ph = ph.reshape(1)
+        if tuple(ph.shape) != given:  # a transposed (p, k) array has the right size but not the shape
             raise ValueError(
-                f"`phases` must have the shape of `amplitudes` {tuple(a.shape)}, got {tuple(ph.shape)}."
+                f"`phases` must have the shape of `amplitudes` {given}, got {tuple(ph.shape)}."
             )
         ph = ph.reshape(a.shape)
     return Multisine(a, w, ph)

@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
+import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
+
+from .._checks import concrete_value
 
 
 def _trapz(f, ts):
@@ -16,10 +21,18 @@ def ise(traj) -> jnp.ndarray:
     return _trapz(jnp.sum(traj.error**2, axis=-1), traj.ts)
 
 
+def _norm(error):
+    """‖x̃‖ per save time, exact for every value (no absolute smoothing constant, so the states' units do
+    not matter); its derivative at x̃ = 0 is taken as 0 (where the norm has none)."""
+    sq = jnp.sum(error**2, axis=-1)
+    pos = sq > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
 def itae(traj) -> jnp.ndarray:
-    """Integral of time-weighted absolute error ∫ (t − t0) ‖x̃(t)‖ dt (a smooth norm: √(‖x̃‖² + 1e-24))."""
-    nrm = jnp.sqrt(jnp.sum(traj.error**2, axis=-1) + 1e-24)
-    return _trapz((traj.ts - traj.ts[0]) * nrm, traj.ts)
+    """Integral of time-weighted absolute error ∫ (t − t0) ‖x̃(t)‖ dt (trapezoid on the save grid; the
+    derivative of ‖x̃‖ at x̃ = 0 is taken as 0)."""
+    return _trapz((traj.ts - traj.ts[0]) * _norm(traj.error), traj.ts)
 
 
 def terminal(traj) -> jnp.ndarray:
@@ -28,12 +41,23 @@ def terminal(traj) -> jnp.ndarray:
 
 
 def peak(traj, sharpness: float = 50.0) -> jnp.ndarray:
-    """Peak error max_t ‖x̃(t)‖, as a smooth maximum (log-sum-exp with the given sharpness, relative to
-    the largest value) so that its gradient spreads over near-maximal times."""
-    nrm = jnp.sqrt(jnp.sum(traj.error**2, axis=-1) + 1e-24)
+    """Peak error max_t ‖x̃(t)‖ over the save times, as a smooth maximum so that its gradient spreads over
+    near-maximal times: the log-sum-exp M + (M/s) log Σ_k exp(s (‖x̃(t_k)‖ − M)/M), M = max_k ‖x̃(t_k)‖,
+    s = `sharpness` (> 0; relative to M, so the states' units do not matter).
+
+    It is never below the maximum and at most M (1 + ln K / s) for K save times: the excess is (M/s) ln k
+    when k save times share the maximum (an isolated peak adds nothing), so it grows with the density of
+    the save grid where the error is flat near its peak (a constant error over 1001 save times gives
+    1.138 M at s = 50).  Raise `sharpness` for a value closer to the maximum (and a gradient concentrated
+    on fewer times).
+    """
+    sv = concrete_value(jnp.asarray(sharpness))
+    if sv is not None and not (np.ndim(sv) == 0 and np.isrealobj(sv) and np.isfinite(sv) and sv > 0):
+        raise ValueError(f"`sharpness` must be a positive finite scalar, got {np.asarray(sv).tolist()}.")
+    nrm = _norm(traj.error)
     top = jnp.max(nrm)
-    scale = sharpness / jnp.maximum(top, 1e-12)
-    return top + jnp.log(jnp.mean(jnp.exp(scale * (nrm - top)))) / scale + jnp.log(nrm.shape[0]) / scale
+    scale = sharpness / jnp.where(top > 0, top, 1.0)
+    return top + jnp.log(jnp.sum(jnp.exp(scale * (nrm - top)))) / scale
 
 
 def _valid_mean(values, valid):
@@ -41,6 +65,28 @@ def _valid_mean(values, valid):
     w = valid.astype(values.dtype)
     count = jnp.sum(w)
     return jnp.where(count > 0, jnp.sum(w * values) / jnp.maximum(count, 1.0), jnp.nan)
+
+
+def _output_weight(weight, m):
+    """The (m,) output weights: real, finite, ≥ 0, not all 0 (a ValueError naming `weight`; traced values
+    by ``eqx.error_if``).  A negative weight would make the loss reward that output's error."""
+    if jnp.iscomplexobj(weight):
+        raise ValueError("`weight` must be real (one weight ≥ 0 per output), got complex values.")
+    w = jnp.asarray(weight, dtype=float)
+    if w.shape != (m,):
+        raise ValueError(f"`weight` must have shape ({m},) (one weight per output), got {tuple(w.shape)}.")
+    wv = concrete_value(w)
+    if wv is None:
+        return eqx.error_if(
+            w, ~(jnp.all(jnp.isfinite(w)) & jnp.all(w >= 0) & jnp.any(w > 0)),
+            "`weight` must be finite and ≥ 0, with at least one weight > 0.",
+        )
+    if not (np.all(np.isfinite(wv)) and np.all(wv >= 0) and np.any(wv > 0)):
+        raise ValueError(
+            f"`weight` must be finite and ≥ 0, with at least one weight > 0 (a negative weight rewards that "
+            f"output's error), got {wv.tolist()}."
+        )
+    return w
 
 
 def output_error(est, integral: bool = False, weight=None) -> jnp.ndarray:
@@ -51,8 +97,8 @@ def output_error(est, integral: bool = False, weight=None) -> jnp.ndarray:
     is the prediction-error method of system identification, Ljung, *System Identification: Theory for the
     User*, 2nd ed., Prentice Hall, 1999, §7.2); padding (``est.valid`` False) is ignored, so experiments of
     different lengths batch.  ``integral=True``: ∫ ‖y − ŷ‖² dt by the trapezoid rule over the save grid
-    (intervals with both ends valid only).  `weight`: optional (m,) weights w_i of ‖e‖² = Σ w_i e_i² (e.g. 1/σ_i² to put outputs
-    in different units on one scale).  An estimate without a valid sample (for the integral: without an interval whose two ends are
+    (intervals with both ends valid only).  `weight`: optional (m,) weights w_i ≥ 0 (finite, not all 0) of
+    ‖e‖² = Σ w_i e_i² (e.g. 1/σ_i² to put outputs in different units on one scale).  An estimate without a valid sample (for the integral: without an interval whose two ends are
     valid) gives NaN, never a zero loss.
     """
     if est.innovation is None:
@@ -60,7 +106,7 @@ def output_error(est, integral: bool = False, weight=None) -> jnp.ndarray:
             "`output_error` needs the predicted output ŷ, but this estimate has none (the observer has no "
             "output model: an adaptive or functional observer); use `state_error` with validation states."
         )
-    w_out = 1.0 if weight is None else jnp.asarray(weight)
+    w_out = 1.0 if weight is None else _output_weight(weight, est.innovation.shape[-1])
     sq = jnp.sum(w_out * est.innovation**2, axis=-1)
     if integral:
         w = (est.valid[1:] & est.valid[:-1]).astype(sq.dtype)
@@ -82,8 +128,9 @@ def state_error(est) -> jnp.ndarray:
 
 def tail_count(alpha: float, n: int) -> int:
     """k = ⌈(1 − α) n⌉ (at least 1): how many of n equally weighted losses the CVaR at level α averages
-    (the worst k).  The product is rounded before the ceiling: 1 − 0.95 is not exact in binary, and
-    (1 − 0.95)·20 = 1.0000000000000009 would otherwise average the worst 2 of 20 instead of the worst 1."""
-    x = (1.0 - float(alpha)) * int(n)
-    return max(1, int(math.ceil(x - 1e-9 * max(1.0, x))))
+    (the worst k).  α is taken as the shortest decimal that gives its float (0.95 as 19/20) and the product
+    is computed exactly: in binary, (1 − 0.95)·20 = 1.0000000000000009 would average the worst 2 of 20
+    instead of the worst 1, and no fixed rounding slack is right for every n."""
+    x = (1 - Fraction(repr(float(alpha)))) * int(n)  # the decimal α as written: exact for any n
+    return max(1, math.ceil(x))
 
