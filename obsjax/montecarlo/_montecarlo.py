@@ -847,15 +847,20 @@ def monte_carlo(
     - `devices`: ``None`` (all of ``jax.devices()``), a number of devices, or a list of devices (with
       several processes, several devices must include one of every process).
     - `quantiles`: levels of the ‖x̃(t)‖ bands.
-    - `conv_tol`, `conv_relative`: the convergence time is the first save time after which
-      ‖x̃(t)‖ ≤ conv_tol · ‖x̃(t0)‖ (or ≤ conv_tol when ``conv_relative=False``) for the rest of the horizon.
+    - `conv_tol`, `conv_relative`: the convergence threshold, conv_tol · ‖x̃(t0)‖ (or conv_tol when
+      ``conv_relative=False``); the convergence time is the crossing of that threshold after the last
+      save time above it, interpolated between save times (see ``MonteCarloResult.convergence_time``).  A
+      trajectory with x̂(t0) = x(t0) has a relative threshold of 0, so any later error (noise) counts it
+      as never converged: use an absolute `conv_tol` there.
     - `progress`: show a tqdm progress bar over chunks.
     - `max_chunks`: compute at most this many new chunks in this call.
     - `lockstep`: integrate each device's share of a chunk as one lock-step batch
       (:func:`obsjax.simulate_batch`: one adaptive solve whose step every member accepts) instead of
       independent solves.  By default (``lockstep=False``) each trajectory takes its own steps: the share
       is ``simulate_batch(..., lockstep=False)`` (the masked adaptive Runge–Kutta loop for explicit
-      Runge–Kutta pairs, member by member the solve of :func:`obsjax.simulate`, to rounding; with a
+      Runge–Kutta pairs, member by member the solve of :func:`obsjax.simulate`, to rounding for
+      smooth inputs and noise — under ``BandLimitedNoise`` with adaptive steps the two differ at the
+      level of their own error across the noise's kinks, see :mod:`obsjax.noise` —; with a
       `param_sampler`, the same loop with each member's own plant), otherwise ``jax.vmap`` of
       :func:`obsjax.simulate`.  Lock step
       is about as fast on the CPU for adaptive solves of alike trajectories (0.88–1.04× the default's
