@@ -111,7 +111,7 @@ def _finite_float(x, name):
     if v is None:
         raise ValueError(f"`{name}` must be a concrete number (not traced), got a tracer.")
     if v.ndim != 0 or np.iscomplexobj(v) or not np.isfinite(v):
-        raise ValueError(f"`{name}` must be a finite real scalar, got {v.tolist()}.")
+        raise ValueError(f"`{name}` must be a finite scalar (real), got {v.tolist()}.")
     return float(v)
 
 
