@@ -229,3 +229,52 @@ def test_nearly_repeated_nominal_pd_eigenvalues_are_refused():
     rb = np.array([-1.0, -1.0 - 1e-4, -2.0])
     exact = np.poly(rb * 3.0)[1:][::-1]  # α_1 … α_n of Π(s − ρ̄ω)
     np.testing.assert_allclose(pd_coefficients(jnp.asarray(rb), 3.0, 0.0), exact, rtol=1e-9)
+
+
+# A 4-state, 2-output pair whose second output approaches the first (C2 = C1 + δ v(t)): observable for
+# every δ ≠ 0, with a staircase margin of Q_0 about 3·δ²... (3.0e-6 at δ = 1e-4, 3.0e-8 at δ = 1e-6).
+_AB = np.array([
+    [-0.8019314252534474, -1.324358995628145, -0.24836162209524854, 0.4204452380655215],
+    [1.1360465324896427, 0.10970639932180819, -0.5526473205362324, -0.7847803553442784],
+    [0.7487457707345911, 1.6347830429585775, 0.27276877584472176, -1.2333286640307717],
+    [-0.9582652054360887, 1.6000190889991115, 0.2028824405086084, -1.7321348424395848],
+])  # fmt: skip
+_C0, _DV = np.array([1.0, 0.5, -0.3, 0.2]), np.array([0.3, -1.0, 0.7, 0.4])
+# α of the canonical form at t = 0.5, δ = 1e-4, indices (2, 2): Huang & Zhu (10)-(11) evaluated as
+# truncated Taylor series in 50-digit mpmath arithmetic (an implementation independent of the library's,
+# written for the review of this function), rounded to float64.
+_ALPHA_REF_1E4 = np.array([
+    [-591661.6183587856, 591746.7855212577],
+    [-174583.7265866687, 174603.36583859066],
+    [-591600.0547555942, 591685.2130453354],
+    [-174564.3692129195, 174584.00619092185],
+])  # fmt: skip
+
+
+def _near_pair(delta):
+    J = jnp.asarray(np.eye(4)[:, ::-1])
+    A = lambda t: jnp.asarray(_AB) + 0.3 * jnp.sin(t) * J
+    C = lambda t: jnp.stack([jnp.asarray(_C0), jnp.asarray(_C0) + delta * (jnp.asarray(_DV) + 0.1 * jnp.cos(t) * jnp.eye(4)[3])])
+    return A, C
+
+
+def test_canonical_form_refuses_pairs_it_cannot_compute_accurately():
+    """The form inverts T⁻¹, conditioned like 1/margin²: α was off by 5e-3 at margin 3e-8 and by 234 % at
+    1.5e-9 (the gain of pd_observer_gain by a factor of 80), accepted by the rank threshold 1e-9.  The
+    default threshold of the form is 1e-6 (a loss of about ε/margin² ≤ 2e-4)."""
+    from obsjax.design import ltv_observer_canonical_form, pd_observer_gain
+
+    @jax.jit
+    def form(delta, t):  # traced t: the margin comes back for the caller's check (TrajectoryLinearization's)
+        cf = ltv_observer_canonical_form(*_near_pair(delta), t, indices=(2, 2))
+        return cf.alpha, cf.margin
+
+    alpha, margin = form(1e-4, 0.5)  # margin 3.0e-6: accepted, and accurate
+    assert 1e-6 < float(margin) < 1e-5
+    np.testing.assert_allclose(alpha, _ALPHA_REF_1E4, rtol=5e-6)
+    assert float(form(1e-6, 0.5)[1]) < obsjax.design._ltv_canonical.CANONICAL_TOL  # margin 3.0e-8
+    A, C = _near_pair(1e-6)
+    with pytest.raises(ValueError, match=r"would lose about ε/margin² = .* of its relative accuracy"):
+        ltv_observer_canonical_form(A, C, 0.5, indices=(2, 2))
+    with pytest.raises(ValueError, match="staircase margin"):
+        pd_observer_gain(A, C, jnp.array([-1.0, -2.0, -3.0, -4.0]), 2.0, 0.5, indices=(2, 2))

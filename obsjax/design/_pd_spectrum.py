@@ -32,8 +32,8 @@ import numpy as np
 
 from .._checks import as_float_array, concrete_value
 from .._config import require_x64
-from ..analysis._lti import DEFAULT_TOL
 from ._ltv_canonical import (
+    CANONICAL_TOL,
     LTVCanonicalForm,
     _as_time,
     _mm,
@@ -282,7 +282,7 @@ class PDObserverGain(NamedTuple):
 
 
 def pd_observer_gain(
-    A: Callable, C: Callable, rho_bar, omega, t, *, eps=1.0, indices=None, threshold: float = DEFAULT_TOL,
+    A: Callable, C: Callable, rho_bar, omega, t, *, eps=1.0, indices=None, threshold: float = CANONICAL_TOL,
     state_scale=None,
 ) -> PDObserverGain:
     """Observer gain K_o(t) by PD-eigenvalue assignment (Huang & Zhu, Step (b), (12)-(14)).

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array, concrete_value, vector
-from ..analysis._lti import DEFAULT_TOL
+from ..design._ltv_canonical import CANONICAL_TOL
 from ..design._ltv_canonical import (
     _check_indices,
     ltv_observability_indices,
@@ -126,7 +126,8 @@ class TrajectoryLinearization(AbstractObserver):
       (without a nominal: at ξ = 0, μ = 0) when ``None``.
     - `check_ts`: times at which strong observability of (A_o, C_o) along the nominal is checked at
       construction (``ValueError`` naming the first failing time); requires `nominal`.
-    - `threshold`: the smallest admissible staircase margin of (A_o, C_o) (default 1e-9): the
+    - `threshold`: the smallest admissible staircase margin of (A_o, C_o) (default 1e-6, below which the
+      canonical form loses more than about 2e-4 of its accuracy, see :func:`obsjax.design.ltv_observer_canonical_form`): the
       scale-invariant form of Huang & Zhu's strong-observability constant (|det QᵀQ| ≥ c, which changes
       with the units), computed by the rank mechanism of the indices
       (:func:`obsjax.design.strong_observability`).  A margin of the rows of Q_0 at or below it stops
@@ -152,7 +153,7 @@ class TrajectoryLinearization(AbstractObserver):
     eps: jax.Array
     nominal: Callable | None
     indices: tuple[int, ...] = eqx.field(static=True)
-    threshold: float = eqx.field(static=True, default=DEFAULT_TOL)
+    threshold: float = eqx.field(static=True, default=CANONICAL_TOL)
     stiff_rate: float = eqx.field(static=True, default=50.0)
     on_unobservable: str = eqx.field(static=True, default="error")
     # the state scaling of the balanced pair at t = 0 (the margin's state units, computed once)
@@ -168,7 +169,7 @@ class TrajectoryLinearization(AbstractObserver):
         *,
         indices=None,
         check_ts=None,
-        threshold: float = DEFAULT_TOL,
+        threshold: float = CANONICAL_TOL,
         stiff_rate: float = 50.0,
         on_unobservable: str = "error",
     ):
