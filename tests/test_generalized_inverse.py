@@ -569,3 +569,38 @@ def test_invertibility_verdict_is_scale_invariant():
             jax.block_until_ready(jbuild(F5, _RT(T, s * R)))
     # R·T's determinant is far above the old absolute floor: the old test accepted it
     assert abs(float(jnp.linalg.det(R @ T(0.0)))) > 1e-9
+
+
+def test_is_one_inverse_is_not_loosened_by_a_large_X():
+    """The rounding allowance was rtol·‖C‖²‖X‖: a large X loosened its own test (X = diag(1, 1e4) passed for
+    C = diag(1, 1e-6), and a 20 % residual passed beside a large null-space part)."""
+    C = np.diag([1.0, 1e-6])
+    assert obsjax.design.is_one_inverse(np.diag([1.0, 1e6]), C)  # the only {1}-inverse
+    for x22 in (1e4, 5e5):
+        assert not obsjax.design.is_one_inverse(np.diag([1.0, x22]), C)
+    C = np.ones((2, 2))  # rank 1: X = C⁺ + s [[1, −1], [−1, 1]] is a {1}-inverse for every s
+    X = np.linalg.pinv(C) + 1e8 * np.array([[1.0, -1.0], [-1.0, 1.0]])
+    assert obsjax.design.is_one_inverse(X, C)
+    assert not obsjax.design.is_one_inverse(X + 0.1 * np.eye(2), C)  # C X C = 1.2 C
+
+
+def test_lovass_nagy_T_meets_its_condition_with_states_in_very_different_units():
+    """R = Q K⁺ was solved through the normal equations (KᵀK)⁻¹Kᵀ, which square cond(K): with states in
+    units 1e4 and 1e-4 (cond K 1e8) the returned T broke (Ṫ + TĀ − FT) N = 0 by 6 % relative."""
+    def A0(t):
+        return jnp.array([[-0.3, 1.0 + 0.2 * jnp.sin(t), 0.0, 0.1], [0.0, -0.1, 1.0, 0.0],
+                          [0.2 * jnp.cos(0.5 * t), 0.0, -0.4, 1.0], [-1.0, 0.3, -0.5 * jnp.cos(t), -0.2]])  # fmt: skip
+
+    F = np.diag([-2.0, -3.0, -4.0, -5.0])
+    S = np.array([1e4, 1e-4, 1.0, 1.0])  # x → diag(S) x
+    A = lambda t: jnp.asarray(S)[:, None] * A0(t) / jnp.asarray(S)[None, :]
+    C = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.2]]) / S[None, :]
+    Sf = lambda t: jnp.stack([jnp.array([1.0, 0.5 * jnp.sin(t), 0.2, 0.0]),
+                              jnp.array([0.0, 1.0, 0.3 * jnp.cos(t), 1.0])], axis=1)  # fmt: skip
+    T = obsjax.design.lovass_nagy_T(A, C, F, Sf)
+    N = np.asarray(T.N)
+    for t in (0.0, 1.0):
+        Tt, Td = np.asarray(T(t)), np.asarray(jax.jacfwd(T)(t))
+        M = Td + Tt @ np.asarray(A(t)) - F @ Tt
+        scale = np.linalg.norm(Td @ N) + np.linalg.norm(Tt @ np.asarray(A(t)) @ N) + np.linalg.norm(F @ Tt @ N)
+        assert np.linalg.norm(M @ N) / scale < 1e-9

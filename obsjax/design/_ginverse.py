@@ -40,6 +40,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 import numpy as np
 
 from .._checks import as_float_array, concrete_value, matrix
@@ -99,17 +100,20 @@ def one_inverse(C, Y=None, Z=None) -> jax.Array:
 
 
 def is_one_inverse(X, C, rtol: float = 1e-9) -> bool:
-    """True when ‖C X C − C‖ ≤ rtol · ‖C‖ · max(1, ‖C‖ ‖X‖) (Frobenius norms; concrete inputs).
+    """True when ‖C X C − C‖ ≤ rtol · ‖C‖ + 4 (m + n) ε ‖C‖² ‖X‖ (Frobenius norms; concrete inputs).
 
     Relative to ‖C‖ (the test does not depend on C's units: a {1}-inverse of s C is X / s), with the
-    rounding of the product C X C (of order ‖C‖² ‖X‖) allowed for.  Every X is a {1}-inverse of C = 0."""
+    rounding of the product C X C (of order ε ‖C‖² ‖X‖) allowed for at machine precision only: a large
+    X does not loosen the test (with rtol · ‖C‖² ‖X‖, X = diag(1, 1e4) passed for C = diag(1, 1e-6),
+    whose only {1}-inverse is diag(1, 1e6)).  Every X is a {1}-inverse of C = 0."""
     C = matrix(C, "C", (None, None))
     X = matrix(X, "X", (C.shape[1], C.shape[0]))
     err = float(jnp.linalg.norm(C @ X @ C - C))
     nc, nx = float(jnp.linalg.norm(C)), float(jnp.linalg.norm(X))
     if not np.isfinite(err):
         return False
-    return err <= rtol * nc * max(1.0, nc * nx)
+    eps = float(np.finfo(np.asarray(C).dtype).eps)
+    return err <= rtol * nc + 4 * sum(C.shape) * eps * nc * nc * nx
 
 
 def solvability_residual(M, C, C1=None) -> jax.Array:
@@ -207,8 +211,11 @@ class LovassNagyT(eqx.Module):
         Sdot = jax.jacfwd(self._S)(t)
         K = self.K(t)
         Q = self.F @ S - Sdot - S @ (N.T @ jnp.asarray(self.A(t)) @ N)
-        # R = Q K⁺ with K⁺ = (KᵀK)⁻¹Kᵀ (K has full column rank): smooth in t, so Ṫ and T̈ exist.
-        R = jnp.linalg.solve(K.T @ K, Q.T).T @ K.T
+        # R = Q K⁺ with K⁺ = R_K⁻¹ Q_Kᵀ from a thin QR of K (K has full column rank): smooth in t, so Ṫ
+        # and T̈ exist.  The normal equations (KᵀK)⁻¹Kᵀ square cond(K): with states in units 1e4 and 1e-4
+        # (cond K 1e8) they broke the design condition by 6-15 %.
+        QK, RK = jnp.linalg.qr(K, mode="reduced")
+        R = jax.scipy.linalg.solve_triangular(RK, Q.T, trans="T", lower=False).T @ QK.T
         return S @ N.T + R
 
 
