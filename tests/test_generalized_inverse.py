@@ -604,3 +604,37 @@ def test_lovass_nagy_T_meets_its_condition_with_states_in_very_different_units()
         M = Td + Tt @ np.asarray(A(t)) - F @ Tt
         scale = np.linalg.norm(Td @ N) + np.linalg.norm(Tt @ np.asarray(A(t)) @ N) + np.linalg.norm(F @ Tt @ N)
         assert np.linalg.norm(M @ N) / scale < 1e-9
+
+
+def test_generalized_inverses_refuse_bad_matrices_and_wrong_one_inverses():
+    """NaN/inf, complex and empty matrices went through moore_penrose, one_inverse and null_space_basis
+    (NaN or complex results); a C1 that is not a {1}-inverse gave the residual of another equation."""
+    good = np.array([[1.0, 1.0, 0.0]])
+    for f in (moore_penrose, one_inverse, obsjax.design.null_space_basis):
+        with pytest.raises(ValueError, match="`C` must be finite"):
+            f(np.array([[1.0, np.nan, 0.0]]))
+        with pytest.raises(ValueError, match="`C` must be finite"):
+            f(np.array([[1.0, np.inf, 0.0]]))
+        with pytest.raises(ValueError, match="`C` must be real"):
+            f(good + 1j)
+        with pytest.raises(ValueError, match="`C` must not be empty"):
+            f(np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="`Y` must be finite"):
+        one_inverse(good, Y=np.full((3, 1), np.nan))
+    M = np.array([[1.0, 2.0, 3.0]])
+    # M (I − C⁺C) = [[−0.5, 0.5, 3]] (C⁺C projects onto span{(1, 1, 0)})
+    np.testing.assert_allclose(solvability_residual(M, good), [[-0.5, 0.5, 3.0]], atol=1e-14)
+    with pytest.raises(ValueError, match="`C1` is not a \\{1\\}-inverse of `C`"):
+        solvability_residual(M, good, np.zeros((3, 1)))
+    with pytest.raises(ValueError, match="`B1` is not a \\{1\\}-inverse of `B`"):
+        obsjax.design.input_solvability_residual(np.array([[1.0], [0.0]]), np.array([1.0, 0.0]), np.zeros((1, 2)))
+
+
+def test_canonical_form_names_a_redundant_output_and_pd_spectrum_refuses_non_finite_rho_bar():
+    A = lambda t: jnp.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0 - jnp.sin(t), -1.5]])
+    C = lambda t: jnp.array([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])  # the second sensor is twice the first
+    with pytest.raises(ValueError, match=r"output\(s\) \[2\] add no row independent"):
+        obsjax.design.ltv_observer_canonical_form(A, C, 0.0)
+    for bad in ([-1.0, np.nan, -3.0], [-1.0, -np.inf, -3.0]):
+        with pytest.raises(ValueError, match="`rho_bar` must be finite"):
+            obsjax.design.pd_coefficients(jnp.asarray(bad), 2.0, 0.0)

@@ -47,6 +47,29 @@ from .._checks import as_float_array, concrete_value, matrix
 from ..analysis._lti import DEFAULT_TOL, relative_residuals
 
 
+def _gmatrix(x, name, shape=(None, None)):
+    """A real, non-empty matrix of the given shape; a concrete NaN or infinity is refused by name (under
+    ``jit`` the result's status is the caller's: these functions return NaN for it, as pinv)."""
+    if jnp.iscomplexobj(x):
+        raise ValueError(f"`{name}` must be real, got complex values.")
+    arr = matrix(x, name, shape)
+    if 0 in arr.shape:
+        raise ValueError(f"`{name}` must not be empty, got shape {tuple(arr.shape)}.")
+    v = concrete_value(arr)
+    if v is not None and not np.all(np.isfinite(v)):
+        raise ValueError(f"`{name}` must be finite (no NaN or inf), got {v.tolist()}.")
+    return arr
+
+
+def _check_one_inverse(X, C, name, what):
+    """A ValueError when a concrete X (a user's {1}-inverse) is not a {1}-inverse of C."""
+    if concrete_value(X) is not None and concrete_value(C) is not None and not is_one_inverse(X, C):
+        raise ValueError(
+            f"`{name}` is not a {{1}}-inverse of `{what}` ({what} {name} {what} ≠ {what}): the residual would be "
+            f"that of another equation; pass a {{1}}-inverse (obsjax.design.one_inverse) or None (Moore–Penrose)."
+        )
+
+
 def moore_penrose(C) -> jax.Array:
     """Moore–Penrose inverse C⁺ of an (m, n) matrix: the {1,2,3,4}-inverse.
 
@@ -61,7 +84,7 @@ def moore_penrose(C) -> jax.Array:
 
         obsjax.design.moore_penrose([[0., 1.], [0., 1.]])
     """
-    C = matrix(C, "C", (None, None))
+    C = _gmatrix(C, "C")
     return jnp.linalg.pinv(C)
 
 
@@ -86,15 +109,15 @@ def one_inverse(C, Y=None, Z=None) -> jax.Array:
         X = obsjax.design.one_inverse(C, Y=jnp.ones((2, 2)))
         assert jnp.allclose(C @ X @ C, C)
     """
-    C = matrix(C, "C", (None, None))
+    C = _gmatrix(C, "C")
     m, n = C.shape
     Cp = jnp.linalg.pinv(C)
     X = Cp
     if Y is not None:
-        Y = matrix(Y, "Y", (n, m))
+        Y = _gmatrix(Y, "Y", (n, m))
         X = X + (jnp.eye(n, dtype=C.dtype) - Cp @ C) @ Y
     if Z is not None:
-        Z = matrix(Z, "Z", (n, m))
+        Z = _gmatrix(Z, "Z", (n, m))
         X = X + Z @ (jnp.eye(m, dtype=C.dtype) - C @ Cp)
     return X
 
@@ -129,7 +152,11 @@ def solvability_residual(M, C, C1=None) -> jax.Array:
     C = matrix(C, "C", (None, None))
     m, n = C.shape
     M = matrix(M, "M", (None, n))
-    C1 = jnp.linalg.pinv(C) if C1 is None else matrix(C1, "C1", (n, m))
+    if C1 is None:
+        C1 = jnp.linalg.pinv(C)
+    else:
+        C1 = _gmatrix(C1, "C1", (n, m))
+        _check_one_inverse(C1, C, "C1", "C")
     return M @ (jnp.eye(n, dtype=M.dtype) - C1 @ C)
 
 
@@ -155,14 +182,18 @@ def input_solvability_residual(B, v, B1=None) -> jax.Array:
     v = as_float_array(v, "v")
     if v.ndim not in (1, 2) or v.shape[0] != n:
         raise ValueError(f"`v` must have shape ({n},) or ({n}, k) to match `B` {tuple(B.shape)}, got {tuple(v.shape)}.")
-    B1 = jnp.linalg.pinv(B) if B1 is None else matrix(B1, "B1", (p, n))
+    if B1 is None:
+        B1 = jnp.linalg.pinv(B)
+    else:
+        B1 = _gmatrix(B1, "B1", (p, n))
+        _check_one_inverse(B1, B, "B1", "B")
     return v - B @ (B1 @ v)
 
 
 def null_space_basis(C, rtol: float | None = None) -> np.ndarray:
     """Orthonormal basis N (n, k) of null(C) for a concrete (m, n) matrix, each column's largest-magnitude
     entry made positive (so that e.g. null([[0, 1], [0, 1]]) = [[1], [0]])."""
-    Cn = concrete_value(matrix(C, "C", (None, None)))
+    Cn = concrete_value(_gmatrix(C, "C"))
     if Cn is None:
         raise ValueError("`C` must be concrete (not traced) to compute its null-space basis.")
     m, n = Cn.shape

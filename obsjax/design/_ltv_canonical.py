@@ -496,6 +496,13 @@ def ltv_observer_canonical_form(
                 "`indices` must be given when `t` is traced (observability indices are static)."
             )
         indices = ltv_observability_indices(A, C, tc)
+        zero = [i + 1 for i, p in enumerate(indices) if int(p) == 0]
+        if zero:
+            raise ValueError(
+                f"The observability indices at t = {float(tc):.6g} are {tuple(int(p) for p in indices)}: "
+                f"output(s) {zero} add no row independent of the others (p_i = 0), and the canonical form "
+                "(9)-(11) needs every p_i ≥ 1; drop the redundant output(s) from C."
+            )
     idx = _check_indices(indices, n, m)
     if not threshold > 0:
         raise ValueError(f"`threshold` must be > 0, got {threshold}.")

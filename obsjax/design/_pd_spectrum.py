@@ -148,6 +148,8 @@ def check_rho_bar(
         raise ValueError(f"`{name}` must be real (PD-spectrum ρ_k = ρ̄_k ω(t)), got complex values.")
     c = concrete_value(r)
     if c is not None:
+        if not np.all(np.isfinite(c)):
+            raise ValueError(f"`{name}` must be finite (no NaN or inf), got {c.tolist()}.")
         if negative and not np.all(c < 0):
             raise ValueError(f"`{name}` must be < 0 for a stable observer, got {c.tolist()}.")
         if distinct and bool(rho_bar_too_close(np.asarray(c, dtype=float))):
