@@ -288,3 +288,37 @@ def test_gradient_wrt_G_and_F_matches_finite_differences():
     fd = (loss(g0, f0 + h) - loss(g0, f0 - h)) / (2 * h)
     np.testing.assert_allclose(df, fd, rtol=1e-5, atol=1e-9)
     assert abs(float(df)) > 1e-4 and float(jnp.abs(dg).max()) > 1e-3
+
+
+def test_equilibrated_rcond_is_invariant_to_the_state_units_and_zero_when_singular():
+    from obsjax.design._ginverse import equilibrated_rcond
+
+    rng = np.random.default_rng(4)
+    T = rng.normal(size=(4, 4))
+    r0 = float(equilibrated_rcond(T))
+    for S in ([1e-4, 1.0, 1e4, 3.0], [1e6, 1e-6, 1.0, 1.0]):
+        np.testing.assert_allclose(float(equilibrated_rcond(T / np.asarray(S)[None, :])), r0, rtol=1e-10)
+        np.testing.assert_allclose(float(equilibrated_rcond(7.5 * T / np.asarray(S)[None, :])), r0, rtol=1e-10)
+    sv = np.linalg.svd(T, compute_uv=False)
+    assert r0 > 0 and abs(np.log10(r0 / (sv[-1] / sv[0]))) < 2  # the same order as the plain ratio here
+    assert float(equilibrated_rcond(np.array([[1.0, 2.0], [2.0, 4.0]]))) < 1e-15
+    np.testing.assert_allclose(equilibrated_rcond(np.stack([T, 2 * T])), [r0, r0], rtol=1e-12)  # batched
+
+
+@pytest.mark.extended
+def test_invertibility_verdict_does_not_depend_on_the_state_units():
+    """σ_min/σ_max of T changes with the units of the state (T → T S⁻¹): in units 1e-4, 1, 1e4 a design with
+    rcond 6e-3 read 1.5e-11 and was refused.  The test equilibrates T first; a singular T still reads 0."""
+    from obsjax.design import lovass_nagy_T_ode
+
+    A0 = lambda t: jnp.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0 - jnp.sin(t), -1.0]])
+    C0, F, G = np.array([[1.0, 0.0, 0.0]]), np.diag([-4.0, -5.0, -6.0]), np.ones((3, 1))
+    ts = jnp.linspace(0.0, 5.0, 11)
+    mins = []
+    for S in ([1.0, 1.0, 1.0], [1e-4, 1.0, 1e4], [1e6, 1.0, 1e-6]):
+        S = np.asarray(S)
+        A = lambda t, S=S: jnp.asarray(S)[:, None] * A0(t) / jnp.asarray(S)[None, :]
+        flow = lovass_nagy_T_ode(A, jnp.asarray(C0 / S[None, :]), jnp.asarray(F), jnp.asarray(G), ts)
+        mins.append(float(np.min(flow.rcond)))
+    np.testing.assert_allclose(mins, mins[0], rtol=1e-6)
+    assert mins[0] > 1e-3

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value, matrix
+from ..design._ginverse import equilibrated_rcond
 from ._base import AbstractObserver, require_no_feedthrough
 from ._validation import require_finite
 
@@ -32,11 +33,11 @@ def _time_grid(horizon, num):
 
 
 def _rcond_sign(T):
-    """(σ_min(T)/σ_max(T), sign det T): invertibility of T by a scale-invariant test (the same verdict
-    for T and s·T, z in other units), and the sign of det T from ``slogdet`` (no over- or underflow)."""
-    sv = jnp.linalg.svd(T, compute_uv=False)
-    rcond = jnp.where(sv[0] > 0, sv[-1] / jnp.where(sv[0] > 0, sv[0], 1.0), 0.0)
-    return rcond, jnp.linalg.slogdet(T)[0]
+    """(σ_min/σ_max of the equilibrated T, sign det T): invertibility of T by a scale-invariant test (the
+    same verdict for T and s·T, z in other units, and for the state in other units,
+    :func:`obsjax.design._ginverse.equilibrated_rcond`), and the sign of det T from ``slogdet`` (no over- or
+    underflow)."""
+    return equilibrated_rcond(T), jnp.linalg.slogdet(T)[0]
 
 
 def _checks_at(obs, t):
