@@ -44,6 +44,9 @@ def test_peak_is_the_documented_smooth_maximum():
     spike = np.full((K, 1), 0.1)
     spike[K // 3] = 2.0
     np.testing.assert_allclose(obsjax.losses.peak(_traj(spike, np.linspace(0.0, 1.0, K)), s), 2.0, rtol=1e-12)
+    zero = _traj(np.zeros((K, 2)), np.linspace(0.0, 1.0, K))
+    assert float(obsjax.losses.peak(zero, s)) == 0.0 and float(obsjax.losses.itae(zero)) == 0.0
+    assert np.all(np.asarray(jax.grad(lambda e: obsjax.losses.peak(_traj(e)))(jnp.zeros((5, 2)))) == 0.0)
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="`sharpness` must be a positive finite scalar"):
             obsjax.losses.peak(flat, bad)

@@ -56,8 +56,8 @@ def peak(traj, sharpness: float = 50.0) -> jnp.ndarray:
         raise ValueError(f"`sharpness` must be a positive finite scalar, got {np.asarray(sv).tolist()}.")
     nrm = _norm(traj.error)
     top = jnp.max(nrm)
-    scale = sharpness / jnp.where(top > 0, top, 1.0)
-    return top + jnp.log(jnp.sum(jnp.exp(scale * (nrm - top)))) / scale
+    ratio = nrm / jnp.where(top > 0, top, 1.0)  # in [0, 1]; all 0 for a zero error (then the peak is 0)
+    return top * (1.0 + jnp.log(jnp.sum(jnp.exp(sharpness * (ratio - 1.0)))) / sharpness)
 
 
 def _valid_mean(values, valid):
