@@ -109,6 +109,14 @@ def concrete_value(x):
         return None
 
 
+def scalar_value(x):
+    """NumPy value of a Python or NumPy number as given (also under ``jit``, where ``jnp.asarray`` of a
+    constant is traced), else :func:`concrete_value` of it (``None`` when traced)."""
+    if isinstance(x, (bool, int, float, complex, np.generic, np.ndarray)):
+        return np.asarray(x)
+    return concrete_value(jnp.asarray(x))
+
+
 def static_value(x):
     """NumPy value of ``x`` when it is a constant of the computation, ``None`` when any leaf is a JAX tracer.
 

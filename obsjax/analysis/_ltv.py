@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import concrete_value
+from .._checks import concrete_value, scalar_value
 
 _RTOL, _ATOL = 1e-10, 1e-12
 _SOLVER = diffrax.Dopri8
@@ -88,16 +88,8 @@ def _probe_plant(plant, a, b, n=65):
         )
 
 
-def _scalar_value(x):
-    """NumPy value of a Python or NumPy number as given (also under ``jit``, where ``jnp.asarray`` of a
-    constant is traced), else the concrete value of a JAX array (``None`` when traced)."""
-    if isinstance(x, (bool, int, float, complex, np.generic, np.ndarray)):
-        return np.asarray(x)
-    return concrete_value(jnp.asarray(x))
-
-
 def _pos_float(x, name):
-    v = _scalar_value(x)
+    v = scalar_value(x)
     if v is None:
         raise ValueError(f"`{name}` must be a concrete number (not traced), got a tracer.")
     if v.ndim != 0 or np.iscomplexobj(v) or not np.isfinite(v) or v <= 0:
@@ -107,7 +99,7 @@ def _pos_float(x, name):
 
 def _finite_float(x, name):
     """A concrete finite scalar (a time origin), else a ValueError naming it."""
-    v = _scalar_value(x)
+    v = scalar_value(x)
     if v is None:
         raise ValueError(f"`{name}` must be a concrete number (not traced), got a tracer.")
     if v.ndim != 0 or np.iscomplexobj(v) or not np.isfinite(v):

@@ -43,16 +43,14 @@ import jax.numpy as jnp
 import jax.scipy.linalg
 import numpy as np
 
-from .._checks import as_float_array, concrete_value, matrix
+from .._checks import as_float_array, concrete_value, matrix, real_array
 from ..analysis._lti import DEFAULT_TOL, relative_residuals
 
 
 def _gmatrix(x, name, shape=(None, None)):
     """A real, non-empty matrix of the given shape; a concrete NaN or infinity is refused by name (under
     ``jit`` the result's status is the caller's: these functions return NaN for it, as pinv)."""
-    if jnp.iscomplexobj(x):
-        raise ValueError(f"`{name}` must be real, got complex values.")
-    arr = matrix(x, name, shape)
+    arr = matrix(real_array(x, name), name, shape)
     if 0 in arr.shape:
         raise ValueError(f"`{name}` must not be empty, got shape {tuple(arr.shape)}.")
     v = concrete_value(arr)

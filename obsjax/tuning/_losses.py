@@ -9,7 +9,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import concrete_value
+from .._checks import concrete_value, real_array, scalar_value
 
 
 def _trapz(f, ts):
@@ -51,7 +51,7 @@ def peak(traj, sharpness: float = 50.0) -> jnp.ndarray:
     1.138 M at s = 50).  Raise `sharpness` for a value closer to the maximum (and a gradient concentrated
     on fewer times).
     """
-    sv = concrete_value(jnp.asarray(sharpness))
+    sv = scalar_value(sharpness)
     if sv is not None and not (np.ndim(sv) == 0 and np.isrealobj(sv) and np.isfinite(sv) and sv > 0):
         raise ValueError(f"`sharpness` must be a positive finite scalar, got {np.asarray(sv).tolist()}.")
     nrm = _norm(traj.error)
@@ -70,9 +70,7 @@ def _valid_mean(values, valid):
 def _output_weight(weight, m):
     """The (m,) output weights: real, finite, ≥ 0, not all 0 (a ValueError naming `weight`; traced values
     by ``eqx.error_if``).  A negative weight would make the loss reward that output's error."""
-    if jnp.iscomplexobj(weight):
-        raise ValueError("`weight` must be real (one weight ≥ 0 per output), got complex values.")
-    w = jnp.asarray(weight, dtype=float)
+    w = real_array(weight, "weight")
     if w.shape != (m,):
         raise ValueError(f"`weight` must have shape ({m},) (one weight per output), got {tuple(w.shape)}.")
     wv = concrete_value(w)
