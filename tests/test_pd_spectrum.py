@@ -179,6 +179,37 @@ _C3 = lambda t: jnp.array([[1.0, 0.0, 0.0]]) + 0.0 * t
 _RHO3 = jnp.array([-1.0, -2.0, -3.0])
 
 
+def test_nan_or_repeated_rho_bar_and_a_nan_time_are_refused_under_jit():
+    """Eagerly these raise ValueError; under jit the PD-spectrum functions returned NaN gains without a
+    word (a NaN or repeated ρ̄ leaves the Vandermonde solve of (21) undefined)."""
+    from obsjax.design import pd_controller_gain, pd_observer_gain
+
+    B3 = lambda t: jnp.array([[0.0], [0.0], [1.0]]) + 0.0 * t
+    fns = {
+        "pd_modal_matrix": lambda r, t: pd_modal_matrix(r, 2.0, t),
+        "pd_coefficients": lambda r, t: pd_coefficients(r, 2.0, t),
+        "rpdo_coefficients": lambda r, t: rpdo_coefficients(r, omega_tv, t),
+        "pd_observer_gain": lambda r, t: pd_observer_gain(_A3, _C3, r, 2.0, t, indices=(3,)).Ko,
+        "pd_controller_gain": lambda r, t: pd_controller_gain(_A3, B3, r, 2.0, t, indices=(3,)).K,
+    }
+    jitted = {name: jax.jit(fn) for name, fn in fns.items()}
+    np.testing.assert_allclose(jitted["pd_coefficients"](_RHO3, 0.3), [48.0, 44.0, 12.0], rtol=1e-12)  # (s+2)(s+4)(s+6)
+    A = _A3(0.3)
+    K = jitted["pd_observer_gain"](_RHO3, 0.3)  # the defining property: eig(A + K C) = ρ̄ω
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(A + K @ _C3(0.3)).real), [-6, -4, -2], rtol=1e-10)
+    K = jitted["pd_controller_gain"](_RHO3, 0.3)
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(A + B3(0.3) @ K).real), [-6, -4, -2], rtol=1e-10)
+    for name, fn in jitted.items():
+        for rho, what in ((jnp.array([-1.0, jnp.nan, -3.0]), "finite"), (jnp.array([-1.0, -2.0, -2.0]), "distinct")):
+            with pytest.raises(Exception, match=what):
+                jax.block_until_ready(fn(rho, 0.3))
+        with pytest.raises(ValueError, match=what):  # eagerly, as before
+            pd_coefficients(rho, 2.0, 0.3)
+    for name in ("pd_observer_gain", "pd_controller_gain"):
+        with pytest.raises(Exception, match="time `t` must be finite"):
+            jax.block_until_ready(jitted[name](_RHO3, jnp.nan))
+
+
 @pytest.mark.extended
 def test_a_bandwidth_that_is_not_positive_where_it_is_used_is_refused():
     """A callable ω was never checked: ω(t) = −2 placed eig(A + KC) = {+2, +4, +6} (an unstable observer)

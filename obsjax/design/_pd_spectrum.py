@@ -158,7 +158,28 @@ def check_rho_bar(
                 "Vandermonde matrix V̄(ρ̄) of (21) is solved: with values 1e-14 apart the coefficients "
                 f"were 6 % off), got {c.tolist()}."
             )
+        return r
+    # traced (jit, vmap, a tuned leaf): the same value checks at run time
+    r = eqx.error_if(r, ~jnp.all(jnp.isfinite(r)), f"`{name}` must be finite (no NaN or inf).")
+    if negative:
+        r = eqx.error_if(r, jnp.any(~(r < 0)), f"`{name}` must be < 0 for a stable observer.")
+    if distinct:
+        r = eqx.error_if(
+            r,
+            rho_bar_too_close(r),
+            f"`{name}` must hold distinct values, at least {RHO_BAR_MIN_GAP:g}·max|ρ̄| apart (the "
+            "Vandermonde matrix V̄(ρ̄) of (21) is solved).",
+        )
     return r
+
+
+def check_time(t, what: str) -> jax.Array:
+    """t as a float array; a traced t must be finite at run time (``eqx.error_if``; a NaN time would
+    give a NaN gain).  A concrete non-finite t is left to the caller's own eager check."""
+    t = _as_time(t)
+    if concrete_value(t) is None:
+        t = eqx.error_if(t, ~jnp.isfinite(t), f"{what}: the time `t` must be finite.")
+    return t
 
 
 def _vhat(omega_fn: Callable, N: int) -> Callable:
@@ -302,7 +323,10 @@ def pd_observer_gain(
     **Arguments:**
 
     - `A`, `C`: callables of t (the Jacobians A_o(t), C_o(t) of (7) for the TLO).
-    - `rho_bar`: (n,) nominal PD-eigenvalues, split over the output blocks in order (p_1 for output 1, …).
+    - `rho_bar`: (n,) nominal PD-eigenvalues, split over the output blocks in order (p_1 for output 1, …),
+      real, finite and distinct within each block (checked eagerly, and with ``eqx.error_if`` under
+      ``jit``).  Like :func:`~obsjax.design.place`, any sign is assigned: ρ̄_k > 0 gives a growing error
+      mode (:class:`~obsjax.TrajectoryLinearization` requires ρ̄ < 0).
     - `omega`: bandwidth, positive constant or callable of t.
     - `t`: the time (may be traced when `indices` is given).
     - `eps`: high-gain factor, ω_H = ω/ε (22)-(23).
@@ -315,6 +339,7 @@ def pd_observer_gain(
         K = pd_observer_gain(A, C, jnp.array([-1., -2., -3.]), 2.0, 0.0).Ko
     """
     require_x64("pd_observer_gain")
+    t = check_time(t, "pd_observer_gain")
     form = ltv_observer_canonical_form(A, C, t, indices=indices, threshold=threshold, state_scale=state_scale)
     idx = form.indices
     n = form.Tinv.shape[0]

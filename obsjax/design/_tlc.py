@@ -51,7 +51,7 @@ from ._ltv_canonical import (
     margin_at,
     time_derivatives,
 )
-from ._pd_spectrum import check_rho_bar, omega_function, pd_coefficients
+from ._pd_spectrum import check_rho_bar, check_time, omega_function, pd_coefficients
 
 __all__ = [
     "NominalTrajectory",
@@ -155,7 +155,7 @@ def pd_controller_gain(
         K = pd_controller_gain(A, B, jnp.array([-1., -2.]), 2.0, 0.3).K      # eig(A + BK) frozen ≠ PD
     """
     require_x64("pd_controller_gain")
-    t = _as_time(t)
+    t = check_time(t, "pd_controller_gain")
     Ad, Cd = _dual(A, B)
     tc = concrete_value(t)
     if indices is None:
