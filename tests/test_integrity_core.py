@@ -66,6 +66,15 @@ SHAPE_CASES = {
         lambda: sim(PLANT, OBS, X0, XH0, TS, noise=obsjax.noise.BandLimitedNoise([0.1, 0.1, 0.1]), key=jax.random.key(0)),
         "`noise.sigma`",
     ),
+    # a (1,) σ for two outputs was taken as one intensity for both
+    "noise sigma (1,) for m = 2": (
+        lambda: sim(
+            obsjax.LTI(A28, B28, np.eye(2)),
+            obsjax.Luenberger.from_poles(obsjax.LTI(A28, B28, np.eye(2)), [-4.0, -5.0]),
+            X0, XH0, TS, noise=obsjax.noise.BandLimitedNoise([0.1]), key=jax.random.key(0),
+        ),
+        "`noise.sigma`",
+    ),
 }
 
 
@@ -87,6 +96,12 @@ VALUE_CASES = {
     "jump_ts nan": (lambda: obsjax.LTI(A28, B28, C28, jump_ts=[0.5, np.nan]), "`jump_ts`"),
     "white sigma nan": (lambda: obsjax.noise.WhiteNoise(np.nan), "`sigma`"),
     "band sigma < 0": (lambda: obsjax.noise.BandLimitedNoise(-0.1), "`sigma`"),
+    # a boolean was read as 1.0 and a complex dt raised float()'s TypeError
+    "band sigma bool": (lambda: obsjax.noise.BandLimitedNoise(True), "`sigma` must be a real intensity"),
+    "white sigma bool list": (lambda: obsjax.noise.WhiteNoise([0.1, True]), "`sigma` must be a real intensity"),
+    "band dt bool": (lambda: obsjax.noise.BandLimitedNoise(0.1, dt=True), "`dt`"),
+    "band dt complex": (lambda: obsjax.noise.BandLimitedNoise(0.1, dt=1j), "`dt`"),
+    "cvar level complex": (lambda: obsjax.risk_weights(("cvar", 1j), 10), "CVaR level"),
     "multisine frequency nan": (lambda: obsjax.signals.multisine([1.0], [np.nan]), "`frequencies`"),
     "multisine amplitude inf": (lambda: obsjax.signals.multisine([np.inf], [1.0]), "`amplitudes`"),
     # explicit observer gains: finite at construction (NaN/inf used to fail later, naming nothing)

@@ -138,7 +138,7 @@ def check_dimensions(plant, observer, x0, xhat0, t0, u, controller, noise):
     u0 = _check_input(u, t0, p)
     if noise is not None:
         s = jnp.shape(noise.sigma)
-        if s not in ((), (1,), (m,)):
+        if s not in ((), (m,)):  # (1,) for m > 1 is ambiguous: one output's intensity, or all?
             raise ValueError(
                 f"`noise.sigma` must be a scalar or have shape ({m},) (one intensity per plant output), "
                 f"got shape {s}."

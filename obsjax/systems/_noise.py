@@ -30,6 +30,10 @@ from .._checks import concrete_value, real_array, require_finite
 
 def _sigma(sigma):
     """σ: a real scalar or vector of finite, non-negative intensities (checked when known)."""
+    if isinstance(sigma, bool) or getattr(sigma, "dtype", None) == bool or (
+        isinstance(sigma, (list, tuple)) and any(isinstance(v, bool) for v in sigma)
+    ):
+        raise ValueError(f"`sigma` must be a real intensity (a scalar or an (m,) vector), got a boolean {sigma!r}.")
     arr = real_array(sigma, "sigma")
     if arr.ndim > 1:
         raise ValueError(
@@ -74,7 +78,12 @@ class BandLimitedNoise(AbstractNoise):
 
     def __init__(self, sigma, dt=0.01):
         self.sigma = _sigma(sigma)
-        dt = float(dt)
+        if isinstance(dt, bool):
+            raise ValueError(f"`dt` of BandLimitedNoise must be a real number > 0, got {dt!r}.")
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError):
+            raise ValueError(f"`dt` of BandLimitedNoise must be a real number > 0, got {dt!r}.") from None
         if not (dt > 0 and math.isfinite(dt)):
             raise ValueError(f"`dt` of BandLimitedNoise must be finite and > 0, got {dt}.")
         self.dt = dt

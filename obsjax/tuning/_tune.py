@@ -16,7 +16,7 @@ import numpy as np
 import optax
 
 from .. import _trace_cache
-from .._checks import as_float_array, runtime_checks_as_nan
+from .._checks import as_float_array, runtime_checks_as_nan, scalar_value
 from .._config import require_x64
 from .._integrate import _diffrax, _masked, _validate
 from .._simulate import SUCCESS, _check_ts, num_segments, simulate
@@ -78,6 +78,22 @@ class TuneResult(eqx.Module):
     steps_taken: int = eqx.field(static=True, default=0)
 
 
+def _cvar_level(alpha) -> float:
+    """The level α of ``("cvar", α)``: a real number in [0, 1) (``ValueError`` otherwise)."""
+    try:
+        v = None if isinstance(alpha, (bool, str)) else scalar_value(alpha)
+    except Exception:  # noqa: BLE001  (not array-like)
+        v = None
+    if v is None or v.ndim != 0 or not (np.issubdtype(v.dtype, np.integer) or np.issubdtype(v.dtype, np.floating)):
+        raise ValueError(
+            f"CVaR level α must be a real number in [0, 1) (a static value, not traced), got {alpha!r}."
+        )
+    alpha = float(v)
+    if not 0.0 <= alpha < 1.0:
+        raise ValueError(f"CVaR level α must be in [0, 1), got {alpha}.")
+    return alpha
+
+
 def risk_measure(losses, risk):
     """Aggregate per-scenario losses: ``"mean"``, ``"worst"`` (max) or ``("cvar", α)`` — the mean of
     the worst ⌈(1 − α)·N⌉ losses (conditional value at risk at level α)."""
@@ -86,9 +102,7 @@ def risk_measure(losses, risk):
     if risk in ("worst", "max"):
         return jnp.max(losses)
     if isinstance(risk, tuple) and len(risk) == 2 and risk[0] == "cvar":
-        alpha = float(risk[1])
-        if not 0.0 <= alpha < 1.0:
-            raise ValueError(f"CVaR level α must be in [0, 1), got {alpha}.")
+        alpha = _cvar_level(risk[1])
         k = tail_count(alpha, losses.shape[0])
         return jnp.mean(jax.lax.top_k(losses, k)[0])
     raise ValueError(f"`risk` must be 'mean', 'worst' or ('cvar', α), got {risk!r}.")
@@ -110,9 +124,7 @@ def risk_weights(risk, batch: int) -> np.ndarray:
     elif risk in ("worst", "max"):
         w[-1] = 1.0
     elif isinstance(risk, tuple) and len(risk) == 2 and risk[0] == "cvar":
-        alpha = float(risk[1])
-        if not 0.0 <= alpha < 1.0:
-            raise ValueError(f"CVaR level α must be in [0, 1), got {alpha}.")
+        alpha = _cvar_level(risk[1])
         k = tail_count(alpha, batch)
         w[batch - k :] = 1.0 / k
     else:
