@@ -638,3 +638,21 @@ def test_canonical_form_names_a_redundant_output_and_pd_spectrum_refuses_non_fin
     for bad in ([-1.0, np.nan, -3.0], [-1.0, -np.inf, -3.0]):
         with pytest.raises(ValueError, match="`rho_bar` must be finite"):
             obsjax.design.pd_coefficients(jnp.asarray(bad), 2.0, 0.0)
+
+
+def test_null_space_basis_and_moore_penrose_agree_on_the_rank():
+    """σ = (1, 1e-3, 1e-15) on a 3 × 4 C: pinv cut σ₃ (rank 2) while null_space_basis kept it (a 1-D null
+    space), so C⁺C ≠ I − N Nᵀ; both now use pinv's cut-off 10·max(m, n)·ε·σ₁."""
+    rng = np.random.default_rng(3)
+    U, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    V, _ = np.linalg.qr(rng.standard_normal((4, 4)))
+    for s3 in (1e-15, 5e-15, 1e-13):  # inside [4ε, 40ε]·σ₁ for the first two, above pinv's cut for the last
+        C = U @ np.diag([1.0, 1e-3, s3]) @ V[:3]
+        N = obsjax.design.null_space_basis(C)
+        P = np.asarray(moore_penrose(C)) @ C
+        rank = int(round(np.trace(P)))  # P is a projector: its trace is its rank
+        assert rank == (2 if s3 < 1e-14 else 3) and N.shape == (4, 4 - rank), (s3, N.shape, rank)
+        np.testing.assert_allclose(N.T @ N, np.eye(4 - rank), atol=1e-12)
+        if rank == 2:  # with σ₃ = 1e-13 kept, C⁺C carries an error ε/σ₃
+            np.testing.assert_allclose(P, np.eye(4) - N @ N.T, atol=1e-10)
+            np.testing.assert_allclose(C @ N, 0.0, atol=1e-12)

@@ -190,13 +190,17 @@ def input_solvability_residual(B, v, B1=None) -> jax.Array:
 
 def null_space_basis(C, rtol: float | None = None) -> np.ndarray:
     """Orthonormal basis N (n, k) of null(C) for a concrete (m, n) matrix, each column's largest-magnitude
-    entry made positive (so that e.g. null([[0, 1], [0, 1]]) = [[1], [0]])."""
+    entry made positive (so that e.g. null([[0, 1], [0, 1]]) = [[1], [0]]).
+
+    A singular value counts as zero when it is at most rtol·σ₁, by default rtol = 10·max(m, n)·ε: the
+    cut-off of :func:`moore_penrose` (``jnp.linalg.pinv``), so that the two agree on the rank of C and
+    C⁺C = I − N Nᵀ."""
     Cn = concrete_value(_gmatrix(C, "C"))
     if Cn is None:
         raise ValueError("`C` must be concrete (not traced) to compute its null-space basis.")
     m, n = Cn.shape
     _u, s, vt = np.linalg.svd(Cn)
-    tol = (rtol if rtol is not None else max(m, n) * np.finfo(float).eps) * (
+    tol = (rtol if rtol is not None else 10 * max(m, n) * np.finfo(float).eps) * (
         s[0] if s.size else 0.0
     )
     rank = int(np.sum(s > tol))
