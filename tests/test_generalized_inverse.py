@@ -656,3 +656,19 @@ def test_null_space_basis_and_moore_penrose_agree_on_the_rank():
         if rank == 2:  # with σ₃ = 1e-13 kept, C⁺C carries an error ε/σ₃
             np.testing.assert_allclose(P, np.eye(4) - N @ N.T, atol=1e-10)
             np.testing.assert_allclose(C @ N, 0.0, atol=1e-12)
+
+
+def test_lovass_nagy_T_checks_a_given_null_space_basis_relative_to_C():
+    """`N` was checked by ‖C N‖ ≤ 1e-9·max(1, ‖C‖): with outputs in small units (C ~ 1e-12) any N
+    passed, and T was built on a subspace that is not null(C); an N with too few columns passed too."""
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -3.0]])
+    F = np.diag([-4.0, -5.0, -6.0])
+    S = lambda t: jnp.ones((3, 1))
+    for scale in (1.0, 1e-12):
+        C = scale * np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+        T = lovass_nagy_T(A, C, F, S, N=np.array([[0.0], [0.0], [1.0]]))  # the true null(C): accepted
+        assert np.all(np.isfinite(np.asarray(T(0.0))))
+        with pytest.raises(ValueError, match="must span null"):
+            lovass_nagy_T(A, C, F, S, N=np.array([[1.0], [0.0], [0.0]]))
+    with pytest.raises(ValueError, match="of dimension 2"):
+        lovass_nagy_T(A, np.array([[1.0, 0.0, 0.0]]), F, S, N=np.array([[0.0], [0.0], [1.0]]))

@@ -314,8 +314,17 @@ def lovass_nagy_T(A, C, F, S, *, N=None, t0: float = 0.0) -> LovassNagyT:
     Nc = concrete_value(N)
     Cc = concrete_value(C)
     if Nc is not None and Cc is not None:
-        if np.linalg.norm(Cc @ Nc) > 1e-9 * max(1.0, np.linalg.norm(Cc)):
-            raise ValueError(f"`N` must span null(C): ‖C N‖ = {np.linalg.norm(Cc @ Nc):.3e}.")
+        # relative to ‖C‖ (an absolute floor let any N pass for C in small output units)
+        if np.linalg.norm(Cc @ Nc) > 1e-9 * np.linalg.norm(Cc):
+            raise ValueError(
+                f"`N` must span null(C): ‖C N‖ = {np.linalg.norm(Cc @ Nc):.3e} against ‖C‖ = "
+                f"{np.linalg.norm(Cc):.3e}."
+            )
+        dim = null_space_basis(Cc).shape[1]
+        if k != dim:
+            raise ValueError(
+                f"`N` must span null(C), of dimension {dim} (n − rank C), got {k} column(s)."
+            )
         if np.linalg.norm(Nc.T @ Nc - np.eye(k)) > 1e-9:
             raise ValueError("`N` must have orthonormal columns (NᵀN = I).")
     F = as_float_array(F, "F")
