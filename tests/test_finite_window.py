@@ -587,6 +587,54 @@ def test_window_span():
         )
 
 
+def test_window_span_is_checked_in_the_time_unit_of_the_window():
+    """The span check allowed an absolute 1e-9: a window of 1e-6 (the plant in seconds, its dynamics in
+    microseconds) accepted a grid 0.05 % too long.  It is now 1e-9 of T plus the rounding of the times,
+    eagerly and under jit, and a grid ending at t = 1e3 still passes."""
+    import jax
+
+    model = obsjax.LTI([[0.0, 1e6], [0.0, 0.0]], [[0.0], [1e6]], [[2.0, 0.0]])
+    obs = obsjax.FiniteWindow(model, 1e-6)
+    z = np.zeros((11, 1))
+    with pytest.raises(ValueError, match="`ts` must span the window"):
+        obs.estimate_window(np.linspace(0.0, 1.0005e-6, 11), z, z)
+    with pytest.raises(Exception, match="must span"):
+        jax.block_until_ready(jax.jit(lambda a, b, c: obs.estimate_window(a, b, c))(np.linspace(0.0, 1.0005e-6, 11), z, z))
+    ts = 1e3 + np.linspace(-1e-6, 0.0, 11)  # rounding of ts − ts[0] ≈ 1e-13, 1e-7 of T
+    y, u = np.cos(1e6 * ts)[:, None], np.sin(1e6 * ts)[:, None]
+    # the same problem in μs (the kernels scale by 1e6 and the norm's weighting with them)
+    ref = obsjax.FiniteWindow(MODEL29, 1.0).estimate_window(np.linspace(0.0, 1.0, 11), y, u, rule="trapezoid")
+    np.testing.assert_allclose(obs.estimate_window(ts, y, u, rule="trapezoid"), ref, rtol=1e-6, atol=1e-9)
+
+
+def test_kernels_are_covariant_under_a_change_of_state_units():
+    """Each row of (G1, G2) is its own minimum-norm problem, so with x' = D x the kernels are D G1, D G2
+    exactly.  The Hamiltonians were exponentiated in the user's units: with D spanning 1e-2 … 1e3 the
+    reconstruction was 7e-8 off, and with 1e-4 … 1e4 the design overflowed ("not finite").  The design
+    now runs in balanced state units."""
+    A = np.array([[0.0, 1.0, 0.0, 0.0], [-2.0, -0.4, 0.5, 0.0], [0.0, 0.0, -1.0, 2.0], [0.3, 0.0, -2.0, -0.5]])
+    B, C = np.array([[0.0], [1.0], [0.0], [0.5]]), np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    s = np.linspace(0.0, 1.0, 5)
+    G1, G2 = obsjax.FiniteWindow(obsjax.LTI(A, B, C), 1.0).kernels(s)
+    for d in (np.array([1e-2, 1e-1, 1e2, 1e3]), np.array([1e-4, 1e-1, 1e2, 1e4])):
+        model = obsjax.LTI(d[:, None] * A / d[None, :], d[:, None] * B, C / d[None, :])
+        for alpha in (None, np.array([1.0, 2.0, 0.5, 1.0])):  # formulas (28) and (25)
+            obs = obsjax.FiniteWindow(model, 1.0, alpha=alpha)
+            G1d, G2d = obs.kernels(s)
+            if alpha is None:
+                np.testing.assert_allclose(np.asarray(G1d) / d[:, None], G1, rtol=1e-9, atol=1e-9 * np.abs(G1).max())
+                np.testing.assert_allclose(np.asarray(G2d) / d[:, None], G2, rtol=1e-9, atol=1e-9 * np.abs(G2).max())
+            # the defining property in the new units: ∫₀ᵀ G1(σ) C' e^{A'σ} dσ = e^{A'T} (u = 0)
+            q = np.linspace(0.0, 1.0, 401)
+            G1q = np.asarray(obs.kernels(q)[0])
+            E = np.stack([sl.expm(np.asarray(model.A) * t) for t in q])
+            f = np.einsum("kim,mj,kjl->kil", G1q, np.asarray(model.C), E)
+            w = np.full(q.size, 2.0); w[1:-1:2] = 4.0; w[0] = w[-1] = 1.0  # Simpson
+            lhs = np.einsum("k,kij->ij", w * (q[1] - q[0]) / 3.0, f)
+            rhs = sl.expm(np.asarray(model.A))
+            np.testing.assert_allclose(lhs / d[:, None] * d[None, :], rhs / d[:, None] * d[None, :], atol=1e-8)
+
+
 def test_window_ys_shape():
     with pytest.raises(ValueError, match=r"`ys` must have shape \(11, 1\)"):
         obsjax.FiniteWindow(MODEL29, 1.0).estimate_window(_TS, np.zeros((11, 2)), np.zeros((11, 1)))

@@ -40,6 +40,54 @@ _FORMULAS = ("auto", "(25)", "(28)")
 # ------------------------------------------------------------------------------------------------------
 
 
+def _time_tol(span, *times):
+    """Agreement allowed between two window times: 1e-9 of the window's length plus the rounding of the
+    times themselves (16 ulps of the largest).  In the time unit's own terms, so that a window of
+    microseconds (or of kiloseconds) is held to the same relative accuracy (an absolute 1e-9 let a
+    window 2e-6 long be 0.05 % off)."""
+    xp = np if all(isinstance(v, (int, float, np.generic, np.ndarray)) for v in (span, *times)) else jnp
+    big = xp.max(xp.abs(xp.asarray([xp.asarray(v, dtype=float) for v in times])))
+    return 1e-9 * xp.abs(xp.asarray(span, dtype=float)) + 16 * np.finfo(float).eps * big
+
+
+def _window_scaling(A, B, C):
+    """State scaling s (n,), powers of 2, for the design in balanced units x = diag(s) x_b.
+
+    The Hamiltonians W = [[A, γBBᵀ], [CᵀC, −Aᵀ]] of a model with states in very different units span the
+    square of that spread (x = S x_b maps W to diag(S⁻¹, S) W diag(S, S⁻¹)), and their exponentials lose
+    about that many digits (states in units 1e-2 … 1e3 put the reconstruction 7e-8 off; 1e-3 … 1e3 made
+    the design overflow).  s minimises, over the nonzero entries, the spread of the log-magnitudes of
+
+        A_ij s_j / s_i,    (BBᵀ)_ij / (s_i s_j),    (CᵀC)_ij s_i s_j
+
+    about a common level (Curtis & Reid's log-magnitude scaling, least squares, minimum norm), so the
+    balanced model does not depend on the units the states were given in.  The kernels are covariant:
+    each row of (G1, G2) is its own minimum-norm problem, so the rows in the user's units are those of
+    the balanced design times s_i, exactly (powers of 2 scale without rounding).  The scaling carries no
+    derivative (the result does not depend on it)."""
+    A, B, C = (jax.lax.stop_gradient(jnp.asarray(M)) for M in (A, B, C))
+    n = A.shape[0]
+    eye = jnp.eye(n, dtype=A.dtype)
+    pair = lambda sa, sb: (sa * eye[:, None, :] + sb * eye[None, :, :]).reshape(n * n, n)
+    blocks = [
+        (A, pair(-1.0, 1.0)),  # log|A_ij| − δ_i + δ_j
+        (B @ B.T, pair(-1.0, -1.0)),  # log|M_ij| − δ_i − δ_j
+        (C.T @ C, pair(1.0, 1.0)),  # log|N_ij| + δ_i + δ_j
+    ]
+    G = jnp.concatenate([jnp.concatenate([P, jnp.ones((n * n, 1), A.dtype)], axis=1) for _, P in blocks])
+    v = jnp.concatenate([M.reshape(-1) for M, _ in blocks])
+    w = (v != 0).astype(A.dtype)
+    b = jnp.log(jnp.abs(jnp.where(v != 0, v, 1.0)))
+    x = -jnp.linalg.pinv(w[:, None] * G) @ (w * b)  # min Σ w (b + G x)²
+    # no normalisation: a common factor of s is not free here (it moves BBᵀ against CᵀC)
+    return jnp.exp2(jnp.round(x[:n] / jnp.log(2.0)))
+
+
+def _balanced(A, B, C, s):
+    """(A_b, B_b, C_b) = (S⁻¹AS, S⁻¹B, CS) for x = S x_b, S = diag(s)."""
+    return A * s[None, :] / s[:, None], B / s[:, None], C * s[None, :]
+
+
 def _hamiltonian(A, B, C, gamma):
     """W_i = [[A, γ_i B Bᵀ], [Cᵀ C, −Aᵀ]] (the matrix before (25); (27) when γ = 1)."""
     return jnp.block([[A, gamma * (B @ B.T)], [C.T @ C, -A.T]])
@@ -101,11 +149,15 @@ class _Window(NamedTuple):
     - `W` (r, 2n, 2n): the r distinct Hamiltonian matrices (r = n for (25), 1 for (28)).
     - `readout` (N, n, r, 2n): x̂ = Σ_j readout[j] · buffer[j].
     - `prefill` (N, r, 2n, n): the buffer of the model's free response through x̂0 (history (36)).
+    - `Bb` (n, p), `Cb` (m, n): the model's B and C in the balanced state units of the design
+      (:func:`_window_scaling`); W and the pieces ζ are in those units, x̂ in the user's.
     """
 
     W: jax.Array
     readout: jax.Array
     prefill: jax.Array
+    Bb: jax.Array
+    Cb: jax.Array
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -258,8 +310,8 @@ class FiniteWindow(AbstractObserver):
         **Returns:** ``(G1, G2)`` with shapes (…, n, m) and (…, n, p).
         """
         s = jnp.asarray(s, dtype=self.model.A.dtype)
-        W, coef = self._design()
-        G1, G2 = _kernels_at(W, coef, self.model.B, self.model.C, s.reshape(-1))
+        W, coef, Bb, Cb, _ = self._design()
+        G1, G2 = _kernels_at(W, coef, Bb, Cb, s.reshape(-1))
         if s.ndim == 0:
             return G1[0], G2[0]
         return G1, G2
@@ -323,7 +375,7 @@ class FiniteWindow(AbstractObserver):
             dt = np.diff(tsc)
             if not np.all(dt > 0):
                 raise ValueError("`ts` must be strictly increasing.")
-            if Tc is not None and abs((tsc[-1] - tsc[0]) - Tc) > 1e-9 * max(1.0, abs(float(Tc))):
+            if Tc is not None and abs((tsc[-1] - tsc[0]) - Tc) > _time_tol(Tc, tsc[0], tsc[-1]):
                 raise ValueError(
                     f"`ts` must span the window [t − T, t]: ts[-1] − ts[0] = {tsc[-1] - tsc[0]!r}, "
                     f"T = {float(Tc)!r}."
@@ -343,7 +395,7 @@ class FiniteWindow(AbstractObserver):
             wts = jnp.concatenate([dt[:1], dt[:-1] + dt[1:], dt[-1:]]) / 2.0
         ts = eqx.error_if(
             ts,
-            jnp.abs((ts[-1] - ts[0]) - self.T) > 1e-9 * jnp.maximum(1.0, jnp.abs(self.T)),
+            jnp.abs((ts[-1] - ts[0]) - self.T) > _time_tol(self.T, ts[0], ts[-1]),
             "FiniteWindow.estimate_window: `ts` must span [t − T, t].",
         )
         if tsc is None:  # the grid checks made above on concrete times, under jit
@@ -389,9 +441,9 @@ class FiniteWindow(AbstractObserver):
     def vector_field(self, t, z, y, u):
         """x̂̇ = Ax̂ + Bu (between the instants t0 + kh); ζ̇_k = w − W_kᵀ ζ_k with w = [Cᵀ(y − Du); Bu]."""
         xhat, zeta, buf = z
-        A, B, C, D = self.model.A, self.model.B, self.model.C, self.model.D
+        A, B, D = self.model.A, self.model.B, self.model.D
         win = self._win()
-        w = jnp.concatenate([C.T @ (y - D @ u), B @ u])
+        w = jnp.concatenate([win.Cb.T @ (y - D @ u), win.Bb @ u])  # in the design's balanced units
         dzeta = w[None, :] - jnp.einsum("kab,ka->kb", win.W, zeta)
         return (A @ xhat + B @ u, dzeta, jnp.zeros_like(buf))
 
@@ -439,8 +491,13 @@ def _checked(T, alpha, beta, formula):
 
 @partial(jax.jit, static_argnames="formula")
 def _design(A, B, C, T, alpha, beta, formula):
+    """(W, coef, B_b, C_b, s): the design in balanced state units (:func:`_window_scaling`).  W (r, 2n, 2n)
+    and the generator vectors are in those units; coef[i] is scaled by s_i, so that row i of
+    G1(s) = Σ_k (C_b [I 0] e^{W_k s} coef[i, k])ᵀ and of G2 (with B_b [0 I]) are in the user's units."""
     T, alpha, beta = _checked(T, alpha, beta, formula)
     n = A.shape[0]
+    sc = _window_scaling(A, B, C)
+    A, B, C = _balanced(A, B, C, sc)
     if formula == "(28)":
         W, R = _uniform_R(A, B, C, T)
         E1 = jnp.concatenate([jnp.eye(n), jnp.zeros((n, n))], axis=1)
@@ -450,13 +507,15 @@ def _design(A, B, C, T, alpha, beta, formula):
     else:
         W, c = _general_rows(A, B, C, T, beta / alpha)
         coef = jnp.eye(n)[:, :, None] * c[None, :, :]  # (n, n, 2n): row i uses only W_i
+    coef = sc[:, None, None] * coef
     bad = ~(jnp.all(jnp.isfinite(W)) & jnp.all(jnp.isfinite(coef)))
     coef = eqx.error_if(
         coef,
         bad,
-        "FiniteWindow: the kernel design is not finite (window too long for the Hamiltonian's growth?).",
+        "FiniteWindow: the kernel design is not finite: the exponentials of the Hamiltonian overflow over "
+        "the window (they grow like e^{ρT}, ρ the largest real part of eig W); shorten the window T.",
     )
-    return W, coef
+    return W, coef, B, C, sc
 
 
 @jax.jit
@@ -472,7 +531,7 @@ def _kernels_at(W, coef, B, C, s):
 
 @partial(jax.jit, static_argnames="formula")
 def _norm(A, B, C, T, alpha, beta, formula):
-    W, coef = _design(A, B, C, T, alpha, beta, formula)
+    W, coef, B, C, _ = _design(A, B, C, T, alpha, beta, formula)  # B, C in the balanced units of W
     T, alpha, beta = _checked(T, alpha, beta, formula)
     n = A.shape[0]
     CC, BB = C.T @ C, B @ B.T
@@ -495,7 +554,8 @@ def _norm(A, B, C, T, alpha, beta, formula):
 
 @partial(jax.jit, static_argnames=("formula", "N"))
 def _window_design(A, B, C, T, alpha, beta, formula, N) -> _Window:
-    W, coef = _design(A, B, C, T, alpha, beta, formula)  # (r, 2n, 2n), (n, r, 2n)
+    W, coef, B, C, sc = _design(A, B, C, T, alpha, beta, formula)  # (r, 2n, 2n), (n, r, 2n)
+    A = A * sc[None, :] / sc[:, None]  # balanced, as B and C: ζ and the history are in those units
     n = A.shape[0]
     h = T / N
     # piece j covers s ∈ [jh, (j+1)h]; its stored value is ζ_j = ∫ e^{−Wᵀ((j+1)h − s)} w ds, so its
@@ -508,8 +568,8 @@ def _window_design(A, B, C, T, alpha, beta, formula, N) -> _Window:
     F = jnp.concatenate([C.T @ C, jnp.zeros((n, n), A.dtype)], axis=0)
     Gam = jax.vmap(lambda Wk: _upper_right(-Wk.T, F, A, h))(W)  # (r, 2n, n)
     back = jax.vmap(lambda j: expm(-A * ((N - j) * h)))(jnp.arange(N, dtype=A.dtype))  # (N, n, n)
-    prefill = jnp.einsum("kan,jnl->jkal", Gam, back)
-    return _Window(W=W, readout=readout, prefill=prefill)
+    prefill = jnp.einsum("kan,jnl->jkal", Gam, back) / sc  # acts on x̂0 in the user's units: x̂0_b = x̂0 / s
+    return _Window(W=W, readout=readout, prefill=prefill, Bb=B, Cb=C)
 
 
 @jax.jit
@@ -806,7 +866,7 @@ class FiniteWindowLTV(eqx.Module):
         ts = vector(ts, "ts", None)
         tsc, t0, t1 = concrete_value(ts), concrete_value(self.t0), concrete_value(self.t1)
         if tsc is not None and t0 is not None and t1 is not None:
-            tol = 1e-9 * max(1.0, abs(float(t0)), abs(float(t1)))
+            tol = float(_time_tol(t1 - t0, t0, t1))
             if tsc.min() < t0 - tol or tsc.max() > t1 + tol:
                 raise ValueError(
                     f"`ts` must lie in the window [t0, t1] = [{float(t0)}, {float(t1)}], got "
@@ -873,8 +933,8 @@ class FiniteWindowLTV(eqx.Module):
             if not np.all(dt > 0):
                 raise ValueError("`ts` must be strictly increasing.")
             if t0 is not None and t1 is not None:
-                scale = max(1.0, abs(float(t1)))
-                if abs(tsc[0] - t0) > 1e-9 * scale or abs(tsc[-1] - t1) > 1e-9 * scale:
+                tol = float(_time_tol(t1 - t0, t0, t1))
+                if abs(tsc[0] - t0) > tol or abs(tsc[-1] - t1) > tol:
                     raise ValueError(
                         f"`ts` must run from t0 = {float(t0)} to t1 = {float(t1)}, got "
                         f"[{tsc[0]}, {tsc[-1]}]."
