@@ -54,3 +54,47 @@ def test_complex_gains_and_covariances_are_refused():
         obsjax.ExtendedKalman(PLANT, Q=1 + 1j, R=1.0, P0=1.0)
     with pytest.raises(ValueError, match="`gamma` must be a positive finite real scalar"):
         obsjax.analysis.chen_yen_bound(PLANT, 20 + 5j, 0.1, 0.25, 1.0)
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "KalmanBucy",  # the other two (8 s and 12 s here) in the second tier
+        pytest.param("ExtendedKalman", marks=pytest.mark.extended),
+        pytest.param("ContinuousDiscreteKalman", marks=pytest.mark.extended),
+    ],
+)
+def test_the_derivative_in_P0_is_symmetric_and_matches_central_differences(kind):
+    """P is read through C P in the gain, so the raw cotangent of P0 had an antisymmetric part as large
+    as its symmetric one (max|G − Gᵀ|/max|G| = 1.07): one gradient step left a non-symmetric P0, which
+    check() refused, and tune(where=P0) rejected every step.  P0 is now symmetrised where the filter
+    starts, so G is the derivative over symmetric matrices."""
+    import equinox as eqx
+
+    A = np.array([[0.0, 1.0, 0.0], [-2.0, -0.4, 0.3], [0.2, 0.0, -1.0]])
+    C = np.array([[1.0, 0.0, 0.0], [0.0, 0.5, 1.0]])
+    plant = obsjax.LTI(A, np.zeros((3, 1)), C)
+    Q = np.array([[0.1, 0.02, 0.0], [0.02, 0.3, 0.01], [0.0, 0.01, 0.05]])
+    R = np.array([[0.02, 0.005], [0.005, 0.1]])
+    P0 = np.array([[2.0, 0.3, 0.1], [0.3, 1.0, 0.2], [0.1, 0.2, 0.5]])
+    if kind == "KalmanBucy":
+        obs = obsjax.KalmanBucy(plant, Q, R, P0)
+    elif kind == "ExtendedKalman":
+        model = obsjax.Nonlinear(lambda t, x, u: jnp.asarray(A) @ x, lambda t, x, u: jnp.asarray(C) @ x, 3, 2, 0)
+        obs = obsjax.ExtendedKalman(model, Q=Q, R=R, P0=P0)
+    else:
+        obs = obsjax.ContinuousDiscreteKalman(plant, Q, R, P0, period=0.25)
+    x0, xh0, ts = np.array([1.0, -0.5, 0.3]), np.array([0.0, 0.2, -0.1]), np.linspace(0.0, 2.0, 21)
+
+    @jax.jit
+    def J(P):
+        o = eqx.tree_at(lambda o: o.P0, obs, P)
+        return obsjax.losses.ise(obsjax.simulate(plant, o, x0, xh0, ts, rtol=1e-10, atol=1e-12))
+
+    G = np.asarray(jax.grad(J)(jnp.asarray(P0)))
+    assert np.max(np.abs(G - G.T)) <= 1e-12 * np.max(np.abs(G))
+    E = np.array([[0.3, -0.2, 0.1], [-0.2, 0.5, 0.4], [0.1, 0.4, -0.6]])  # a symmetric direction
+    h = 1e-4
+    fd = (float(J(P0 + h * E)) - float(J(P0 - h * E))) / (2 * h)
+    assert np.sum(G * E) == pytest.approx(fd, rel=1e-6)
+    obsjax.KalmanBucy(plant, Q, R, P0 - 0.1 * G / np.max(np.abs(G))).check()  # a step stays a covariance

@@ -125,7 +125,8 @@ class ContinuousDiscreteKalman(AbstractObserver):
         return self.check()
 
     def init(self, t0, xhat0, y0):
-        return ContinuousDiscreteKalmanState(jnp.asarray(xhat0), self.P0)
+        # symmetrised, so that the derivative in P0 is symmetric (as KalmanBucy.init)
+        return ContinuousDiscreteKalmanState(jnp.asarray(xhat0), 0.5 * (self.P0 + self.P0.T))
 
     def vector_field(self, t, z, y, u):
         A = self.model.A_of(t)

@@ -87,7 +87,8 @@ class ExtendedKalman(AbstractObserver):
         return self.check()
 
     def init(self, t0, xhat0, y0):
-        return (vector(xhat0, "xhat0", self.model.n), self.P0)
+        # symmetrised, so that the derivative in P0 is symmetric (as KalmanBucy.init)
+        return (vector(xhat0, "xhat0", self.model.n), 0.5 * (self.P0 + self.P0.T))
 
     def gain(self, t, z, u):
         """The Kalman gain P Hᵀ R⁻¹, shape (n, m)."""

@@ -89,7 +89,9 @@ class KalmanBucy(AbstractObserver):
         return self.check()
 
     def init(self, t0, xhat0, y0):
-        return KalmanBucyState(jnp.asarray(xhat0), self.P0)
+        # symmetrised: the derivative in P0 is then that over symmetric matrices (P enters the gain as
+        # C P, so the raw cotangent of P0 had an antisymmetric part and one tuning step broke symmetry)
+        return KalmanBucyState(jnp.asarray(xhat0), 0.5 * (self.P0 + self.P0.T))
 
     def gain(self, t, z):
         """Kalman gain L(t) = P Cᵀ Rv⁻¹, shape (n, m)."""
