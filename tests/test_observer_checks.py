@@ -397,3 +397,30 @@ def test_functional_observer_with_a_pole_at_or_near_zero(c, small):
     lhs = T @ (c * A) - F @ T
     assert np.abs(lhs - G @ C).max() <= 1e-10 * max(np.abs(lhs).max(), np.abs(G @ C).max())
     np.testing.assert_allclose(k @ T + e @ C, a, rtol=1e-10, atol=1e-12 * np.abs(a).max())
+
+
+def test_adaptive_observers_refuse_non_integer_orders_complex_gains_and_asymmetry_at_any_scale():
+    """`n = 2.7` was truncated to 2 (and True, "3" accepted) by int(); a complex Gamma passed check() and
+    failed inside the solver naming nothing; the symmetry test of a matrix gain had an absolute floor
+    1e-12 (an asymmetric gain of size 1e-13 passed); the conjugate-pair test of poles an absolute 1e-9
+    (its verdict moved with the time unit)."""
+    reg = lambda t, u: jnp.ones(3)
+    for bad in (2.7, True, "3", 0, np.nan):
+        with pytest.raises(ValueError, match="`n`.* must be an integer >= 1"):
+            obsjax.LeastSquaresIdentifier(bad, reg)
+        with pytest.raises(ValueError, match="`n`.* must be an integer >= 1"):
+            obsjax.Kreisselmeier(bad, [-1.0, -2.0], 1.0)
+    with pytest.raises(ValueError, match="`m` must be an integer >= 0"):
+        obsjax.KudvaNarendra(2, 0.5, K=[[-1.0, 0.0], [0.0, -1.0]], Gamma1=1.0, Gamma2=1.0, Q=np.eye(2))
+    assert obsjax.LeastSquaresIdentifier(np.int64(3), reg).n == 3 == obsjax.LeastSquaresIdentifier(3.0, reg).n
+    with pytest.raises(ValueError, match="`Gamma` must be real"):
+        obsjax.LeastSquaresIdentifier(3, reg, Gamma=1 + 1j)
+    G = 1e-13 * np.array([[2.0, 0.5, 0.0], [0.1, 2.0, 0.0], [0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match="`Gamma` must be a symmetric matrix"):
+        obsjax.LeastSquaresIdentifier(3, reg, Gamma=G)
+    obsjax.LeastSquaresIdentifier(3, reg, Gamma=0.5 * (G + G.T))  # symmetric at that scale: accepted
+    for k in (1e-3, 1.0, 1e3):  # poles −1 ± 2i and −1 ± (2 + 1e-7)i, in three time units
+        ok = k * np.array([-1 + 2j, -1 - 2j, -3.0])
+        obsjax.Kreisselmeier(3, ok, 1.0)
+        with pytest.raises(ValueError, match="complex-conjugate pairs"):
+            obsjax.Kreisselmeier(3, k * np.array([-1 + 2j, -1 - (2 + 1e-7) * 1j, -3.0]), 1.0)

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, concrete_value
+from .._checks import concrete_value, real_array
 from ._validation import spd_violation
 
 
@@ -15,7 +15,7 @@ def gain_array(x, name: str, size: int) -> jnp.ndarray:
 
     Scalars and vectors must be > 0; a matrix must be symmetric positive definite (checked when concrete).
     """
-    arr = as_float_array(x, name)
+    arr = real_array(x, name)  # a complex gain made V complex and failed deep inside the solver
     if arr.ndim == 0:
         pass
     elif arr.ndim == 1:
@@ -48,7 +48,8 @@ def check_gain(arr, name: str) -> None:
         if not np.all(v > 0):
             raise ValueError(f"`{name}` must be > 0 (an adaptation gain), got {v.tolist()}.")
     else:
-        if not np.allclose(v, v.T, rtol=1e-10, atol=1e-12):
+        # relative to the gain's own scale (an absolute floor passed any asymmetric gain of size 1e-12)
+        if not np.max(np.abs(v - v.T), initial=0.0) <= 1e-10 * np.max(np.abs(v), initial=0.0):
             raise ValueError(f"`{name}` must be a symmetric matrix, got {v.tolist()}.")
         ev = np.linalg.eigvalsh(0.5 * (v + v.T))
         if not np.all(ev > 0):
@@ -111,6 +112,15 @@ def poly_from_roots(roots) -> jnp.ndarray:
     return jnp.real(_poly_coefficients(roots))
 
 
+def state_dimension(n, name: str = "n", minimum: int = 1, what: str = "") -> int:
+    """A dimension given as an integer ≥ `minimum` (a Python or NumPy integer, or an integral float such
+    as 3.0); ``ValueError`` for 2.7, True, "3" (``int()`` truncated or parsed them)."""
+    ok = not isinstance(n, (bool, np.bool_)) and isinstance(n, (int, float, np.integer, np.floating))
+    if not (ok and np.isfinite(n) and float(n) == int(n) and int(n) >= minimum):
+        raise ValueError(f"`{name}`{what} must be an integer >= {minimum}, got {n!r}.")
+    return int(n)
+
+
 def check_stable_roots(roots, name: str, size: int | None = None) -> jnp.ndarray:
     """Validate a set of eigenvalues: length, closed under conjugation, strictly in the left half-plane."""
     arr = jnp.asarray(roots)
@@ -137,7 +147,8 @@ def check_stable_roots(roots, name: str, size: int | None = None) -> jnp.ndarray
         if np.iscomplexobj(v):
             a = np.sort_complex(v)
             b = np.sort_complex(np.conj(v))
-            if not np.allclose(a, b, atol=1e-9):
+            # relative to the poles' magnitude, so the verdict does not depend on the time unit
+            if not np.allclose(a, b, rtol=0.0, atol=1e-9 * np.max(np.abs(v))):
                 raise ValueError(
                     f"`{name}` must come in complex-conjugate pairs (a real polynomial), got {v.tolist()}."
                 )

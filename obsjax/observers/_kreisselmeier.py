@@ -9,6 +9,7 @@ import numpy as np
 
 from .._checks import as_float_array, vector
 from ._adaptive_common import (
+    state_dimension,
     siso_signal,
     apply_gain,
     check_gain,
@@ -146,9 +147,7 @@ class Kreisselmeier(AbstractObserver):
         a0=None,
         b0=None,
     ):
-        if isinstance(n, bool) or not float(n).is_integer() or n < 1:
-            raise ValueError(f"`n` (the plant order) must be an integer >= 1, got {n!r}.")
-        n = int(n)
+        n = state_dimension(n, what=" (the plant order)")
         if scheme not in _SCHEMES:
             raise ValueError(f"`scheme` must be one of {_SCHEMES}, got {scheme!r}.")
         self.n = n

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value, matrix
-from ._adaptive_common import check_gain, gain_array, lyapunov, solve_gain, traced_positive
+from ._adaptive_common import check_gain, gain_array, lyapunov, solve_gain, traced_positive, state_dimension
 from ._base import AbstractObserver
 from ._validation import require_finite, traced_finite
 
@@ -83,7 +83,7 @@ class KudvaNarendra(AbstractObserver):
     m: int = eqx.field(static=True)
 
     def __init__(self, n, m, K, Gamma1, Gamma2, Q, *, A0=None, B0=None):
-        n, m = int(n), int(m)
+        n, m = state_dimension(n), state_dimension(m, "m", minimum=0)
         if n < 1 or m < 0:
             raise ValueError(f"`n` must be >= 1 and `m` >= 0, got n={n}, m={m}.")
         self.n, self.m = n, m

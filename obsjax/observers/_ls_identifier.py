@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._adaptive_common import check_gain, gain_array, solve_gain, traced_positive
+from ._adaptive_common import check_gain, gain_array, solve_gain, traced_positive, state_dimension
 from ._base import AbstractObserver
 
 
@@ -64,7 +64,7 @@ class LeastSquaresIdentifier(AbstractObserver):
     n: int = eqx.field(static=True)
 
     def __init__(self, n, regressor, Gamma=1.0):
-        n = int(n)
+        n = state_dimension(n)
         if n < 1:
             raise ValueError(f"`n` (the dimension of K) must be >= 1, got {n}.")
         if not callable(regressor):

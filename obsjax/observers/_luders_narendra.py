@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from .._checks import as_float_array, vector
-from ._adaptive_common import siso_signal
+from ._adaptive_common import siso_signal, state_dimension
 from ._base import AbstractObserver
 from ._validation import positive_scalar, require_finite
 
@@ -100,7 +100,7 @@ class LudersNarendra(AbstractObserver):
     n: int = eqx.field(static=True)
 
     def __init__(self, n, lambdas, c, d, *, a0=None, b0=None):
-        n = int(n)
+        n = state_dimension(n)
         if n < 1:
             raise ValueError(f"`n` (the plant order) must be >= 1, got {n}.")
         self.n = n

@@ -9,6 +9,7 @@ import numpy as np
 
 from .._checks import as_float_array, concrete_value, positive, require_finite, vector
 from ._adaptive_common import (
+    state_dimension,
     siso_signal,
     adapt_mask,
     auxiliary_matrices,
@@ -112,7 +113,7 @@ class MinimalAdaptiveObserver(AbstractObserver):
     adapt: tuple[bool, ...] = eqx.field(static=True)
 
     def __init__(self, n, filter_poles, lam, Gamma, *, a0=None, b0=None, adapt=None):
-        n = int(n)
+        n = state_dimension(n)
         if n < 1:
             raise ValueError(f"`n` (the plant order) must be >= 1, got {n}.")
         self.n = n

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 
 from .._checks import positive, require_finite, vector
 from ._adaptive_common import (
+    state_dimension,
     siso_signal,
     adapt_mask,
     check_gain,
@@ -105,7 +106,7 @@ class NonMinimalAdaptiveObserver(AbstractObserver):
     adapt: tuple[bool, ...] = eqx.field(static=True)
 
     def __init__(self, n, filter_poles, lam0, Gamma, *, a0=None, b0=None, adapt=None):
-        n = int(n)
+        n = state_dimension(n)
         if n < 1:
             raise ValueError(f"`n` (the plant order) must be >= 1, got {n}.")
         self.n = n
