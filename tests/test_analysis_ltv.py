@@ -141,6 +141,26 @@ def test_is_persistently_exciting_closed_form():
     assert not flat and abs(flat.eta1) < 1e-12 and abs(flat.eta2 - 1.0) < 1e-9
 
 
+def test_persistent_excitation_verdict_does_not_depend_on_the_components_units():
+    """w = D [sin t, cos t, sin 2t + 0.3, cos 3t]: excitation is the same for every diagonal D, but the raw
+    ratio η1/η2 is 1e-12 for D spanning 1e±3 and the verdict was "not exciting".  Now decided on the
+    equilibrated gramians; η1 stays the raw one (closed form π·min D² here: the four components are
+    orthogonal over [0, 2π] with ∫ = π, and the constant 0.3 adds 0.18π to the third)."""
+    base = lambda t: jnp.array([jnp.sin(t), jnp.cos(t), jnp.sin(2 * t) + 0.3, jnp.cos(3 * t)])
+    for span in (5.0,):  # components in units 1e-5 … 1e5 (identical units: the closed-form test above)
+        D = np.logspace(-span, span, 4)
+        pe = an.is_persistently_exciting(lambda t: jnp.asarray(D) * base(t), 2 * np.pi, 4 * np.pi)
+        assert pe, span
+        G = np.pi * np.diag(D**2 * np.array([1.0, 1.0, 1.18, 1.0])) + np.zeros((4, 4))
+        G[2, 2] = (np.pi + 0.18 * np.pi) * D[2] ** 2  # ∫ (sin 2t + 0.3)² = π + 0.09·2π
+        np.testing.assert_allclose(pe.eta1, np.linalg.eigvalsh(G)[0], rtol=1e-7)
+        # two components that are one signal in different units: never exciting
+        dep = an.is_persistently_exciting(
+            lambda t: jnp.array([D[0] * jnp.sin(t), D[-1] * jnp.sin(t), jnp.cos(t)]), 2 * np.pi, 4 * np.pi
+        )
+        assert not dep, span
+
+
 @pytest.mark.extended
 def test_short_pulses_in_a_callable_regressor_are_integrated_at_their_declared_jump_times():
     """w = [p(t), 1] with p a pulse of width 1e-4 in each window of length 1: ∫ w wᵀ = [[δ, δ], [δ, 1]]

@@ -531,9 +531,15 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, jump_ts=None, r
     - `w`: a callable t -> (n, m) (or (n,)) regressor, or an LTV/LTI plant, in which case the observer's
       regressor w_o = Φᵀ(t, kT) Cᵀ(t) of (12) is used (the Lemma: uniform observability ⇒ PE).
     - `T`: window length (> 0); `horizon`: total time (K = ⌊horizon / T⌋ windows); `t0`: origin.
-    - `tol`: η1 must exceed `tol`·η2 for the regressor to count as exciting (relative: the verdict does not
-      depend on the regressor's units).  The gramians are integrated for the regressor divided by its
-      largest entry on a probe grid (and multiplied back), so `atol` is relative to that scale too.
+    - `tol`: the verdict: η̂1 > `tol`·η̂2, where η̂1, η̂2 are the bounds (7) of the equilibrated gramians
+      S⁻¹ G_k S⁻¹, S = diag(max_k G_k)^{1/2} (one S for all windows).  Excitation is a property of the
+      directions the regressor spans, not of its components' units: the verdict does not change when
+      w is replaced by D w for any invertible diagonal D (components in other units), which the raw
+      ratio η1/η2 does (components in units spanning 1e±3 read 1e-12 for a regressor that excites
+      every direction).  The returned η1, η2 are those of the raw gramians.  A callable regressor is
+      integrated with each component divided by its largest value on a probe grid (and multiplied
+      back), so `atol` is relative to each component's scale; a plant's regressor with the largest
+      entry of C(t).
     - `jump_ts`: for a callable `w`, the times where it is discontinuous (pulses, switches, a sampled
       signal's knots).  The integrator steps onto each, so a pulse shorter than its steps is not stepped
       over: without them, a regressor that is zero but for pulses of width 1e-4 was called not exciting
@@ -584,10 +590,10 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, jump_ts=None, r
                 f"`w(t)` must return an (n,) or (n, m) array, got shape {tuple(w0.shape)}."
             )
         n = w0.shape[0]
-        sigma = _probe_scale(w, probe)
+        sigma = _probe_row_scale(lambda t: jnp.asarray(w(t)).reshape(n, -1), probe)  # (n,)
 
         def wm(t):
-            return jnp.asarray(w(t)).reshape(n, -1) / sigma
+            return jnp.asarray(w(t)).reshape(n, -1) / sigma[:, None]
 
         def gram(a):
             def rhs(s, G, args):
@@ -600,16 +606,24 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, jump_ts=None, r
             )[0]
             return 0.5 * (G + G.T)
 
-        Gs = jax.jit(jax.vmap(gram))(starts) * sigma**2
+        Gs = jax.jit(jax.vmap(gram))(starts) * (sigma[:, None] * sigma[None, :])
     else:
         raise ValueError(
             f"`w` must be a callable of t or an LTV/LTI plant, got {type(w).__name__}."
         )
 
-    eig = np.asarray(jnp.linalg.eigvalsh(Gs))
+    Gs = np.asarray(Gs)
+    eig = np.linalg.eigvalsh(Gs)
     per = np.stack([eig[:, 0], eig[:, -1]], axis=1)
     eta1, eta2 = float(per[:, 0].min()), float(per[:, 1].max())
-    return PersistentExcitation(bool(eta2 > 0.0 and eta1 > tol * eta2), eta1, eta2, per)
+    # the verdict on the Jacobi-equilibrated gramians (one scaling for all windows): invariant to the
+    # units of the regressor's components; a component that is zero on every window is not excited
+    d = np.sqrt(np.max(np.maximum(np.diagonal(Gs, axis1=1, axis2=2), 0.0), axis=0))
+    if not np.all(d > 0.0):
+        return PersistentExcitation(False, eta1, eta2, per)
+    eq = np.linalg.eigvalsh(Gs / d[None, :, None] / d[None, None, :])
+    excited = bool(eta2 > 0.0 and eq[:, 0].min() > tol * eq[:, -1].max())
+    return PersistentExcitation(excited, eta1, eta2, per)
 
 
 class _Breaks(NamedTuple):
@@ -646,6 +660,14 @@ class _ScaledOutput(eqx.Module):
 
     def C_of(self, t):
         return self.plant.C_of(t) / self.scale
+
+
+def _probe_row_scale(fn, times) -> jnp.ndarray:
+    """Per row i, the largest |entry| of row i of fn(t) over `times` (the units of each component of a
+    regressor); 1 for a row that is 0 there.  Non-finite values are refused as by :func:`_probe_scale`."""
+    _probe_scale(fn, times)  # the finiteness check, naming the time
+    vals = np.max(np.stack([np.max(np.abs(np.asarray(fn(jnp.asarray(float(t))))), axis=1) for t in times]), axis=0)
+    return jnp.asarray(np.where(vals > 0.0, vals, 1.0))
 
 
 def _probe_scale(fn, times) -> float:
