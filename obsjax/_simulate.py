@@ -124,7 +124,12 @@ def simulate(
     - `solver`: a diffrax solver.  Default: the observer's ``recommended_solver(ts)`` when it has one (the
       high-gain :class:`obsjax.TrajectoryLinearization` returns the implicit ``Kvaerno5`` when
       max|ρ̄|·ω/ε makes the problem stiff), else ``Tsit5``.
-    - `rtol`, `atol`: tolerances of the adaptive PID controller (> 0).
+    - `rtol`, `atol`: tolerances of the adaptive PID controller (> 0): each component of the joint
+      state (plant and observer) must meet |error| ≤ atol + rtol·|value| per step.  `atol` is in the
+      units of the states, so scale it with them: with every state around 1e-6 (a unit 10⁶ times
+      larger) the default 1e-8 is a 1 % tolerance, and status 0 means solved to *that* tolerance (with
+      states around 1e-7, x̃ was 12 % off).  States in mixed units are integrated accurately as long as
+      the components that matter are well above `atol`.
     - `dt0`, `adaptive`: ``adaptive=False`` with ``dt0`` > 0 gives fixed steps.  With an explicit Runge–Kutta
       solver and concrete ``ts`` and ``dt0``, fixed steps bypass ``diffeqsolve``: a ``lax.scan`` over the
       solver's Butcher tableau on a grid through every save time and breakpoint, each interval cut into

@@ -191,3 +191,22 @@ def test_tune_on_data_checks_its_arguments(runs):
         obsjax.tune_on_data(kf, runs[0], where="Rv", xhat0=jnp.zeros(2))
     with pytest.raises(ValueError, match=r"`state_error` needs validation states"):
         obsjax.losses.state_error(obsjax.estimate(kf, runs[1], jnp.zeros(2)))
+
+
+def test_sampling_instants_from_a_period_hold_at_clock_times():
+    """With t0 a clock time (1e8 s, or a Unix time 1.7e9 s), (t1 − t0)/period read 2.9999995 and the
+    update at t1 was dropped: P11(t1) = 0.0357 instead of 0.0189.  The count now uses the schedule's
+    time tolerance (relative to the horizon plus the times' rounding)."""
+    A, C = np.array([[0.0, 1.0], [-2.0, -0.5]]), np.array([[1.0, 0.0]])
+    plant = obsjax.LTI(A, np.zeros((2, 1)), C)
+    kf = obsjax.ContinuousDiscreteKalman(plant, 0.01 * np.eye(2), np.array([[0.04]]), np.eye(2), period=0.1)
+    for t0 in (1.7e9, 1e8):
+        for k in (3, 5, 10):
+            ts = t0 + 0.1 * np.arange(k + 1)
+            ev = kf.event_times(ts[0], ts[-1])
+            assert len(ev) == k + 1 and ev[-1] == ts[-1], (t0, k, ev)
+    run = lambda ts: obsjax.simulate(plant, kf, np.array([1.0, 0.0]), np.zeros(2), ts, rtol=1e-10, atol=1e-12)
+    P0 = run(np.array([0.0, 0.1, 0.2, 0.3])).z.P[-1, 0, 0]
+    P8 = run(1e8 + np.array([0.0, 0.1, 0.2, 0.3])).z.P[-1, 0, 0]
+    np.testing.assert_allclose(P8, P0, rtol=1e-5)  # the times at 1e8 carry a rounding of 1.5e-8
+    assert float(P0) == pytest.approx(0.018859, abs=1e-6)

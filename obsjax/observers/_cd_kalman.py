@@ -15,6 +15,7 @@ from .._linalg import spd_solve
 from ._base import AbstractObserver, feedthrough
 from ._kalman_bucy import _spd
 from ._least_squares import _check_model
+from .._integrate import _schedule
 from ._validation import is_concrete, traced_spd
 
 
@@ -167,8 +168,11 @@ class ContinuousDiscreteKalman(AbstractObserver):
                 "is fixed before tracing): close over `ts` instead of passing it traced."
             )
         a, b = float(a), float(b)
-        count = int(math.floor((b - a) / self.period + 1e-9)) + 1
-        return a + self.period * np.arange(count)
+        # the schedule's own time tolerance (1e-9 of the horizon plus the rounding of the clock times):
+        # with t0 a clock time (1.7e9 s), (t1 − t0)/period read 2.9999995 and the sample at t1 was lost
+        tol = _schedule.tolerance(b - a, max(abs(a), abs(b)))
+        count = int(math.floor((b - a + tol) / self.period)) + 1
+        return np.minimum(a + self.period * np.arange(count), b)  # the last one within tol of t1: at t1
 
     def estimate(self, t, z, y):
         return z.xhat
