@@ -424,3 +424,15 @@ def test_adaptive_observers_refuse_non_integer_orders_complex_gains_and_asymmetr
         obsjax.Kreisselmeier(3, ok, 1.0)
         with pytest.raises(ValueError, match="complex-conjugate pairs"):
             obsjax.Kreisselmeier(3, k * np.array([-1 + 2j, -1 - (2 + 1e-7) * 1j, -3.0]), 1.0)
+
+
+def test_least_squares_identifier_names_a_data_regressor_mismatch_and_a_complex_regressor():
+    """Data with 2 outputs for a one-column regressor failed with a TypeError from reshape; a complex
+    regressor with a dtype error from inside the solver."""
+    ident = obsjax.LeastSquaresIdentifier(3, lambda t, u: jnp.array([1.0, jnp.sin(t), jnp.cos(2 * t)]))
+    data = obsjax.Measurements(np.linspace(0.0, 5.0, 11), np.ones((11, 2)))
+    with pytest.raises(ValueError, match="the measurement has 2 output.* m = 1 column"):
+        obsjax.estimate(ident, data, jnp.zeros(3))
+    bad = obsjax.LeastSquaresIdentifier(3, lambda t, u: jnp.array([1.0, jnp.sin(t), 1j]))
+    with pytest.raises(ValueError, match="must return real values"):
+        obsjax.simulate(ident.plant(), bad, jnp.ones(3), jnp.zeros(3), jnp.linspace(0.0, 1.0, 3))

@@ -79,6 +79,8 @@ class LeastSquaresIdentifier(AbstractObserver):
     def alpha(self, t, u):
         """α(t) as an (n, m) matrix, its shape checked."""
         a = jnp.asarray(self.regressor(t, u))
+        if jnp.issubdtype(a.dtype, jnp.complexfloating):
+            raise ValueError(f"`regressor(t, u)` must return real values, got dtype {a.dtype}.")
         if a.ndim == 1:
             a = a[:, None]
         if a.ndim != 2 or a.shape[0] != self.n:
@@ -114,7 +116,13 @@ class LeastSquaresIdentifier(AbstractObserver):
 
     def vector_field(self, t, z: LeastSquaresIdentifierState, y, u):
         alpha = self.alpha(t, u)
-        b = jnp.asarray(y).reshape(alpha.shape[1])
+        y = jnp.asarray(y)
+        if y.size != alpha.shape[1]:
+            raise ValueError(
+                f"LeastSquaresIdentifier: the measurement has {y.size} output(s) but `regressor(t, u)` has "
+                f"m = {alpha.shape[1]} column(s) (y = αᵀK): the data and the regressor must agree."
+            )
+        b = y.reshape(alpha.shape[1])
         grad = alpha @ (alpha.T @ z.K - b)
         G = jnp.asarray(self.Gamma)
         dK = G @ grad if G.ndim == 2 else G * grad  # (4.2)
