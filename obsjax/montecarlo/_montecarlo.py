@@ -331,9 +331,25 @@ class MonteCarloResult:
         levels available) and the histogram of convergence times.  Returns the matplotlib figure.
 
         `time_unit` labels the time axes (``"s"`` by default; ``""`` for a dimensionless time); the
-        error norm carries the unit of the state."""
+        error norm carries the unit of the state.
+
+        The bands and the histogram are over the successful trajectories only; the title of the left
+        panel gives the number of failed ones.  A result without any successful trajectory (every
+        computed one failed, or none computed yet) raises ``ValueError`` saying so."""
         import matplotlib.pyplot as plt
 
+        n_ok = self.n_done - self.n_failed
+        if n_ok <= 0:
+            why = (
+                "no trajectory has been computed yet (an interrupted study: resume it)"
+                if self.n_done == 0
+                else f"every one of the {self.n_done} computed trajectories failed "
+                f"(failed {self.n_failed}, {self.failure_fraction:.0%})"
+            )
+            raise ValueError(
+                f"MonteCarloResult.plot: {why}, so there are no error bands or convergence times to "
+                "draw; see n_failed and status."
+            )
         if axes is None:
             fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
         else:
@@ -502,6 +518,78 @@ class _Streaming:
         return self.norm_sum / self.n_ok
 
 
+def _summarise_inputs(ts, error_norm, status, quantiles, conv_tol, n):
+    """The arguments of :func:`summarise` checked and converted (``ValueError`` naming the argument):
+    ts (T,) float, norms (N, T) float, status (N,) int32, the quantile levels, conv_tol, n."""
+    ts = np.asarray(ts)
+    if ts.dtype.kind not in "biuf":
+        raise ValueError(f"`ts` must hold real save times, got an array of dtype {ts.dtype}.")
+    ts = ts.astype(float)
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(f"`ts` must be a 1-D array of at least 2 save times, got shape {ts.shape}.")
+    if not np.all(np.isfinite(ts)):
+        raise ValueError(f"`ts` must hold finite times, got {ts[~np.isfinite(ts)][:3].tolist()}.")
+    bad = np.flatnonzero(np.diff(ts) <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"`ts` must be strictly increasing, got ts[{i}] = {ts[i]} followed by ts[{i + 1}] = {ts[i + 1]}."
+        )
+    shape_n, shape_s = np.shape(error_norm), np.shape(status)
+    if len(shape_n) != 2 or shape_s != (shape_n[0],) or shape_n[1] != ts.shape[0]:
+        raise ValueError(
+            f"`error_norm` must be (N, T) with T = len(ts) = {ts.shape[0]} and `status` (N,), got "
+            f"{shape_n} and {shape_s}."
+        )
+    norms = np.asarray(error_norm)
+    if norms.dtype.kind not in "biuf":
+        raise ValueError(
+            f"`error_norm` must hold real norms ‖x̃(t)‖ ≥ 0, got an array of dtype {norms.dtype}."
+        )
+    norms = norms.astype(float)
+    st = np.asarray(status)
+    if st.dtype.kind == "f":
+        bad = ~np.isfinite(st) | (st != np.round(st))
+        if bad.any():
+            raise ValueError(
+                "`status` must hold integer status codes, got "
+                f"{st[bad][:3].tolist()} (at rows {np.flatnonzero(bad)[:3].tolist()})."
+            )
+    elif st.dtype.kind not in "iu":
+        raise ValueError(f"`status` must hold integer status codes, got an array of dtype {st.dtype}.")
+    bad = ~np.isin(st, (-1, SUCCESS, 1, NONFINITE))
+    if bad.any():
+        raise ValueError(
+            "`status` codes must be 0 (success), 1 (solver failure), 2 (non-finite values) or −1 (not "
+            f"computed), got {st[bad][:3].tolist()} (at rows {np.flatnonzero(bad)[:3].tolist()})."
+        )
+    st = st.astype(np.int32)
+    neg = (st[:, None] == SUCCESS) & (norms < 0)
+    if neg.any():
+        r, k = (int(v[0]) for v in np.nonzero(neg))
+        raise ValueError(
+            f"`error_norm` must hold norms ≥ 0 where `status` is 0, got error_norm[{r}, {k}] = "
+            f"{norms[r, k]}."
+        )
+    qs = tuple(float(q) for q in quantiles)
+    if not qs or any(not 0.0 <= q <= 1.0 for q in qs) or list(qs) != sorted(qs):
+        raise ValueError(f"`quantiles` must be increasing levels in [0, 1], got {quantiles!r}.")
+    try:
+        tol = float(conv_tol)
+    except (TypeError, ValueError):
+        raise ValueError(f"`conv_tol` must be a real number > 0, got {conv_tol!r}.") from None
+    if not tol > 0:
+        raise ValueError(f"`conv_tol` must be > 0, got {conv_tol}.")
+    if n is None:
+        n = st.shape[0]
+    elif isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < st.shape[0]:
+        raise ValueError(
+            f"`n` (the requested number of trajectories) must be an integer ≥ the number of rows "
+            f"N = {st.shape[0]}, got {n!r}."
+        )
+    return ts, norms, st, qs, conv_tol, int(n)
+
+
 def summarise(
     ts,
     error_norm,
@@ -516,27 +604,38 @@ def summarise(
 ) -> MonteCarloResult:
     """Build a :class:`MonteCarloResult` from per-trajectory error norms (N, T) and statuses (N,).
 
+    **Arguments** (each checked; a bad one raises ``ValueError`` naming it):
+
+    - `ts`: (T,) save times: real, finite, strictly increasing, T ≥ 2 (as :func:`obsjax.monte_carlo`).
+    - `error_norm`: (N, T) ‖x̃_i(t_k)‖: real (a complex array is refused), ≥ 0 in every row whose
+      status is 0 (a negative value is refused).  Rows of failed trajectories may hold anything (NaN,
+      inf): they are replaced by NaN.
+    - `status`: (N,) integer codes of :class:`obsjax.Trajectory`: 0 success, 1 solver failure, 2
+      non-finite values, −1 not yet computed.  A float array is accepted only when its values are
+      such integers (0.7 or NaN is refused); any other code is refused.
+    - `quantiles`: increasing levels in [0, 1] of the bands.
+    - `conv_tol`, `conv_relative`: the convergence threshold (> 0), as in :func:`obsjax.monte_carlo`.
+    - `n`: the requested number of trajectories, an integer ≥ N (default N; ``complete`` when all N
+      rows are computed and n = N).
+    - `elapsed`, `n_computed`: wall-clock seconds and trajectories computed, for the throughput.
+
     Defence in depth: a row with status 0 whose norms or ISE are not finite (an overflowing ‖x̃‖) is
     re-labelled status 2 (non-finite) and counted as failed; the statistics use the other rows only.
     """
-    ts = np.asarray(ts, dtype=float)
-    shape_n, shape_s = np.shape(error_norm), np.shape(status)
-    if len(shape_n) != 2 or shape_s != (shape_n[0],) or shape_n[1] != ts.shape[0]:
-        raise ValueError(
-            f"`error_norm` must be (N, T) with T = len(ts) = {ts.shape[0]} and `status` (N,), got "
-            f"{shape_n} and {shape_s}."
-        )
-    norms, status, ct, ise = _process_rows(ts, error_norm, status, conv_tol, conv_relative)
+    ts, norms, status, quantiles, conv_tol, n = _summarise_inputs(
+        ts, error_norm, status, quantiles, conv_tol, n
+    )
+    norms, status, ct, ise = _process_rows(ts, norms, status, conv_tol, conv_relative)
     ok = status == 0
     mean = np.mean(norms[ok], axis=0) if ok.any() else np.full(ts.shape[0], np.nan)
     return MonteCarloResult(
         ts=ts,
-        quantiles=tuple(float(q) for q in quantiles),
+        quantiles=quantiles,
         bands=_quantiles(norms[ok], quantiles),
         error_norm_mean=mean,
         conv_tol=float(conv_tol),
         conv_relative=bool(conv_relative),
-        n=int(status.shape[0] if n is None else n),
+        n=n,
         n_done=int((status >= 0).sum()),
         elapsed=float(elapsed),
         n_computed=int(n_computed),
@@ -714,18 +813,44 @@ def _broadcast_from_lead(tree):
 
 
 def _resolve_devices(devices):
+    """The devices of a study: ``None`` (all of ``jax.devices()``), a positive integer (the first that
+    many), or a sequence of distinct ``jax.Device``; anything else raises ``ValueError`` naming
+    `devices`."""
     if devices is None:
-        devices = jax.devices()
-    elif isinstance(devices, int):
+        return list(jax.devices())
+    if isinstance(devices, (bool, np.bool_)):
+        raise ValueError(
+            f"`devices` must be None, a positive integer number of devices or a list of devices, got "
+            f"the boolean {devices!r}."
+        )
+    if isinstance(devices, (int, np.integer)):
         all_devs = jax.devices()
         if not 1 <= devices <= len(all_devs):
             raise ValueError(
                 f"`devices` asks for {devices} devices, but {len(all_devs)} are available."
             )
-        devices = all_devs[:devices]
+        return list(all_devs[: int(devices)])
+    if isinstance(devices, (str, bytes)) or not hasattr(devices, "__iter__"):
+        raise ValueError(
+            f"`devices` must be None, a positive integer number of devices or a list of devices, got "
+            f"{devices!r} ({type(devices).__name__})."
+        )
     devices = list(devices)
     if not devices:
         raise ValueError("`devices` must name at least one device.")
+    bad = [d for d in devices if not isinstance(d, jax.Device)]
+    if bad:
+        raise ValueError(
+            f"`devices` must hold jax devices (from jax.devices()), got {bad[0]!r} "
+            f"({type(bad[0]).__name__})."
+        )
+    seen: set = set()
+    dups = [d for d in devices if d in seen or seen.add(d)]
+    if dups:
+        raise ValueError(
+            f"`devices` names {dups[0]} more than once: each device of the mesh must be distinct "
+            f"(got {devices})."
+        )
     return devices
 
 
@@ -758,8 +883,14 @@ def monte_carlo(
     measurement noise and (optionally) plant parameters.
 
     Trajectory i draws everything from ``fold_in(key, i)`` (split into keys for x0, x̂0, the noise and the
-    plant parameters), so the result does not depend on the chunk size, the number of devices or on
-    interruptions: a sharded, chunked or resumed study equals a single uninterrupted one.
+    plant parameters), so its data do not depend on the chunk size, the number of devices or on
+    interruptions: a sharded, chunked or resumed study solves the same problems as a single uninterrupted
+    one, and gives the same numbers to the solver's accuracy.  Bit for bit only where the solve is
+    insensitive to rounding: the batched solve's arithmetic depends at rounding level on how many members
+    a device integrates together, and adaptive steps can amplify that to the tolerance's order.  With
+    ``BandLimitedNoise`` and adaptive steps (whose error is 10²–10⁴ × `rtol` at the noise's kinks, see
+    :mod:`obsjax.noise`), chunk sizes 1 and 2 differed by 7e-4 relative at the default rtol 1e-6; fixed
+    steps whose grid holds the noise's nodes give rounding-level agreement.
 
     **Execution.**  The N trajectories are processed in chunks of ``chunk_size`` (device memory stays
     bounded by one chunk; the host keeps only ‖x̃(t)‖ on the save grid, N × T floats, so use a coarse
