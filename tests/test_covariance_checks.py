@@ -98,3 +98,36 @@ def test_the_derivative_in_P0_is_symmetric_and_matches_central_differences(kind)
     fd = (float(J(P0 + h * E)) - float(J(P0 - h * E))) / (2 * h)
     assert np.sum(G * E) == pytest.approx(fd, rel=1e-6)
     obsjax.KalmanBucy(plant, Q, R, P0 - 0.1 * G / np.max(np.abs(G))).check()  # a step stays a covariance
+
+
+def test_definiteness_verdicts_do_not_depend_on_the_state_units():
+    """A P0 with eigenvalues 0.60 … 22.3 in units spread over 1e-4 … 1e4 (D P0 D, Cholesky succeeds) was
+    refused ("eigenvalue −4.8e-8"), eagerly and under jit, and so was KudvaNarendra's Q; the verdicts are
+    now taken on the equilibrated matrix.  An indefinite matrix in the same units is still refused."""
+    rng = np.random.default_rng(7)
+    M = rng.standard_normal((4, 4))
+    P0 = M @ M.T + 0.5 * np.eye(4)
+    bad = P0 - 1.01 * np.linalg.eigvalsh(P0)[0] * np.eye(4)  # smallest eigenvalue −0.01·λ_min < 0
+    A = np.diag([-1.0, -2.0, -3.0, -4.0]) + np.diag([1.0, 1.0, 1.0], 1)
+    C = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    for d in (np.array([1e-3, 1e-1, 1e2, 1e3]), np.array([1e2, 1e-4, 1e4, 1e-1])):
+        Dm = np.diag(d)
+        np.linalg.cholesky(Dm @ P0 @ Dm)  # positive definite in the new units: an independent check
+        plant = obsjax.LTI(Dm @ A @ np.linalg.inv(Dm), np.zeros((4, 1)), C @ np.linalg.inv(Dm))
+        obsjax.KalmanBucy(plant, Dm @ Dm, np.eye(2), Dm @ P0 @ Dm)
+        obsjax.KudvaNarendra(4, 1, K=-np.eye(4), Gamma1=1.0, Gamma2=1.0, Q=Dm @ P0 @ Dm)
+        with pytest.raises(ValueError, match="`P0` must be positive definite"):
+            obsjax.KalmanBucy(plant, Dm @ Dm, np.eye(2), Dm @ bad @ Dm)
+        with pytest.raises(ValueError, match="`Q` must be positive definite"):
+            obsjax.KudvaNarendra(4, 1, K=-np.eye(4), Gamma1=1.0, Gamma2=1.0, Q=Dm @ bad @ Dm)
+    kb = obsjax.KalmanBucy(plant, Dm @ Dm, np.eye(2), Dm @ P0 @ Dm)
+    prep = jax.jit(lambda P: eqx_tree_at_P0(kb, P).prepare().P0)
+    np.testing.assert_allclose(prep(jnp.asarray(Dm @ P0 @ Dm)), Dm @ P0 @ Dm)
+    with pytest.raises(Exception, match="P0"):
+        jax.block_until_ready(prep(jnp.asarray(Dm @ bad @ Dm)))
+
+
+def eqx_tree_at_P0(obs, P):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda o: o.P0, obs, P)

@@ -635,6 +635,27 @@ def test_kernels_are_covariant_under_a_change_of_state_units():
             np.testing.assert_allclose(lhs / d[:, None] * d[None, :], rhs / d[:, None] * d[None, :], atol=1e-8)
 
 
+def test_balancing_ignores_rounding_residue_and_negligible_couplings():
+    """The balanced design fitted every nonzero entry: a coupling A21 = 1e-30 in (29) put the
+    reconstruction 1.6e-8 off (1e-100: refused as "not finite"), and 1e-17 residue of a similarity
+    round trip made a 4-state design overflow.  Both are now as in the user's units."""
+    for tiny in (1e-30, 1e-100):
+        A = np.array([[0.0, 1.0], [tiny, 0.0]])
+        obs = obsjax.FiniteWindow(obsjax.LTI(A, [[0.0], [1.0]], [[2.0, 0.0]]), 1.0)
+        assert float(obs.norm()) == pytest.approx(norm31(1.0), rel=1e-12)  # the closed form (31)
+        G1, G2 = obs.kernels(np.linspace(0.0, 1.0, 3))
+        G1r, G2r = obsjax.FiniteWindow(MODEL29, 1.0).kernels(np.linspace(0.0, 1.0, 3))
+        np.testing.assert_allclose(G1, G1r, rtol=1e-12, atol=1e-12)
+    rng = np.random.default_rng(1)
+    A = np.array([[0.0, 1.0, 0.0, 0.0], [-2.0, -0.4, 0.5, 0.0], [0.0, 0.0, 0.0, 1.0], [0.3, 0.0, -2.0, -0.5]])
+    B, C = np.array([[0.0], [1.0], [0.0], [0.0]]), np.array([[1.0, 0.0, 0.0, 0.0]])
+    Q, _ = np.linalg.qr(rng.standard_normal((4, 4)))
+    A2, B2, C2 = Q.T @ (Q @ A @ Q.T) @ Q, Q.T @ (Q @ B), (C @ Q.T) @ Q  # residue ~1e-16 where A has zeros
+    assert np.count_nonzero(A2) > np.count_nonzero(A)
+    ref = float(obsjax.FiniteWindow(obsjax.LTI(A, B, C), 1.0).norm())
+    assert float(obsjax.FiniteWindow(obsjax.LTI(A2, B2, C2), 1.0).norm()) == pytest.approx(ref, rel=1e-9)
+
+
 def test_window_ys_shape():
     with pytest.raises(ValueError, match=r"`ys` must have shape \(11, 1\)"):
         obsjax.FiniteWindow(MODEL29, 1.0).estimate_window(_TS, np.zeros((11, 2)), np.zeros((11, 1)))

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value, real_array
+from ._validation import equilibrated
 from ._validation import spd_violation
 
 
@@ -48,12 +49,15 @@ def check_gain(arr, name: str) -> None:
         if not np.all(v > 0):
             raise ValueError(f"`{name}` must be > 0 (an adaptation gain), got {v.tolist()}.")
     else:
-        # relative to the gain's own scale (an absolute floor passed any asymmetric gain of size 1e-12)
-        if not np.max(np.abs(v - v.T), initial=0.0) <= 1e-10 * np.max(np.abs(v), initial=0.0):
+        # on the equilibrated matrix D⁻¹ v D⁻¹ (D = diag(√v_ii)): relative to each entry's own scale,
+        # so neither an absolute floor (an asymmetric gain of size 1e-13 passed) nor the units decide
+        w, diag = equilibrated(v, np)
+        if not np.max(np.abs(w - w.T), initial=0.0) <= 1e-10 * np.max(np.abs(w), initial=0.0):
             raise ValueError(f"`{name}` must be a symmetric matrix, got {v.tolist()}.")
-        ev = np.linalg.eigvalsh(0.5 * (v + v.T))
-        if not np.all(ev > 0):
-            raise ValueError(f"`{name}` must be positive definite, got eigenvalues {ev.tolist()}.")
+        ev = np.linalg.eigvalsh(0.5 * (w + w.T))
+        if not (np.all(diag > 0) and np.all(ev > 0)):
+            raw = np.linalg.eigvalsh(0.5 * (v + v.T))
+            raise ValueError(f"`{name}` must be positive definite, got eigenvalues {raw.tolist()}.")
 
 
 def gain_matrix(arr, size: int) -> jnp.ndarray:
@@ -115,6 +119,10 @@ def poly_from_roots(roots) -> jnp.ndarray:
 def state_dimension(n, name: str = "n", minimum: int = 1, what: str = "") -> int:
     """A dimension given as an integer ≥ `minimum` (a Python or NumPy integer, or an integral float such
     as 3.0); ``ValueError`` for 2.7, True, "3" (``int()`` truncated or parsed them)."""
+    if not isinstance(n, (bool, np.bool_, str)) and hasattr(n, "shape") and np.ndim(n) == 0:
+        v = concrete_value(n)  # a 0-d NumPy or JAX array holding the order
+        if v is not None and np.asarray(v).dtype.kind in "iuf":
+            n = np.asarray(v).item()
     ok = not isinstance(n, (bool, np.bool_)) and isinstance(n, (int, float, np.integer, np.floating))
     if not (ok and np.isfinite(n) and float(n) == int(n) and int(n) >= minimum):
         raise ValueError(f"`{name}`{what} must be an integer >= {minimum}, got {n!r}.")

@@ -170,7 +170,7 @@ class ContinuousDiscreteKalman(AbstractObserver):
         a, b = float(a), float(b)
         # the schedule's own time tolerance (1e-9 of the horizon plus the rounding of the clock times):
         # with t0 a clock time (1.7e9 s), (t1 − t0)/period read 2.9999995 and the sample at t1 was lost
-        tol = _schedule.tolerance(b - a, max(abs(a), abs(b)))
+        tol = min(_schedule.tolerance(b - a, max(abs(a), abs(b))), 0.5 * self.period)  # < period: no repeat
         count = int(math.floor((b - a + tol) / self.period)) + 1
         return np.minimum(a + self.period * np.arange(count), b)  # the last one within tol of t1: at t1
 

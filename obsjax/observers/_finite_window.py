@@ -56,31 +56,53 @@ def _window_scaling(A, B, C):
     The Hamiltonians W = [[A, γBBᵀ], [CᵀC, −Aᵀ]] of a model with states in very different units span the
     square of that spread (x = S x_b maps W to diag(S⁻¹, S) W diag(S, S⁻¹)), and their exponentials lose
     about that many digits (states in units 1e-2 … 1e3 put the reconstruction 7e-8 off; 1e-3 … 1e3 made
-    the design overflow).  s minimises, over the nonzero entries, the spread of the log-magnitudes of
+    the design overflow).  Candidates for s minimise, over the nonzero entries, the spread of the
+    log-magnitudes of
 
         A_ij s_j / s_i,    (BBᵀ)_ij / (s_i s_j),    (CᵀC)_ij s_i s_j
 
-    about a common level (Curtis & Reid's log-magnitude scaling, least squares, minimum norm), so the
-    balanced model does not depend on the units the states were given in.  The kernels are covariant:
-    each row of (G1, G2) is its own minimum-norm problem, so the rows in the user's units are those of
-    the balanced design times s_i, exactly (powers of 2 scale without rounding).  The scaling carries no
-    derivative (the result does not depend on it)."""
+    about a common level (Curtis & Reid's log-magnitude scaling, least squares, minimum norm): once over
+    every nonzero entry, once over the significant ones only (|A_ij| > 1e-13 max|A|, and off-diagonal
+    entries of BBᵀ and CᵀC above 1e-13 of √(M_ii M_jj), their Cauchy–Schwarz bound), since rounding
+    residue where A has zeros (1e-17) pulls a log-magnitude fit far apart.  Of these and s = 1, the one
+    whose balanced W has the smallest Frobenius norm is taken (Osborne's criterion for a diagonal
+    similarity): it never makes W worse than the user's units.  The kernels are covariant: each row of
+    (G1, G2) is its own minimum-norm problem, so the rows in the user's units are those of the balanced
+    design times s_i, exactly (powers of 2 scale without rounding).  The scaling carries no derivative
+    (the result does not depend on it)."""
     A, B, C = (jax.lax.stop_gradient(jnp.asarray(M)) for M in (A, B, C))
     n = A.shape[0]
     eye = jnp.eye(n, dtype=A.dtype)
     pair = lambda sa, sb: (sa * eye[:, None, :] + sb * eye[None, :, :]).reshape(n * n, n)
-    blocks = [
-        (A, pair(-1.0, 1.0)),  # log|A_ij| − δ_i + δ_j
-        (B @ B.T, pair(-1.0, -1.0)),  # log|M_ij| − δ_i − δ_j
-        (C.T @ C, pair(1.0, 1.0)),  # log|N_ij| + δ_i + δ_j
-    ]
+    M, N = B @ B.T, C.T @ C
+    blocks = [(A, pair(-1.0, 1.0)), (M, pair(-1.0, -1.0)), (N, pair(1.0, 1.0))]
     G = jnp.concatenate([jnp.concatenate([P, jnp.ones((n * n, 1), A.dtype)], axis=1) for _, P in blocks])
-    v = jnp.concatenate([M.reshape(-1) for M, _ in blocks])
-    w = (v != 0).astype(A.dtype)
+    v = jnp.concatenate([X.reshape(-1) for X, _ in blocks])
     b = jnp.log(jnp.abs(jnp.where(v != 0, v, 1.0)))
-    x = -jnp.linalg.pinv(w[:, None] * G) @ (w * b)  # min Σ w (b + G x)²
-    # no normalisation: a common factor of s is not free here (it moves BBᵀ against CᵀC)
-    return jnp.exp2(jnp.round(x[:n] / jnp.log(2.0)))
+
+    def cauchy_schwarz(X):
+        d = jnp.sqrt(jnp.abs(jnp.diagonal(X)))
+        return jnp.abs(X) > 1e-13 * d[:, None] * d[None, :]
+
+    significant = jnp.concatenate(
+        [(jnp.abs(A) > 1e-13 * jnp.max(jnp.abs(A))).reshape(-1), cauchy_schwarz(M).reshape(-1),
+         cauchy_schwarz(N).reshape(-1)]
+    )
+
+    def fit(w):
+        w = w.astype(A.dtype)
+        x = -jnp.linalg.pinv(w[:, None] * G) @ (w * b)  # min Σ w (b + G x)²
+        # no normalisation: a common factor of s is not free here (it moves BBᵀ against CᵀC)
+        return jnp.exp2(jnp.round(x[:n] / jnp.log(2.0)))
+
+    def frobenius(sc):
+        Ab, Bb, Cb = _balanced(A, B, C, sc)
+        return 2 * jnp.sum(Ab**2) + jnp.sum((Bb @ Bb.T) ** 2) + jnp.sum((Cb.T @ Cb) ** 2)
+
+    cands = jnp.stack([jnp.ones(n, A.dtype), fit(v != 0), fit((v != 0) & significant)])
+    cost = jax.vmap(frobenius)(cands)
+    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+    return cands[jnp.argmin(cost)]
 
 
 def _balanced(A, B, C, s):

@@ -11,7 +11,7 @@ import numpy as np
 from .._checks import concrete_value, matrix
 from ._adaptive_common import check_gain, gain_array, lyapunov, solve_gain, traced_positive, state_dimension
 from ._base import AbstractObserver
-from ._validation import require_finite, traced_finite
+from ._validation import require_finite, spd_violation, traced_finite
 
 
 def _stable_matrix(K, name, n):
@@ -101,7 +101,7 @@ class KudvaNarendra(AbstractObserver):
         # K is Hurwitz iff the solution P of KᵀP + PK = −Q (Q > 0) is positive definite (GPU-friendly test).
         K = traced_finite(self.K, "K")
         P = lyapunov(K, self.Q)
-        K = eqx.error_if(K, jnp.any(~(jnp.linalg.eigvalsh(P) > 0)), "`K` must be stable (Hurwitz).")
+        K = eqx.error_if(K, spd_violation(P, semi=False), "`K` must be stable (Hurwitz).")  # equilibrated
         return eqx.tree_at(
             lambda o: (o.K, o.Gamma1, o.Gamma2, o.Q),
             self,

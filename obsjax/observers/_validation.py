@@ -45,14 +45,28 @@ def _scale(M):
     return jnp.max(jnp.abs(M))
 
 
+def equilibrated(M, xp=jnp):
+    """(M̂, d): M̂ = D⁻¹ M D⁻¹ with D = diag(√M_ii) (1 where M_ii ≤ 0), the matrix the symmetry and
+    definiteness verdicts are taken on.  Positive (semi)definiteness and symmetry are invariant under
+    M ↦ D M D (a change of state units), and so is M̂ (up to the sign of D); the raw matrix's smallest
+    eigenvalue is not: a P0 with eigenvalues 0.6 … 22 read −4.8e-8 with states in units 1e-4 … 1e4."""
+    diag = xp.diagonal(M)
+    d = xp.sqrt(xp.where(diag > 0, diag, 1.0))
+    return M / d[:, None] / d[None, :], diag
+
+
 def spd_violation(M, *, semi: bool):
-    """Traced predicate: M is not a finite symmetric positive (semi)definite matrix."""
+    """Traced predicate: M is not a finite symmetric positive (semi)definite matrix (decided on the
+    equilibrated matrix, :func:`equilibrated`)."""
     M = jnp.asarray(M)
     finite = jnp.all(jnp.isfinite(M))
-    Ms = jnp.where(finite, M, 0.0)  # keep eigvalsh away from NaN
+    Ms, diag = equilibrated(jnp.where(finite, M, 0.0))  # keep eigvalsh away from NaN
     sym = jnp.max(jnp.abs(Ms - Ms.T)) <= 1e-10 * _scale(Ms)
     lam = jnp.linalg.eigvalsh(0.5 * (Ms + Ms.T))
-    definite = lam.min() >= -1e-12 * _scale(lam) if semi else lam.min() > 0
+    if semi:
+        definite = jnp.all(diag >= 0) & (lam.min() >= -1e-12 * _scale(lam))
+    else:
+        definite = jnp.all(diag > 0) & (lam.min() > 0)
     return ~(finite & sym & definite)
 
 
@@ -78,15 +92,27 @@ def traced_finite(x, name: str):
 
 
 def check_covariance_value(v, name: str, *, semi: bool) -> None:
-    """Eager check of a concrete covariance: symmetric to 1e-10 of its largest entry, and positive
-    definite (or semidefinite to 1e-12 of its largest eigenvalue).  Relative throughout: the checks used
-    absolute floors of 1e-12, so a non-symmetric or indefinite matrix of scale 1e-12 was accepted."""
+    """Eager check of a concrete covariance: symmetric to 1e-10, and positive definite (or semidefinite
+    to 1e-12 of its largest eigenvalue), both on the equilibrated matrix D⁻¹ v D⁻¹, D = diag(√v_ii)
+    (:func:`equilibrated`): relative to each entry's own scale, so neither an absolute floor (a
+    non-symmetric or indefinite matrix of scale 1e-12 was accepted) nor the spread of the state units
+    (a positive definite P0 in units 1e-4 … 1e4 was refused) decides."""
     v = np.asarray(v, dtype=float)
-    big = float(np.max(np.abs(v))) if v.size else 0.0
-    if float(np.max(np.abs(v - v.T), initial=0.0)) > 1e-10 * big:
+    if not v.size:
+        raise ValueError(f"`{name}` must be a non-empty matrix, got shape {v.shape}.")
+    w, diag = equilibrated(v, np)
+    big = float(np.max(np.abs(w)))
+    if float(np.max(np.abs(w - w.T), initial=0.0)) > 1e-10 * big:
         raise ValueError(f"`{name}` must be symmetric, got {v.tolist()}.")
-    ev = np.linalg.eigvalsh(0.5 * (v + v.T))
-    if semi and ev.size and ev.min() < -1e-12 * float(np.max(np.abs(ev))):
-        raise ValueError(f"`{name}` must be positive semidefinite, got eigenvalues {ev.tolist()}.")
-    if not semi and not (ev.size and ev.min() > 0):
-        raise ValueError(f"`{name}` must be positive definite, got eigenvalues {ev.tolist()}.")
+    ev = np.linalg.eigvalsh(0.5 * (w + w.T))
+    raw = np.linalg.eigvalsh(0.5 * (v + v.T)).tolist()
+    if semi and (np.any(diag < 0) or ev.min() < -1e-12 * float(np.max(np.abs(ev)))):
+        raise ValueError(
+            f"`{name}` must be positive semidefinite, got eigenvalues {raw} (of the equilibrated matrix "
+            f"D⁻¹{name}D⁻¹, D = diag(√{name}_ii): {ev.tolist()})."
+        )
+    if not semi and not (np.all(diag > 0) and ev.min() > 0):
+        raise ValueError(
+            f"`{name}` must be positive definite, got eigenvalues {raw} (of the equilibrated matrix "
+            f"D⁻¹{name}D⁻¹, D = diag(√{name}_ii): {ev.tolist()})."
+        )
