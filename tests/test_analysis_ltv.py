@@ -161,6 +161,41 @@ def test_persistent_excitation_verdict_does_not_depend_on_the_components_units()
         assert not dep, span
 
 
+@pytest.mark.parametrize(
+    "k, e", [(1.0, 1e-4), pytest.param(1e-3, 1e-3, marks=pytest.mark.extended)]  # 5 s each here
+)
+def test_uniform_observability_constants_in_small_output_and_time_units(k, e):
+    """The gramians were integrated with an absolute atol = 1e-12, the size of the answer for outputs in a
+    unit 1e4 times larger or time in ms: α1 and η1 of the Chen & Yen example came out 1.2e-4 and 7.3e-3
+    too large (an optimistic chen_yen_bound).  Reference: scipy in s = √t (which removes the kink of C
+    at t = 0), period [0, 0.5]; α1, η1 scale by k e² for t' = k t, y' = e y."""
+    base = obsjax.chen_yen_example()
+
+    def A(t):
+        c, s_ = np.cos(t), np.sin(t)
+        return np.array([[-1 + 1.5 * c * c, 1 - 1.5 * s_ * c], [-1 + 1.5 * s_ * c, -1 + 1.5 * s_ * s_]])
+
+    def C(t):
+        r = np.sqrt(max(t, 0.0))
+        return np.array([[np.cos(r) + np.sin(r), 3 * np.cos(r) ** 2]])
+
+    def rhs(s_, y):
+        t = s_ * s_
+        P = y[:4].reshape(2, 2)
+        w = P.T @ C(t).T
+        return 2 * s_ * np.concatenate([(A(t) @ P).ravel(), (w @ w.T).ravel()])
+
+    sol = scipy.integrate.solve_ivp(rhs, (0, np.sqrt(0.5)), np.r_[np.eye(2).ravel(), np.zeros(4)],
+                                    method="DOP853", rtol=1e-13, atol=1e-16)
+    PT, Wz = sol.y[:4, -1].reshape(2, 2), sol.y[4:, -1].reshape(2, 2)
+    Wend = np.linalg.inv(PT).T @ Wz @ np.linalg.inv(PT)
+    a1, eta1 = np.linalg.eigvalsh(Wend)[0], np.linalg.eigvalsh(Wz)[0]
+    P = obsjax.LTV(lambda t: base.A_of(t / k) / k, lambda t: e * base.C_of(t / k))
+    c = an.uniform_observability_constants(P, 0.5 * k, 0.5 * k)
+    assert float(c.alpha1[0]) / (k * e**2) == pytest.approx(a1, rel=1e-8)
+    assert float(c.eta1[0]) / (k * e**2) == pytest.approx(eta1, rel=1e-8)
+
+
 @pytest.mark.extended
 def test_short_pulses_in_a_callable_regressor_are_integrated_at_their_declared_jump_times():
     """w = [p(t), 1] with p a pulse of width 1e-4 in each window of length 1: ∫ w wᵀ = [[δ, δ], [δ, 1]]

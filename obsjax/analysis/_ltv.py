@@ -457,9 +457,16 @@ def uniform_observability_constants(
     _probe_plant(plant, starts[0], starts[0] + K * T, n=max(65, 8 * K + 1))
 
     where = "uniform_observability_constants"
-    mu, PhiT, Wz = _periods(plant, _pad(starts), jnp.asarray(T), n_grid, rtol, atol, where=where)
-    mu, PhiT, Wz = mu[:K], PhiT[:K], Wz[:K]
-    log_sv, log_ew, _, ok, ratio = _periods_end(plant, _pad(starts + T), jnp.asarray(T), rtol, atol)
+    # the gramians are integrated for C/(σ√T), σ the largest entry of C(t) on a probe grid, and scaled
+    # back by σ²T: `atol` is then relative to their size (absolute, it was at the level of the answer for
+    # outputs in units 1e4 times larger, or time in ms: α1 came out 1.2e-4 and 7.3e-3 too large)
+    probe = starts[0] + (K * T) * np.linspace(0.0, 1.0, 33)
+    g2 = (_probe_scale(lambda t: plant.C_of(t), probe) ** 2) * T
+    scaled = _ScaledOutput(plant, float(np.sqrt(g2)))
+    mu, PhiT, Wz = _periods(scaled, _pad(starts), jnp.asarray(T), n_grid, rtol, atol, where=where)
+    mu, PhiT, Wz = mu[:K], PhiT[:K], Wz[:K] * g2
+    log_sv, log_ew, _, ok, ratio = _periods_end(scaled, _pad(starts + T), jnp.asarray(T), rtol, atol)
+    log_ew = log_ew + np.log(g2)
     log_sv = _end_failed(ok[:K], "uniform_observability_constants", log_sv)
     # m1 = 1/‖Φ(t_k, t_k + T)‖ and α2 = λ_max(W_o^end) from the scaled backward solve: forward, the small
     # singular values of Φ(t_k + T, t_k) sit at the absolute tolerance (a mode e^{−50·2} gave 3e-14
@@ -573,7 +580,7 @@ def is_persistently_exciting(w, T, horizon, *, t0=0.0, tol=1e-9, jump_ts=None, r
                 "`jump_ts` is for a callable regressor; a plant declares its discontinuities as its own "
                 "`jump_ts` (e.g. obsjax.LTV(A, C, jump_ts=...))."
             )
-        sigma = _probe_scale(lambda t: w.C_of(t), probe)
+        sigma = _probe_scale(lambda t: w.C_of(t), probe) * np.sqrt(T)  # the gramians' size: ‖C‖²T
         scaled, where = _ScaledOutput(w, sigma), "is_persistently_exciting"
         Gs = _periods(scaled, _pad(starts), jnp.asarray(T), 2, rtol, atol, where=where)[2][:K]
         Gs = Gs * sigma**2
@@ -649,11 +656,15 @@ class _ScaledOutput(eqx.Module):
     """A plant whose output map is divided by `scale` (the gramian scales by 1/scale²)."""
 
     plant: Any
-    scale: float = eqx.field(static=True)
+    scale: Any  # a leaf: one compilation serves every scale
 
     @property
     def n(self):
         return self.plant.n
+
+    @property
+    def jump_ts(self):  # the plant's discontinuities, where the solves step
+        return getattr(self.plant, "jump_ts", None)
 
     def A_of(self, t):
         return self.plant.A_of(t)
