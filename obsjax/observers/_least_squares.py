@@ -206,6 +206,13 @@ class LeastSquaresReset(AbstractObserver):
     it).  Tuning both is redundant: under :func:`obsjax.tune`'s positive (log) parametrisation the two
     gradients are equal, so tune γ (or p0) and T, or read the product as the gain.
 
+    **Units.**  The reset P = p0·I (the paper's (15)) weighs every state alike, so the observer is not
+    invariant under a change of the states' relative units: with states in units 1e-3 and 1e3 it is a
+    different observer (its gain favours the directions that are large in those units).  Under a common
+    state scale s, output scale e and time scale k (t' = k t) it transforms exactly with
+    γ·p0 ↦ γ·p0·s²/(k e²).  Give the states comparable units (or a P0 shaped to them through a state
+    transformation of the model) before comparing gains across models.
+
     **Arguments:**
 
     - `model`: the observer's model of the plant, an :class:`obsjax.LTV` (or :class:`obsjax.LTI`); A(t),
