@@ -131,3 +131,20 @@ def eqx_tree_at_P0(obs, P):
     import equinox as eqx
 
     return eqx.tree_at(lambda o: o.P0, obs, P)
+
+
+def test_rounding_that_equilibration_magnifies_does_not_refuse_a_valid_covariance():
+    """diag(0, 1) after a rotation and back carries off-diagonal residue of 3e-17 beside a diagonal entry
+    of 1e-17: equilibrated, that residue reads as an asymmetry of 1e-9 and the matrix was refused
+    ("must be symmetric") as Qw, Q, P0 and as an adaptation gain.  Either test passing now suffices."""
+    c, s_ = np.cos(0.7), np.sin(0.7)
+    R = np.array([[c, -s_], [s_, c]])
+    Qx = R.T @ (R @ np.diag([0.0, 1.0]) @ R.T) @ R
+    assert abs(Qx[0, 1] - Qx[1, 0]) > 0 and Qx[0, 0] != 0  # the residue is there
+    obsjax.KalmanBucy(PLANT, Qx, np.eye(1), np.eye(2))
+    obsjax.ExtendedKalman(PLANT, Q=Qx, R=1.0, P0=Qx)
+    obsjax.KalmanBucy(PLANT, np.diag([-1e-18, 1.0]), np.eye(1), np.eye(2))
+    Pd = R.T @ (R @ np.diag([1e-16, 1.0]) @ R.T) @ R
+    obsjax.KalmanBucy(PLANT, np.eye(2), np.eye(1), Pd)
+    with pytest.raises(ValueError, match="`P0` must be positive definite"):
+        obsjax.KalmanBucy(PLANT, np.eye(2), np.eye(1), np.diag([-1e-6, 1.0]))

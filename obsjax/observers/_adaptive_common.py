@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import concrete_value, real_array
-from ._validation import equilibrated
+from ._validation import equilibrated, spd_ok
 from ._validation import spd_violation
 
 
@@ -49,15 +49,15 @@ def check_gain(arr, name: str) -> None:
         if not np.all(v > 0):
             raise ValueError(f"`{name}` must be > 0 (an adaptation gain), got {v.tolist()}.")
     else:
-        # on the equilibrated matrix D⁻¹ v D⁻¹ (D = diag(√v_ii)): relative to each entry's own scale,
-        # so neither an absolute floor (an asymmetric gain of size 1e-13 passed) nor the units decide
-        w, diag = equilibrated(v, np)
+        # relative tests, on v as given or on the equilibrated D⁻¹ v D⁻¹ (D = diag(√v_ii), see spd_ok):
+        # neither an absolute floor (an asymmetric gain of size 1e-13 passed) nor the units decide
+        if bool(spd_ok(v, False, np)):
+            return
+        w, _ = equilibrated(v, np)
         if not np.max(np.abs(w - w.T), initial=0.0) <= 1e-10 * np.max(np.abs(w), initial=0.0):
             raise ValueError(f"`{name}` must be a symmetric matrix, got {v.tolist()}.")
-        ev = np.linalg.eigvalsh(0.5 * (w + w.T))
-        if not (np.all(diag > 0) and np.all(ev > 0)):
-            raw = np.linalg.eigvalsh(0.5 * (v + v.T))
-            raise ValueError(f"`{name}` must be positive definite, got eigenvalues {raw.tolist()}.")
+        raw = np.linalg.eigvalsh(0.5 * (v + v.T))
+        raise ValueError(f"`{name}` must be positive definite, got eigenvalues {raw.tolist()}.")
 
 
 def gain_matrix(arr, size: int) -> jnp.ndarray:

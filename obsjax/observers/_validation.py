@@ -55,19 +55,31 @@ def equilibrated(M, xp=jnp):
     return M / d[:, None] / d[None, :], diag
 
 
+def _spd_verdict(M, semi: bool, xp):
+    """Symmetric to 1e-10 of its largest entry and positive definite (semidefinite to 1e-12 of its
+    largest eigenvalue), on M as given."""
+    sym = xp.max(xp.abs(M - M.T)) <= 1e-10 * xp.max(xp.abs(M))
+    lam = xp.linalg.eigvalsh(0.5 * (M + M.T))
+    definite = lam.min() >= -1e-12 * xp.max(xp.abs(lam)) if semi else lam.min() > 0
+    return sym & definite
+
+
+def spd_ok(M, semi: bool, xp=jnp):
+    """M (finite) passes as a symmetric positive (semi)definite matrix: on M as given, or on the
+    equilibrated M̂ (:func:`equilibrated`).  Either suffices: the equilibrated test accepts what the raw
+    one refuses only through the spread of the units (a P0 in units 1e-4 … 1e4), and the raw test
+    accepts what the equilibrated one refuses only through rounding that equilibration magnifies (diag(0,
+    1) rotated and back: off-diagonal residue 1e-17 against a diagonal entry 1e-17)."""
+    Me, diag = equilibrated(M, xp)
+    ok_eq = _spd_verdict(Me, semi, xp) & (xp.all(diag >= 0) if semi else xp.all(diag > 0))
+    return _spd_verdict(M, semi, xp) | ok_eq
+
+
 def spd_violation(M, *, semi: bool):
-    """Traced predicate: M is not a finite symmetric positive (semi)definite matrix (decided on the
-    equilibrated matrix, :func:`equilibrated`)."""
+    """Traced predicate: M is not a finite symmetric positive (semi)definite matrix (:func:`spd_ok`)."""
     M = jnp.asarray(M)
     finite = jnp.all(jnp.isfinite(M))
-    Ms, diag = equilibrated(jnp.where(finite, M, 0.0))  # keep eigvalsh away from NaN
-    sym = jnp.max(jnp.abs(Ms - Ms.T)) <= 1e-10 * _scale(Ms)
-    lam = jnp.linalg.eigvalsh(0.5 * (Ms + Ms.T))
-    if semi:
-        definite = jnp.all(diag >= 0) & (lam.min() >= -1e-12 * _scale(lam))
-    else:
-        definite = jnp.all(diag > 0) & (lam.min() > 0)
-    return ~(finite & sym & definite)
+    return ~(finite & spd_ok(jnp.where(finite, M, 0.0), semi))  # keep eigvalsh away from NaN
 
 
 def traced_spd(M, name: str, *, semi: bool, what: str = ""):
@@ -93,26 +105,23 @@ def traced_finite(x, name: str):
 
 def check_covariance_value(v, name: str, *, semi: bool) -> None:
     """Eager check of a concrete covariance: symmetric to 1e-10, and positive definite (or semidefinite
-    to 1e-12 of its largest eigenvalue), both on the equilibrated matrix D⁻¹ v D⁻¹, D = diag(√v_ii)
-    (:func:`equilibrated`): relative to each entry's own scale, so neither an absolute floor (a
-    non-symmetric or indefinite matrix of scale 1e-12 was accepted) nor the spread of the state units
-    (a positive definite P0 in units 1e-4 … 1e4 was refused) decides."""
+    to 1e-12 of its largest eigenvalue), on v as given or on the equilibrated matrix D⁻¹ v D⁻¹,
+    D = diag(√v_ii) (:func:`spd_ok`): relative throughout, so neither an absolute floor (a non-symmetric
+    or indefinite matrix of scale 1e-12 was accepted) nor the spread of the state units (a positive
+    definite P0 in units 1e-4 … 1e4 was refused) decides."""
     v = np.asarray(v, dtype=float)
     if not v.size:
         raise ValueError(f"`{name}` must be a non-empty matrix, got shape {v.shape}.")
+    if bool(spd_ok(v, semi, np)):
+        return
     w, diag = equilibrated(v, np)
     big = float(np.max(np.abs(w)))
     if float(np.max(np.abs(w - w.T), initial=0.0)) > 1e-10 * big:
         raise ValueError(f"`{name}` must be symmetric, got {v.tolist()}.")
     ev = np.linalg.eigvalsh(0.5 * (w + w.T))
     raw = np.linalg.eigvalsh(0.5 * (v + v.T)).tolist()
-    if semi and (np.any(diag < 0) or ev.min() < -1e-12 * float(np.max(np.abs(ev)))):
-        raise ValueError(
-            f"`{name}` must be positive semidefinite, got eigenvalues {raw} (of the equilibrated matrix "
-            f"D⁻¹{name}D⁻¹, D = diag(√{name}_ii): {ev.tolist()})."
-        )
-    if not semi and not (np.all(diag > 0) and ev.min() > 0):
-        raise ValueError(
-            f"`{name}` must be positive definite, got eigenvalues {raw} (of the equilibrated matrix "
-            f"D⁻¹{name}D⁻¹, D = diag(√{name}_ii): {ev.tolist()})."
-        )
+    kind = "semidefinite" if semi else "definite"
+    raise ValueError(
+        f"`{name}` must be positive {kind}, got eigenvalues {raw} (of the equilibrated matrix "
+        f"D⁻¹{name}D⁻¹, D = diag(√{name}_ii): {ev.tolist()})."
+    )
