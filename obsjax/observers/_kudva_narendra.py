@@ -54,6 +54,12 @@ class KudvaNarendra(AbstractObserver):
     (4.8) with θᵀ = [φ, ψ], V = [x_p; u]; with V = ½[eᵀPe + tr(φᵀΓ₁φ + ψᵀΓ₂ψ)] the laws give
     V̇ = −½ eᵀ Q e ≤ 0 (the text writes −eᵀQe, i.e. without the ½ of its own V).
 
+    **Units.**  The law Ȧ_m = −Γ₁⁻¹ P e x_pᵀ weighs the columns of A_m by x_p, with no weight of its own
+    on them: the observer is the same under a change of units only when every state shares one scale
+    (x' = s x, with K unchanged and Γ₁, Γ₂, Q scaled consistently).  With states in units spread over
+    1e-4 … 1e4 no choice of Γ₁ reproduces it, and the adaptation becomes stiff (a simulation ran into
+    max_steps, status 1): give the states comparable units.
+
     **Arguments:**
 
     - `n`: number of states (all measured).
