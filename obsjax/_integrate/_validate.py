@@ -59,6 +59,18 @@ def concrete_times(ts):
     return np.asarray(v, dtype=np.float64)
 
 
+def check_ts_values(v: np.ndarray) -> None:
+    """Concrete save times: finite and strictly increasing (``ValueError`` naming the first offender)."""
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"`ts` must hold finite times, got {v[~np.isfinite(v)][:3].tolist()}.")
+    bad = np.flatnonzero(np.diff(v) <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"`ts` must be strictly increasing, got ts[{i}] = {v[i]} followed by ts[{i + 1}] = {v[i + 1]}."
+        )
+
+
 def check_ts(ts):
     """Save times: real, 1-D, at least 2, finite and strictly increasing (eagerly, and under jit)."""
     v = concrete_times(ts)
@@ -66,14 +78,7 @@ def check_ts(ts):
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"`ts` must be a 1-D array of at least 2 save times, got shape {tuple(ts.shape)}.")
     if v is not None:
-        if not np.all(np.isfinite(v)):
-            raise ValueError(f"`ts` must hold finite times, got {v[~np.isfinite(v)][:3].tolist()}.")
-        bad = np.flatnonzero(np.diff(v) <= 0)
-        if bad.size:
-            i = int(bad[0])
-            raise ValueError(
-                f"`ts` must be strictly increasing, got ts[{i}] = {v[i]} followed by ts[{i + 1}] = {v[i + 1]}."
-            )
+        check_ts_values(v)
         return ts
     ts = eqx.error_if(
         ts,

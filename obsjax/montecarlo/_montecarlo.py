@@ -527,14 +527,7 @@ def _summarise_inputs(ts, error_norm, status, quantiles, conv_tol, n):
     ts = ts.astype(float)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"`ts` must be a 1-D array of at least 2 save times, got shape {ts.shape}.")
-    if not np.all(np.isfinite(ts)):
-        raise ValueError(f"`ts` must hold finite times, got {ts[~np.isfinite(ts)][:3].tolist()}.")
-    bad = np.flatnonzero(np.diff(ts) <= 0)
-    if bad.size:
-        i = int(bad[0])
-        raise ValueError(
-            f"`ts` must be strictly increasing, got ts[{i}] = {ts[i]} followed by ts[{i + 1}] = {ts[i + 1]}."
-        )
+    _validate.check_ts_values(ts)
     shape_n, shape_s = np.shape(error_norm), np.shape(status)
     if len(shape_n) != 2 or shape_s != (shape_n[0],) or shape_n[1] != ts.shape[0]:
         raise ValueError(
