@@ -486,3 +486,28 @@ def test_a_first_step_whose_candidate_overflows_is_rejected_not_fatal():
                                lockstep=False, **kw)
     np.testing.assert_array_equal(np.asarray(tb.status), [0, 0])
     np.testing.assert_allclose(tb.x[0], ref.x, rtol=1e-7)
+
+
+def test_a_step_at_the_floor_does_not_keep_the_solve_there():
+    """The step floor is 64 ulp of the horizon's largest time: at clock times in ms (1.7e12) it is 0.024,
+    above diffrax's first step 0.01.  Every step after one at the floor was forced to the floor again, so
+    one interval of 100 took 4137 floor steps and ran into max_steps (status 1).  An accepted floor step
+    now lets the PID controller grow the next one (diffrax's dtmin semantics)."""
+    import diffrax
+
+    from obsjax._integrate._status import GuardedController
+
+    A = jnp.array([[-0.5, 1.0, 0.0], [-1.0, -0.3, 0.8], [0.2, 0.0, -1.2]]) / 1e3
+    t0 = 1.7e12
+    ctrl = GuardedController(1e-6, 1e-8, t0, t0 + 100.0)
+    assert float(ctrl.dt_floor) > 0.01
+    sol = diffrax.diffeqsolve(diffrax.ODETerm(lambda t, y, a: A @ y + 1e-3), diffrax.Tsit5(), t0, t0 + 100.0,
+                              None, jnp.ones(3), stepsize_controller=ctrl, max_steps=4096, throw=False)
+    assert sol.result == diffrax.RESULTS.successful and int(sol.stats["num_steps"]) <= 10
+    ref = jax.scipy.linalg.expm(A * 100.0) @ jnp.ones(3) + jnp.linalg.solve(A, (jax.scipy.linalg.expm(A * 100.0) - jnp.eye(3)) @ jnp.full(3, 1e-3))
+    np.testing.assert_allclose(sol.ys[-1], ref, rtol=1e-5)
+    # the same through simulate: an observer run over [t0, t0 + 100] at that clock time
+    plant = obsjax.LTI(np.asarray(A), np.zeros((3, 1)), np.array([[1.0, 0.0, 0.0]]))
+    obs = obsjax.Luenberger.from_poles(plant, [-2e-3, -3e-3, -4e-3])
+    tr = obsjax.simulate(plant, obs, jnp.ones(3), jnp.zeros(3), t0 + jnp.linspace(0.0, 100.0, 3), throw=False)
+    assert int(tr.status) == 0

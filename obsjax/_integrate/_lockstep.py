@@ -114,7 +114,8 @@ class LockstepController(diffrax.AbstractAdaptiveStepSizeController):
         at_floor = jax.lax.stop_gradient(dt) <= self.dt_min + slack
         keep = keep | at_floor
         next_t0 = jnp.where(keep, t1, t0)
-        next_t1 = jnp.where(at_floor | (step < self.dt_min), next_t0 + self.dt_min, next_t0 + step)
+        # (an accepted floor step grows again as the PID proposes; see GuardedController)
+        next_t1 = jnp.where(step < self.dt_min, next_t0 + self.dt_min, next_t0 + step)
         return keep, next_t0, frozen(next_t1, next_t0), False, (evicted, count), diffrax.RESULTS.successful
 
     def _outliers(self, r, evicted, live, dt, error_order):

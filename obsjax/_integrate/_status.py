@@ -130,9 +130,10 @@ class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
         return jnp.where(is_finite(y0), tnext, t0 + self.dt_floor), state
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
-        keep, next_t0, next_t1, jump, state, result = self.inner.adapt_step_size(
+        pid_keep, next_t0, next_t1, jump, state, result = self.inner.adapt_step_size(
             t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
         )
+        keep = pid_keep
         # A candidate that overflows has a NaN error estimate (inf − inf): the PID factor, and so the next
         # step, came out NaN, and every later step with it, until max_steps (a solvable problem reported as
         # a solver failure).  It is a rejection like any other: shrink by factormin.
@@ -150,7 +151,11 @@ class GuardedController(diffrax.AbstractAdaptiveStepSizeController):
         finite = is_finite(y1_candidate)
         keep = (keep & finite) | at_floor
         next_t0 = jnp.where(at_floor, t1, next_t0)
-        low = at_floor | (dt < self.dt_floor)
+        # a floor step the PID controller accepted proposes its next step as usual (it may grow again); one
+        # it rejected proposed a step from t0, so the next starts at t1 with the floor.  (Forcing the floor
+        # after every floor step kept a solve there for good: at clock times of 1.7e12 the floor is 0.024,
+        # the first step 0.01, and one interval of 100 took 4137 floor steps into max_steps.)
+        low = (at_floor & ~pid_keep) | (dt < self.dt_floor)
         next_t1 = jnp.where(low, next_t0 + self.dt_floor, next_t1)
         result = diffrax.RESULTS.where(at_floor & ~finite, diffrax.RESULTS.dt_min_reached, result)
         return keep, next_t0, frozen(next_t1, next_t0), jump, state, result
