@@ -660,3 +660,16 @@ def test_least_squares_reset_kink_on_chen_yen_example():
     with pytest.warns(obsjax.TuneWarning, match=r"save times 2\.3, 4\.6, 6\.9, 9\.2 coincide"):
         obsjax.tune(obs, plant, where=WHERE_T, loss=obsjax.losses.ise, x0s=jnp.zeros((1, 2)),
                     xhat0s=jnp.array([[5.0, -5.0]]), ts=ts, steps=1, progress=False)  # fmt: skip
+
+
+def test_reset_coincidences_at_clock_times():
+    """At a Unix-time origin (1.7e9 s) the relative test alone found 2 of the 13 resets (T = 0.3) that fall
+    on samples every 0.1 (and 3 in ms): the schedule merges all 13 within its time tolerance, so the
+    kink warning now uses that tolerance too."""
+    from obsjax.tuning._tune import reset_coincidences
+
+    for k in (1.0, 1e-3, 1e3):
+        for t0 in (0.0, 1.7e9):
+            ts = k * (t0 + 0.1 * np.arange(41))
+            assert len(reset_coincidences(k * 0.3, ts)) == 13, (k, t0)
+    assert reset_coincidences(0.1 * np.sqrt(2.0), 1.7e9 + 0.1 * np.arange(41)) == []  # none falls on a sample
