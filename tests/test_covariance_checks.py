@@ -56,10 +56,31 @@ def test_complex_gains_and_covariances_are_refused():
         obsjax.analysis.chen_yen_bound(PLANT, 20 + 5j, 0.1, 0.25, 1.0)
 
 
+def test_the_filters_start_from_the_symmetric_part_of_P0():
+    """The default tier's twin of the next test: the derivative of the initial state in P0 is the
+    symmetric part of the cotangent (P0 enters as (P0 + P0ᵀ)/2), for the three filters."""
+    plant = obsjax.LTI(-np.eye(2), np.zeros((2, 1)), np.array([[1.0, 0.5]]))
+    model = obsjax.Nonlinear(lambda t, x, u: -x, lambda t, x, u: jnp.array([x[0] + 0.5 * x[1]]), 2, 1, 0)
+    P0 = np.array([[2.0, 0.3], [0.3, 1.0]])
+    W = jnp.array([[1.0, 2.0], [-3.0, 0.5]])  # a non-symmetric cotangent
+    filters = {
+        "KalmanBucy": (obsjax.KalmanBucy(plant, np.eye(2), np.eye(1), P0), lambda z: z.P),
+        "ContinuousDiscreteKalman": (
+            obsjax.ContinuousDiscreteKalman(plant, np.eye(2), np.eye(1), P0, period=0.1), lambda z: z.P
+        ),
+        "ExtendedKalman": (obsjax.ExtendedKalman(model, Q=np.eye(2), R=1.0, P0=P0), lambda z: z[1]),
+    }
+    for name, (obs, P_of) in filters.items():
+        import equinox as eqx
+
+        f = lambda P: jnp.sum(W * P_of(eqx.tree_at(lambda o: o.P0, obs, P).init(0.0, jnp.zeros(2), jnp.zeros(1))))
+        np.testing.assert_allclose(jax.grad(f)(jnp.asarray(P0)), 0.5 * (W + W.T), err_msg=name)
+
+
 @pytest.mark.parametrize(
     "kind",
     [
-        "KalmanBucy",  # the other two (8 s and 12 s here) in the second tier
+        pytest.param("KalmanBucy", marks=pytest.mark.extended),  # 8 s, 8 s and 12 s here: second tier
         pytest.param("ExtendedKalman", marks=pytest.mark.extended),
         pytest.param("ContinuousDiscreteKalman", marks=pytest.mark.extended),
     ],
