@@ -162,7 +162,8 @@ def test_persistent_excitation_verdict_does_not_depend_on_the_components_units()
 
 
 @pytest.mark.parametrize(
-    "k, e", [(1.0, 1e-4), pytest.param(1e-3, 1e-3, marks=pytest.mark.extended)]  # 5 s each here
+    "k, e",  # 5 s each here: second tier (the default tier's constants tests run the same scaled solve)
+    [pytest.param(1.0, 1e-4, marks=pytest.mark.extended), pytest.param(1e-3, 1e-3, marks=pytest.mark.extended)],
 )
 def test_uniform_observability_constants_in_small_output_and_time_units(k, e):
     """The gramians were integrated with an absolute atol = 1e-12, the size of the answer for outputs in a

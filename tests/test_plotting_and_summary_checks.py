@@ -124,6 +124,7 @@ def test_plot_error_norm_single_failed_trajectory():
         plot_error_norm(_traj(np.full((5, 2), np.nan), 2))
 
 
+@pytest.mark.extended  # 6 s here (a simulate_batch compilation); the synthetic-batch tests above are its twins
 def test_plot_error_norm_simulated_batch_with_a_nan_initial_state():
     plant = obsjax.LTI([[-1.0, 1.0], [0.0, -2.0]], [[0.0], [1.0]], [[1.0, 0.0]])
     obs = obsjax.Luenberger.from_poles(plant, [-3.0, -4.0])
