@@ -673,25 +673,35 @@ class _ScaledOutput(eqx.Module):
         return self.plant.C_of(t) / self.scale
 
 
+def _probe_rows(fn, times) -> np.ndarray:
+    """Per row i of fn(t) (an (n,) or (n, m) array), the largest |entry| over `times`; ``ValueError`` naming
+    the first time where fn is not finite."""
+    def rows(t):
+        a = np.abs(np.asarray(fn(jnp.asarray(float(t)))))
+        return np.max(a.reshape(a.shape[0] if a.ndim else 1, -1), axis=1)
+
+    vals = np.stack([rows(t) for t in times])
+    bad = ~np.all(np.isfinite(vals), axis=1)
+    if bad.any():
+        raise ValueError(
+            f"The regressor (or the plant's C(t)) is not finite at t = {float(times[int(np.flatnonzero(bad)[0])]):.6g}: "
+            "its gramians are undefined."
+        )
+    return np.max(vals, axis=0)
+
+
 def _probe_row_scale(fn, times) -> jnp.ndarray:
     """Per row i, the largest |entry| of row i of fn(t) over `times` (the units of each component of a
-    regressor); 1 for a row that is 0 there.  Non-finite values are refused as by :func:`_probe_scale`."""
-    _probe_scale(fn, times)  # the finiteness check, naming the time
-    vals = np.max(np.stack([np.max(np.abs(np.asarray(fn(jnp.asarray(float(t))))), axis=1) for t in times]), axis=0)
+    regressor); 1 for a row that is 0 there.  Non-finite values are refused (:func:`_probe_rows`)."""
+    vals = _probe_rows(fn, times)
     return jnp.asarray(np.where(vals > 0.0, vals, 1.0))
 
 
 def _probe_scale(fn, times) -> float:
     """The largest |entry| of fn(t) over `times` (a regressor's or an output map's units); 1 when that is
-    0 or not finite."""
-    vals = [np.max(np.abs(np.asarray(fn(jnp.asarray(float(t)))))) for t in times]
-    bad = [float(t) for t, v in zip(times, vals) if not np.isfinite(v)]
-    if bad:
-        raise ValueError(
-            f"The regressor (or the plant's C(t)) is not finite at t = {bad[0]:.6g}: its gramians are undefined."
-        )
-    big = float(np.max(vals)) if vals else 0.0
-    return big if np.isfinite(big) and big > 0.0 else 1.0
+    0.  Non-finite values are refused (:func:`_probe_rows`)."""
+    big = float(np.max(_probe_rows(fn, times), initial=0.0))
+    return big if big > 0.0 else 1.0
 
 
 def decay_rate(trajectory, *, t_min=None, t_max=None, floor=1e-12):
