@@ -222,7 +222,9 @@ def test_short_pulses_in_a_callable_regressor_are_integrated_at_their_declared_j
         an.is_persistently_exciting(SW, 0.93, 9.3, jump_ts=[1.0])
 
 
-@pytest.mark.parametrize("s", [pytest.param(1e-6, marks=pytest.mark.extended), 1e-3, 1e4])
+@pytest.mark.parametrize(
+    "s", [pytest.param(1e-6, marks=pytest.mark.extended), pytest.param(1e-3, marks=pytest.mark.extended), 1e4]
+)
 def test_persistent_excitation_does_not_depend_on_units(s):
     """w = s [sin t, cos t]: η1 = η2 = π s².  The verdict compared η1 with tol·max(1, η2), an absolute
     floor (False for s ≤ 1e-5 although η1/η2 = 1), and the gramian's atol was absolute (η1 1.1 % off at

@@ -193,6 +193,7 @@ def test_tune_on_data_checks_its_arguments(runs):
         obsjax.losses.state_error(obsjax.estimate(kf, runs[1], jnp.zeros(2)))
 
 
+@pytest.mark.extended
 def test_sampling_instants_from_a_period_hold_at_clock_times():
     """With t0 a clock time (1e8 s, or a Unix time 1.7e9 s), (t1 − t0)/period read 2.9999995 and the
     update at t1 was dropped: P11(t1) = 0.0357 instead of 0.0189.  The count now uses the schedule's

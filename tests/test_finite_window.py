@@ -635,6 +635,7 @@ def test_kernels_are_covariant_under_a_change_of_state_units():
             np.testing.assert_allclose(lhs / d[:, None] * d[None, :], rhs / d[:, None] * d[None, :], atol=1e-8)
 
 
+@pytest.mark.extended
 def test_balancing_ignores_rounding_residue_and_negligible_couplings():
     """The balanced design fitted every nonzero entry: a coupling A21 = 1e-30 in (29) put the
     reconstruction 1.6e-8 off (1e-100: refused as "not finite"), and 1e-17 residue of a similarity
@@ -722,6 +723,7 @@ def test_gradient_through_the_closed_loop_wrt_T():
     assert float(g) == pytest.approx(float((lf(1.03 + h) - lf(1.03 - h)) / (2 * h)), rel=1e-6)
 
 
+@pytest.mark.extended
 def test_estimate_window_grid_checks_hold_under_jit():
     """Eagerly a non-uniform grid with rule='simpson' and a non-monotone ts are refused; under jit both ran
     (x̂(T) 0.46 off on the non-uniform Simpson grid).  Now both raise there too; a valid grid is unchanged."""

@@ -296,7 +296,14 @@ def loss_global_scale(traj):
 
 
 @pytest.mark.parametrize(
-    "how", ["adaptive", "fixed", pytest.param("lockstep", marks=pytest.mark.extended), "own-steps", "ltv"]
+    "how",
+    [
+        "adaptive",
+        "fixed",
+        pytest.param("lockstep", marks=pytest.mark.extended),
+        "own-steps",
+        pytest.param("ltv", marks=pytest.mark.extended),
+    ],
 )
 def test_simulate_traces_again_after_a_changed_global(how):
     """The same input function (or LTV plant function), a global it reads changed between two calls:
