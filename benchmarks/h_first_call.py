@@ -61,7 +61,7 @@ fixed = dict(adaptive=False, dt0=0.0125)
 x0s = 3 * jax.random.normal(jax.random.PRNGKey(0), (8, 2))
 t0 = time.perf_counter()
 res = obsjax.tune(obs, plant, where=lambda o: (o.gamma, o.T), loss=obsjax.losses.ise, x0s=x0s,
-                  xhat0s=jnp.zeros((8, 2)), ts=jnp.linspace(0., 6., 61), optimizer=optax.adam(0.1),
+                  xhat0s=jnp.zeros((8, 2)), ts=jnp.linspace(0., 5.9, 61), optimizer=optax.adam(0.1),
                   steps=1, noise=noise, key=jax.random.PRNGKey(1), simulate_kwargs=fixed,
                   progress=False)
 """ + _TUNE_END
