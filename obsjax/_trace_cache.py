@@ -105,7 +105,9 @@ def enable_trace_cache(
     """Save the traced kernels of ``tune`` and ``monte_carlo`` across processes (``jax.export``).
 
     Turns on the compilation cache too (:func:`obsjax.enable_compilation_cache`), whose directory
-    holds the programs, under ``obsjax-traced/``.  A later process that calls the same kernel on
+    holds the programs, under ``obsjax-traced/``.  On some x86 CPUs every program read back logs a
+    harmless error line (``Target machine feature +prefer-no-gather is not supported``): that
+    function's documentation says why it is harmless and how to silence it.  A later process that calls the same kernel on
     the same kind of arguments reads the program instead of tracing it (see this module's
     documentation for what must match, and what a monkeypatch can hide).  Off by default for
     library users; the ``obsjax`` command turns it on.
