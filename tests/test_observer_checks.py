@@ -380,6 +380,41 @@ def test_functional_observer_does_not_depend_on_the_time_unit(c):
     np.testing.assert_allclose(k @ T + e @ C, a, rtol=1e-10, atol=1e-12 * np.abs(a).max())
 
 
+def test_functional_observer_is_differentiable_in_its_poles():
+    """Built with traced poles (under jit, grad), FunctionalObserver raised TracerArrayConversionError, so
+    its poles could not be tuned.  The traced design equals the eager one (n = 5, two outputs, order 2,
+    a minimum-norm solution), keeps TA − FT = GC and aᵀ = kᵀT + eᵀC, and the derivative of a simulated
+    loss in the poles matches central differences; NaN poles and complex traced poles are refused."""
+    rng = np.random.default_rng(3)
+    n, m = 5, 2
+    A, B, C, a = rng.standard_normal((n, n)), rng.standard_normal((n, 1)), rng.standard_normal((m, n)), rng.standard_normal(n)
+    plant = obsjax.LTI(A=A, B=B, C=C)
+    poles = np.array([-2.0, -3.0])
+    eager = obsjax.FunctionalObserver(plant, a, poles)
+    design = jax.jit(lambda p: (lambda o: (o.F, o.T, o.G, o.e))(obsjax.FunctionalObserver(plant, a, p)))
+    for x, y in zip((eager.F, eager.T, eager.G, eager.e), design(jnp.asarray(poles))):
+        np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-12, atol=1e-13 * np.abs(x).max())
+    F, T, G, e = (np.asarray(v) for v in design(jnp.array([-1.5, -4.0])))
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(F).real), [-4.0, -1.5], rtol=1e-12)
+    assert np.abs(T @ A - F @ T - G @ C).max() < 1e-12 and np.abs(T[-1] + e @ C - a).max() < 1e-12
+    ts = jnp.linspace(0.0, 4.0, 81)
+    u = obsjax.signals.multisine([1.0], [0.7])
+
+    def loss(p):
+        o = obsjax.FunctionalObserver(plant, a, p)
+        return jnp.sum(obsjax.simulate(plant, o, jnp.ones(n), jnp.zeros(n), ts, u=u, rtol=1e-10, atol=1e-12).error ** 2)
+
+    g = np.asarray(jax.grad(loss)(jnp.asarray(poles)))
+    h = 1e-4
+    fd = [(loss(jnp.asarray(poles + h * d)) - loss(jnp.asarray(poles - h * d))) / (2 * h) for d in np.eye(2)]
+    np.testing.assert_allclose(g, np.asarray(fd), rtol=1e-6)
+    assert np.all(np.abs(g) > 1e-3)
+    with pytest.raises(Exception, match="`poles` must be finite"):
+        jax.block_until_ready(design(jnp.array([np.nan, -3.0])))
+    with pytest.raises(ValueError, match="traced complex"):
+        jax.jit(lambda p: obsjax.FunctionalObserver(plant, a, p).T)(jnp.array([-1 + 1j, -1 - 1j]))
+
+
 @pytest.mark.parametrize("c", [1.0, 1e3, 1e5])
 @pytest.mark.parametrize("small", [0.0, -1e-12, -1e-20])
 def test_functional_observer_with_a_pole_at_or_near_zero(c, small):

@@ -399,15 +399,17 @@ class ReducedOrder(AbstractObserver):
         return Minv @ jnp.concatenate([y, z + self.gain @ y])
 
 
-def _equilibrate(M, sweeps: int = 8):
+def _equilibrate(M, sweeps: int = 8, xp=np):
     """Row and column scalings (powers of two) making every row and column of M of unit size (Ruiz):
-    the least-squares solve and its residual then do not depend on the units of A, C and a."""
-    r, c = np.ones(M.shape[0]), np.ones(M.shape[1])
+    the least-squares solve and its residual then do not depend on the units of A, C and a.  NumPy, or
+    the same operations in JAX (``xp=jnp``, for traced M)."""
+    r, c = xp.ones(M.shape[0]), xp.ones(M.shape[1])
     for _ in range(sweeps):
-        S = np.abs(M / r[:, None] / c[None, :])
-        rr, cc = S.max(axis=1), S.max(axis=0)
-        r *= np.where(rr > 0, 2.0 ** np.round(np.log2(np.where(rr > 0, rr, 1.0)) / 2), 1.0)
-        c *= np.where(cc > 0, 2.0 ** np.round(np.log2(np.where(cc > 0, cc, 1.0)) / 2), 1.0)
+        S = xp.abs(M / r[:, None] / c[None, :])
+        rr = S.max(axis=1) if S.shape[1] else xp.zeros(S.shape[0])
+        cc = S.max(axis=0) if S.shape[0] else xp.zeros(S.shape[1])
+        r = r * xp.where(rr > 0, 2.0 ** xp.round(xp.log2(xp.where(rr > 0, rr, 1.0)) / 2), 1.0)
+        c = c * xp.where(cc > 0, 2.0 ** xp.round(xp.log2(xp.where(cc > 0, cc, 1.0)) / 2), 1.0)
     return r, c
 
 
@@ -445,8 +447,16 @@ class FunctionalObserver(AbstractObserver):
 
     **Arguments:** `model` (LTI, D = 0), `a` (n,) the functional, `poles` (ν − 1 of them, real or
     conjugate pairs), `tol` (rank decisions, see :func:`obsjax.analysis.observability_staircase`),
-    `rtol` (solvability residual, default 1e-8).  T, G, e are computed at construction from concrete
-    values.
+    `rtol` (solvability residual, default 1e-8).  T, G, e are computed at construction.
+
+    Gradients with respect to the poles: the construction is traceable in real poles, so a loss of a
+    simulation of ``FunctionalObserver(model, a, poles)`` can be differentiated in `poles` (``jax.grad``,
+    ``jax.jacfwd``) and built under ``jax.jit``: the same conditions are solved with JAX (minimum-norm
+    least squares through the pseudo-inverse, the same equilibration, held fixed), the residual test runs
+    as a run-time check (``eqx.error_if``), and non-finite poles are refused there.  The model, `a` and
+    the order stay concrete; traced complex poles are refused (give a pair as the real coefficients
+    it shares, or build the observer eagerly).  The stored leaves (F, T, G, k, e) are those of one design:
+    ``tune`` on them moves them apart from the conditions, so tune the poles through construction.
 
     **Example:** thesis §3.3, x2 + x4 of the fourth-order example with the pole −3::
 
@@ -472,6 +482,10 @@ class FunctionalObserver(AbstractObserver):
         a = require_finite(vector(a, "a", n), "a")
         nu = max(observability_indices(A, C, tol))
         r = nu - 1
+        if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(poles)):
+            # traced (jit), or carrying a derivative (grad, jvp: a concrete primal is still traced)
+            self._traced_design(model, A, C, a, poles, r, nu, rtol)
+            return
         pv = np.atleast_1d(np.asarray(poles))
         if pv.ndim != 1 or pv.shape[0] != r:
             raise ValueError(
@@ -534,6 +548,76 @@ class FunctionalObserver(AbstractObserver):
         self.G = jnp.asarray(scale * sol[nT : nT + nG].reshape(r, m))
         self.k = jnp.asarray(k)
         self.e = jnp.asarray(sol[nT + nG :])
+
+    def _traced_design(self, model, A, C, a, poles, r, nu, rtol):
+        """The design of ``__init__`` for traced real poles, in JAX (see the class documentation)."""
+        p = jnp.atleast_1d(jnp.asarray(poles))
+        if jnp.issubdtype(p.dtype, jnp.complexfloating):
+            raise ValueError(
+                "FunctionalObserver: traced complex `poles`; differentiate with respect to real poles "
+                "(or build the observer from concrete poles)."
+            )
+        if p.ndim != 1 or p.shape[0] != r:
+            raise ValueError(
+                f"`poles` must hold ν − 1 = {r} poles (observability index ν = {nu}), got "
+                f"{p.shape[0] if p.ndim == 1 else p.shape}."
+            )
+        p = p.astype(jnp.result_type(float))
+        n, m = A.shape[0], C.shape[0]
+        a_norm = float(np.linalg.norm(np.asarray(A, float), 2))
+        A = jnp.asarray(np.asarray(A, float))
+        C = jnp.asarray(np.asarray(C, float))
+        p = eqx.error_if(p, ~jnp.all(jnp.isfinite(p)), "FunctionalObserver: `poles` must be finite.")
+        if r > 0:
+            ms = jnp.mean(p**2)
+            pos = ms > 0  # (the square root's derivative at 0 is not taken)
+            fallback = a_norm if a_norm > 0 else 1.0
+            scale = jnp.where(pos, jnp.sqrt(jnp.where(pos, ms, 1.0)), fallback)
+            coeffs = jnp.real(jnp.poly(p / scale))
+            F = jnp.zeros((r, r), A.dtype).at[:, -1].set(-coeffs[1:][::-1])
+            if r > 1:
+                F = F.at[1:, :-1].add(jnp.eye(r - 1, dtype=A.dtype))
+        else:
+            scale = jnp.asarray(1.0)
+            F = jnp.zeros((0, 0), A.dtype)
+        As = A / scale
+        k = jnp.zeros(r, A.dtype).at[-1].set(1.0) if r else jnp.zeros(0, A.dtype)
+        nT, nG = r * n, r * m
+        # the rows of __init__'s loops, as Kronecker products (vec row-major): T A − F T − G C = 0 and
+        # kᵀ T + eᵀ C = aᵀ in the unknowns (vec T, vec G, e)
+        top = jnp.concatenate(
+            [
+                jnp.kron(jnp.eye(r, dtype=A.dtype), As.T) - jnp.kron(F, jnp.eye(n, dtype=A.dtype)),
+                -jnp.kron(jnp.eye(r, dtype=A.dtype), C.T),
+                jnp.zeros((nT, m), A.dtype),
+            ],
+            axis=1,
+        )
+        bottom = jnp.concatenate(
+            [jnp.kron(k[None, :], jnp.eye(n, dtype=A.dtype)), jnp.zeros((n, nG), A.dtype), C.T], axis=1
+        )
+        Mx = jnp.concatenate([top, bottom], axis=0)
+        b = jnp.concatenate([jnp.zeros(nT, A.dtype), jnp.asarray(a, A.dtype)])
+        rn, cn = _equilibrate(jax.lax.stop_gradient(Mx), xp=jnp)  # powers of two: locally constant
+        Me = Mx / rn[:, None] / cn[None, :]
+        sol = jnp.linalg.pinv(Me, rtol=float(np.finfo(float).eps) * max(Me.shape)) @ (b / rn)
+        sol = sol / cn
+        res = jnp.linalg.norm((Mx @ sol - b) / rn) / jnp.maximum(
+            jnp.linalg.norm(b / rn), jnp.finfo(A.dtype).tiny
+        )
+        sol = eqx.error_if(
+            sol,
+            ~(res <= rtol),
+            f"The functional aᵀx cannot be observed with order ν − 1 = {r} and these poles (relative "
+            f"residual above rtol = {rtol:.1e} of TA − FT = GC, aᵀ = kᵀT + eᵀC).",
+        )
+        self.model = model
+        self.a = a
+        self.F = scale * F
+        self.T = sol[:nT].reshape(r, n)
+        self.G = scale * sol[nT : nT + nG].reshape(r, m)
+        self.k = k
+        self.e = sol[nT + nG :]
 
     @property
     def order(self) -> int:
