@@ -380,15 +380,21 @@ def test_functional_observer_does_not_depend_on_the_time_unit(c):
     np.testing.assert_allclose(k @ T + e @ C, a, rtol=1e-10, atol=1e-12 * np.abs(a).max())
 
 
-def test_functional_observer_is_differentiable_in_its_poles():
-    """Built with traced poles (under jit, grad), FunctionalObserver raised TracerArrayConversionError, so
-    its poles could not be tuned.  The traced design equals the eager one (n = 5, two outputs, order 2,
-    a minimum-norm solution), keeps TA − FT = GC and aᵀ = kᵀT + eᵀC, and the derivative of a simulated
-    loss in the poles matches central differences; NaN poles and complex traced poles are refused."""
+def _functional_plant():
     rng = np.random.default_rng(3)
     n, m = 5, 2
     A, B, C, a = rng.standard_normal((n, n)), rng.standard_normal((n, 1)), rng.standard_normal((m, n)), rng.standard_normal(n)
-    plant = obsjax.LTI(A=A, B=B, C=C)
+    return obsjax.LTI(A=A, B=B, C=C), a
+
+
+def test_functional_observer_is_differentiable_in_its_poles():
+    """Built with traced poles (under jit, grad), FunctionalObserver raised TracerArrayConversionError, so
+    its poles could not be tuned.  The traced design equals the eager one (n = 5, two outputs, order 2,
+    a minimum-norm solution), keeps TA − FT = GC and aᵀ = kᵀT + eᵀC, and its derivative in the poles
+    matches central differences; NaN poles and complex traced poles are refused.  (Through a simulation:
+    the second tier's twin below.)"""
+    plant, a = _functional_plant()
+    A, C = np.asarray(plant.A), np.asarray(plant.C)
     poles = np.array([-2.0, -3.0])
     eager = obsjax.FunctionalObserver(plant, a, poles)
     design = jax.jit(lambda p: (lambda o: (o.F, o.T, o.G, o.e))(obsjax.FunctionalObserver(plant, a, p)))
@@ -397,22 +403,40 @@ def test_functional_observer_is_differentiable_in_its_poles():
     F, T, G, e = (np.asarray(v) for v in design(jnp.array([-1.5, -4.0])))
     np.testing.assert_allclose(np.sort(np.linalg.eigvals(F).real), [-4.0, -1.5], rtol=1e-12)
     assert np.abs(T @ A - F @ T - G @ C).max() < 1e-12 and np.abs(T[-1] + e @ C - a).max() < 1e-12
+
+    def size(p):  # a smooth function of the design: T, G and e all move with the poles
+        _, T, G, e = design(p)
+        return jnp.sum(T**2) + jnp.sum(jnp.sin(G)) + jnp.sum(e**3)
+
+    g = np.asarray(jax.grad(size)(jnp.asarray(poles)))
+    h = 1e-5
+    fd = [(size(jnp.asarray(poles + h * d)) - size(jnp.asarray(poles - h * d))) / (2 * h) for d in np.eye(2)]
+    np.testing.assert_allclose(g, np.asarray(fd), rtol=1e-7)
+    assert np.all(np.abs(g) > 1e-3)
+    with pytest.raises(Exception, match="`poles` must be finite"):
+        jax.block_until_ready(design(jnp.array([np.nan, -3.0])))
+    with pytest.raises(ValueError, match="traced complex"):
+        jax.jit(lambda p: obsjax.FunctionalObserver(plant, a, p).T)(jnp.array([-1 + 1j, -1 - 1j]))
+
+
+@pytest.mark.extended
+def test_functional_observer_poles_gradient_through_a_simulation():
+    """The derivative in the poles of a simulated loss (Σ (ŝ − aᵀx)² on 81 save points, an input) against
+    central differences."""
+    plant, a = _functional_plant()
+    poles = np.array([-2.0, -3.0])
     ts = jnp.linspace(0.0, 4.0, 81)
     u = obsjax.signals.multisine([1.0], [0.7])
 
     def loss(p):
         o = obsjax.FunctionalObserver(plant, a, p)
-        return jnp.sum(obsjax.simulate(plant, o, jnp.ones(n), jnp.zeros(n), ts, u=u, rtol=1e-10, atol=1e-12).error ** 2)
+        return jnp.sum(obsjax.simulate(plant, o, jnp.ones(5), jnp.zeros(5), ts, u=u, rtol=1e-10, atol=1e-12).error ** 2)
 
     g = np.asarray(jax.grad(loss)(jnp.asarray(poles)))
     h = 1e-4
     fd = [(loss(jnp.asarray(poles + h * d)) - loss(jnp.asarray(poles - h * d))) / (2 * h) for d in np.eye(2)]
     np.testing.assert_allclose(g, np.asarray(fd), rtol=1e-6)
     assert np.all(np.abs(g) > 1e-3)
-    with pytest.raises(Exception, match="`poles` must be finite"):
-        jax.block_until_ready(design(jnp.array([np.nan, -3.0])))
-    with pytest.raises(ValueError, match="traced complex"):
-        jax.jit(lambda p: obsjax.FunctionalObserver(plant, a, p).T)(jnp.array([-1 + 1j, -1 - 1j]))
 
 
 @pytest.mark.parametrize("c", [1.0, 1e3, 1e5])

@@ -414,6 +414,7 @@ def _A_global(t):
     return jnp.array([[-2.0, W_MODEL], [0.0, -1.0]])
 
 
+@pytest.mark.extended
 def test_estimate_traces_again_after_a_changed_global():
     """An observer whose LTV model reads a global: after the global changes, estimate gives the estimate
     of the new model (that of a new function object with the value written in), not the program compiled
