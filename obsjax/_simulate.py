@@ -137,7 +137,9 @@ def simulate(
       The derivative with respect to a moving breakpoint (a reset period T) is that of the exact
       solution to the method's order, not of the fixed-step map itself: with a low-order solver
       (Heun, dt0 = 0.02) it can differ from a finite difference of the fixed-step loss by 5–20 %, a gap
-      that closes as dt0 shrinks (and is at rounding for Tsit5 or adaptive steps).
+      that closes as dt0 shrinks (it was at rounding for Tsit5 on smooth data; with noise held between
+      samples the fixed-step loss has kinks in T, and its one-sided differences scatter about the
+      derivative returned).
     - `max_steps`: per solve (per segment), a positive integer.
     - `adjoint`: how diffrax differentiates each solve (default ``RecursiveCheckpointAdjoint()``, with
       log₂(max_steps) checkpoints); e.g. ``RecursiveCheckpointAdjoint(checkpoints=max_steps)`` stores every

@@ -103,6 +103,31 @@ def test_exact_reconstruction_of_x_t1_from_noise_free_data():
 
 
 @pytest.mark.extended
+@pytest.mark.extended
+def test_estimate_window_grid_checks_hold_under_jit():
+    """With traced sample times the eager grid checks did not run: a non-uniform grid with
+    rule='simpson' gave x̂(t1) 0.27 off, a grid covering [t0, 1.5] of a window [0, 2] 0.071 off, swapped
+    samples a number; all three raise under jit now, and a valid grid gives the eager estimate."""
+    sol = plant_solution()
+    y = lambda t: C3(t) @ sol.evaluate(t)
+    fw = obsjax.FiniteWindowLTV(PLANT3, T0, T1)
+    est = jax.jit(lambda ts, ys, us: fw.estimate_window(ts, ys, us, rule="simpson"))
+    est_tr = jax.jit(lambda ts, ys, us: fw.estimate_window(ts, ys, us, rule="trapezoid"))
+    ts = np.linspace(T0, T1, 101)
+    data = lambda g: (jnp.asarray(g), jax.vmap(y)(jnp.asarray(g)), jax.vmap(u3)(jnp.asarray(g)))
+    np.testing.assert_allclose(np.asarray(est(*data(ts))), np.asarray(fw.estimate_window(*data(ts))), rtol=1e-12, atol=1e-13)
+    bent = ts + 0.3 * (ts - T0) * (T1 - ts) / (T1 - T0) ** 2 * (ts[1] - ts[0])
+    with pytest.raises(Exception, match="uniform grid"):
+        jax.block_until_ready(est(*data(bent)))
+    short = np.linspace(T0, T0 + 0.75 * (T1 - T0), 101)
+    with pytest.raises(Exception, match="must run from t0 to t1"):
+        jax.block_until_ready(est_tr(*data(short)))
+    swapped = ts.copy()
+    swapped[[10, 20]] = swapped[[20, 10]]
+    with pytest.raises(Exception, match="strictly increasing"):
+        jax.block_until_ready(est_tr(*data(swapped)))
+
+
 def test_beta_zero_gives_the_gramian_kernel():
     """γ = 0: G1(t) = M⁻¹ Φ(t, t1)ᵀ C(t)ᵀ with the window gramian M (SciPy transition matrix, Simpson)."""
     ts = np.linspace(T0, T1, 401)

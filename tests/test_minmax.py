@@ -462,3 +462,14 @@ def test_minmax_rank_advice_fits_the_cause():
     np.testing.assert_allclose(obsjax.minmax_initial_state(A[:1], None, C, ys[:2])[0], x0, rtol=1e-12)
     with pytest.raises(ValueError, match=r"rank 1 < n = 2.*lengthen the window"):
         obsjax.minmax_initial_state(A[:0], None, C, ys[:1])
+
+
+def test_complex_data_is_refused():
+    """A complex `ys` (or matrix) had its imaginary part dropped with only NumPy's warning."""
+    A, C = np.array([[0.9, 0.2], [-0.1, 0.8]]), np.array([[1.0, 0.0]])
+    ys = np.array([[1.0], [0.9], [0.8], [0.7]])
+    for fn in (obsjax.minmax_initial_state, obsjax.minmax_sum_initial_state):
+        with pytest.raises(ValueError, match="`ys` must be real"):
+            fn(A, None, C, ys + 1e-3j)
+        with pytest.raises(ValueError, match="`A` must be real"):
+            fn(A + 0j, None, C, ys)

@@ -930,7 +930,13 @@ class FiniteWindowLTV(eqx.Module):
         """x̂(t1) (and θ̂) from samples of y, u on a grid `ts` from t0 to t1 ((14) by quadrature).
 
         **Arguments:** `ts` (K,) increasing with ts[0] = t0, ts[-1] = t1; `ys` (K, m); `us` (K, p) or None;
-        `rule`: ``"simpson"`` (uniform grid, odd K; error O(h⁴)), ``"trapezoid"`` (O(h²)) or ``"auto"``.
+        `rule`: ``"simpson"`` (uniform grid, odd K; error O(h⁴)), ``"trapezoid"`` (O(h²)) or ``"auto"``
+        (Simpson when `ts` is concrete, uniform and K odd; the trapezoid otherwise, e.g. for `ts` traced
+        under ``jit``: pass ``rule="simpson"`` there for Simpson's accuracy).  Under ``jit`` the grid
+        checks (increasing, from t0 to t1, uniform for Simpson) run as run-time checks (``eqx.error_if``).
+
+        Derivatives: reverse mode (``jax.grad``); forward mode (``jax.jvp``, ``jax.jacfwd``) is not
+        available, since the kernels are integrated with diffrax's default adjoint (a ``custom_vjp``).
 
         **Returns:** the estimate, shape (N,) (N = n, or n + q with a parameter map).
         """
@@ -966,6 +972,20 @@ class FiniteWindowLTV(eqx.Module):
             rule = "simpson" if (uniform and K % 2 == 1) else "trapezoid"
         if rule == "simpson" and (K % 2 == 0 or uniform is False):
             raise ValueError("Simpson's rule needs a uniform grid `ts` with an odd number of samples.")
+        if tsc is None or t0 is None or t1 is None:  # the checks above, at run time (traced times)
+            d = jnp.diff(ts)
+            tol = _time_tol(self.t1 - self.t0, self.t0, self.t1)
+            ts = eqx.error_if(ts, ~jnp.all(d > 0), "FiniteWindowLTV.estimate_window: `ts` must be strictly increasing.")
+            ts = eqx.error_if(
+                ts,
+                (jnp.abs(ts[0] - self.t0) > tol) | (jnp.abs(ts[-1] - self.t1) > tol),
+                "FiniteWindowLTV.estimate_window: `ts` must run from t0 to t1.",
+            )
+            if rule == "simpson":
+                ts = eqx.error_if(
+                    ts, jnp.any(jnp.abs(d - d[0]) > 1e-9 * jnp.abs(d[0])),
+                    "FiniteWindowLTV.estimate_window: Simpson's rule needs a uniform grid `ts`.",
+                )
         G1, G2 = self.kernels(ts)
         w = _quadrature_weights(ts, rule)
         return jnp.einsum("k,kij,kj->i", w, G1, ys) + jnp.einsum("k,kij,kj->i", w, G2, us)

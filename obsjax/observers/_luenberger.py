@@ -399,18 +399,78 @@ class ReducedOrder(AbstractObserver):
         return Minv @ jnp.concatenate([y, z + self.gain @ y])
 
 
-def _equilibrate(M, sweeps: int = 8, xp=np):
+def _equilibrate(M, sweeps: int = 8):
     """Row and column scalings (powers of two) making every row and column of M of unit size (Ruiz):
-    the least-squares solve and its residual then do not depend on the units of A, C and a.  NumPy, or
-    the same operations in JAX (``xp=jnp``, for traced M)."""
-    r, c = xp.ones(M.shape[0]), xp.ones(M.shape[1])
+    the least-squares solve and its residual then do not depend on the units of A, C and a."""
+    r, c = np.ones(M.shape[0]), np.ones(M.shape[1])
     for _ in range(sweeps):
-        S = xp.abs(M / r[:, None] / c[None, :])
-        rr = S.max(axis=1) if S.shape[1] else xp.zeros(S.shape[0])
-        cc = S.max(axis=0) if S.shape[0] else xp.zeros(S.shape[1])
-        r = r * xp.where(rr > 0, 2.0 ** xp.round(xp.log2(xp.where(rr > 0, rr, 1.0)) / 2), 1.0)
-        c = c * xp.where(cc > 0, 2.0 ** xp.round(xp.log2(xp.where(cc > 0, cc, 1.0)) / 2), 1.0)
+        S = np.abs(M / r[:, None] / c[None, :])
+        rr, cc = S.max(axis=1), S.max(axis=0)
+        r *= np.where(rr > 0, 2.0 ** np.round(np.log2(np.where(rr > 0, rr, 1.0)) / 2), 1.0)
+        c *= np.where(cc > 0, 2.0 ** np.round(np.log2(np.where(cc > 0, cc, 1.0)) / 2), 1.0)
     return r, c
+
+
+def _functional_equilibration(A, C, r: int):
+    """Row and column scalings of FunctionalObserver's conditions, from A/‖A‖₂ and C alone (concrete).
+
+    With several outputs the conditions have many solutions and the observer is the minimum-norm one in
+    the column-scaled unknowns, so the column scaling chooses the observer: it must not depend on the
+    poles, or the chosen observer would jump as they move (powers of two switching) and a traced
+    design could differ from the eager one by the rounding of a logarithm.  The poles' companion block
+    is left out (it is of order 1 in the poles' time unit, in which the conditions are solved)."""
+    n, m = A.shape[0], C.shape[0]
+    a_norm = np.linalg.norm(A, 2) if A.size else 0.0
+    Au = A / a_norm if a_norm > 0 else A
+    k = np.zeros(r)
+    if r:
+        k[-1] = 1.0
+    nT, nG = r * n, r * m
+    top = np.concatenate([np.kron(np.eye(r), Au.T), -np.kron(np.eye(r), C.T), np.zeros((nT, m))], axis=1)
+    bottom = np.concatenate([np.kron(k[None, :], np.eye(n)), np.zeros((n, nG)), C.T], axis=1)
+    return _equilibrate(np.concatenate([top, bottom], axis=0))
+
+
+@jax.custom_jvp
+def _min_norm_solve(M, b):
+    """The minimum-norm solution x = M⁺ b of a consistent system (SVD, the cut-off of NumPy's lstsq),
+    with a derivative that stays accurate when M is ill-conditioned (see ``_min_norm_solve_jvp``)."""
+    return _min_norm_parts(M, b)[0]
+
+
+def _min_norm_parts(M, b):
+    U, s, Vt = jnp.linalg.svd(M, full_matrices=True)
+    cut = s[0] * float(np.finfo(float).eps) * max(M.shape) if s.size else 0.0
+    keep = s > cut
+    inv = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
+    k = s.shape[0]
+    x = Vt[:k].T @ (inv * (U[:, :k].T @ b))
+    # the null space of M: the right singular vectors of the cut singular values and those beyond min(rows, cols)
+    null = jnp.concatenate([~keep, jnp.ones(Vt.shape[0] - k, bool)])
+    return x, (U[:, :k], inv, Vt, null)
+
+
+@_min_norm_solve.defjvp
+def _min_norm_solve_jvp(primals, tangents):
+    """d(M⁺b) for a consistent system of constant rank: −M⁺(dM x − db) + P_N dMᵀ M⁺ᵀ x, P_N the
+    projector on the null space of M (from the singular vectors themselves).  The term of the
+    least-squares residual (b − Mx, zero for a consistent system) is left out: JAX's pseudo-inverse
+    derivative keeps it, and with the projectors I − MM⁺, I − M⁺M formed by subtraction its rounding was
+    amplified by cond(M)² (a derivative 10³ times too large on a single-output design with poles from
+    −0.1 to −100)."""
+    M, b = primals
+    dM, db = tangents
+    x, (Uk, inv, Vt, null) = _min_norm_parts(M, b)
+    k = inv.shape[0]
+
+    def pinv_apply(v):  # M⁺ v
+        return Vt[:k].T @ (inv * (Uk.T @ v))
+
+    dx = -pinv_apply(dM @ x - db)
+    z = Uk @ (inv * (Vt[:k] @ x))  # M⁺ᵀ x
+    Vn = Vt.T * null[None, :]
+    dx = dx + Vn @ (Vn.T @ (dM.T @ z))
+    return x, dx
 
 
 def _companion(coeffs):
@@ -436,11 +496,10 @@ class FunctionalObserver(AbstractObserver):
         ż = F z + G y + T B u,      ŝ = kᵀ z + eᵀ y,
 
     with T A − F T = G C (Theorem 1, (2.4)) and aᵀ = kᵀ T + eᵀ C, so that ŝ − s = kᵀ e^{Ft}(z(0) − T x(0)).
-    F = σ F_σ, F_σ the observer-companion matrix of the poles divided by σ, the root mean square of their
-    magnitudes (‖A‖₂ when every pole is 0: the companion form in the poles' own time unit; its eigenvalues
-    are the requested poles),
-    and k = e_r; the linear conditions are solved for (T, G, e) by least squares with unit-norm columns,
-    in that time unit (so the test does not depend on the units of time, A, C and a), and a relative
+    F = σ F_σ, F_σ the observer-companion matrix of the poles divided by σ = √(mean |p_i|² + ‖A‖₂²) (the
+    companion form in a time unit of the poles and the plant; its eigenvalues are the requested poles),
+    and k = e_r; the linear conditions are solved for (T, G, e) by least squares with equilibrated rows
+    and columns (powers of two, from A/‖A‖₂ and C), in that time unit (so the test does not depend on the units of time, A, C and a), and a relative
     residual above ``rtol`` raises ``ValueError`` (the functional is not observable with that order).  When ν = 1 (r = 0) the functional is a static map of y.
 
     ``estimate`` returns ŝ (shape (1,)) and ``target(t, x) = aᵀx``, so ``Trajectory.error`` is ŝ − aᵀx.
@@ -452,10 +511,13 @@ class FunctionalObserver(AbstractObserver):
     Gradients with respect to the poles: the construction is traceable in real poles, so a loss of a
     simulation of ``FunctionalObserver(model, a, poles)`` can be differentiated in `poles` (``jax.grad``,
     ``jax.jacfwd``) and built under ``jax.jit``: the same conditions are solved with JAX (minimum-norm
-    least squares through the pseudo-inverse, the same equilibration, held fixed), the residual test runs
+    least squares through the SVD, the same equilibration, with a derivative that stays accurate on
+    ill-conditioned designs), the residual test runs
     as a run-time check (``eqx.error_if``), and non-finite poles are refused there.  The model, `a` and
-    the order stay concrete; traced complex poles are refused (give a pair as the real coefficients
-    it shares, or build the observer eagerly).  The stored leaves (F, T, G, k, e) are those of one design:
+    the order stay concrete; traced complex poles are refused (a conjugate pair is built from concrete
+    poles only).  With several outputs the conditions have many solutions: the observer is the
+    minimum-norm solution in unknowns scaled by powers of two chosen from A and C alone, so it moves
+    smoothly with the poles and the traced design is the eager one.  The stored leaves (F, T, G, k, e) are those of one design:
     ``tune`` on them moves them apart from the conditions, so tune the poles through construction.
 
     **Example:** thesis §3.3, x2 + x4 of the fourth-order example with the pole −3::
@@ -492,21 +554,23 @@ class FunctionalObserver(AbstractObserver):
                 f"`poles` must hold ν − 1 = {r} poles (observability index ν = {nu}), got "
                 f"{pv.shape[0] if pv.ndim == 1 else pv.shape}."
             )
-        # The conditions are solved in the time unit of the poles, s their RMS magnitude: with
-        # A_s = A/s and F_s the companion matrix of p/s, T A_s − F_s T = G_s C is T A − F T = G C for
-        # F = s F_s, G = s G_s.  The companion matrix of p itself has entries up to |p|^r, so the test
-        # refused well-posed designs after a change of time unit (A → 1e4 A, p → 1e4 p, r = 3).  (The
-        # geometric mean, used before, is 0 or tiny for a pole at or near 0, which refused designs
-        # accepted in another time unit.)
+        # The conditions are solved in the time unit s = √(mean |p|² + ‖A‖₂²): with A_s = A/s and F_s
+        # the companion matrix of p/s, T A_s − F_s T = G_s C is T A − F T = G C for F = s F_s,
+        # G = s G_s.  The companion matrix of p itself has entries up to |p|^r, so the test refused
+        # well-posed designs after a change of time unit (A → 1e4 A, p → 1e4 p, r = 3).  (The geometric
+        # mean of the poles, used before, is 0 or tiny for a pole at or near 0, which refused designs
+        # accepted in another time unit; their RMS alone made A_s huge for poles all small against A,
+        # refused at 1e-5·‖A‖, and switched to ‖A‖₂ at poles all 0, a jump of the design.)  s is
+        # smooth in the poles, so the chosen observer is too.
         scale = 1.0
         if r > 0:
             pole_structure(pv)  # finite, conjugate-closed
-            rms = float(np.sqrt(np.mean(np.abs(pv) ** 2)))
             a_norm = float(np.linalg.norm(np.asarray(A, float), 2))
-            scale = rms if rms > 0 else (a_norm if a_norm > 0 else 1.0)
+            scale = float(np.sqrt(np.mean(np.abs(pv) ** 2) + a_norm**2)) or 1.0
             F = _companion(np.real(np.poly(pv / scale)))
         else:
             F = np.zeros((0, 0))
+        rn, cn = _functional_equilibration(np.asarray(A, float), np.asarray(C, float), r)
         A = np.asarray(A, float) / scale
         k = np.zeros(r)
         if r:
@@ -532,7 +596,6 @@ class FunctionalObserver(AbstractObserver):
             rows.append(row)
             rhs.append(av[j])
         Mx, b = np.array(rows), np.array(rhs)
-        rn, cn = _equilibrate(Mx)
         sol, *_ = np.linalg.lstsq(Mx / rn[:, None] / cn[None, :], b / rn, rcond=None)
         sol = sol / cn
         res = np.linalg.norm((Mx @ sol - b) / rn) / max(np.linalg.norm(b / rn), np.finfo(float).tiny)
@@ -565,14 +628,14 @@ class FunctionalObserver(AbstractObserver):
         p = p.astype(jnp.result_type(float))
         n, m = A.shape[0], C.shape[0]
         a_norm = float(np.linalg.norm(np.asarray(A, float), 2))
+        rn, cn = (jnp.asarray(v) for v in _functional_equilibration(np.asarray(A, float), np.asarray(C, float), r))
         A = jnp.asarray(np.asarray(A, float))
         C = jnp.asarray(np.asarray(C, float))
         p = eqx.error_if(p, ~jnp.all(jnp.isfinite(p)), "FunctionalObserver: `poles` must be finite.")
         if r > 0:
-            ms = jnp.mean(p**2)
+            ms = jnp.mean(p**2) + a_norm**2
             pos = ms > 0  # (the square root's derivative at 0 is not taken)
-            fallback = a_norm if a_norm > 0 else 1.0
-            scale = jnp.where(pos, jnp.sqrt(jnp.where(pos, ms, 1.0)), fallback)
+            scale = jnp.where(pos, jnp.sqrt(jnp.where(pos, ms, 1.0)), 1.0)
             coeffs = jnp.real(jnp.poly(p / scale))
             F = jnp.zeros((r, r), A.dtype).at[:, -1].set(-coeffs[1:][::-1])
             if r > 1:
@@ -598,10 +661,7 @@ class FunctionalObserver(AbstractObserver):
         )
         Mx = jnp.concatenate([top, bottom], axis=0)
         b = jnp.concatenate([jnp.zeros(nT, A.dtype), jnp.asarray(a, A.dtype)])
-        rn, cn = _equilibrate(jax.lax.stop_gradient(Mx), xp=jnp)  # powers of two: locally constant
-        Me = Mx / rn[:, None] / cn[None, :]
-        sol = jnp.linalg.pinv(Me, rtol=float(np.finfo(float).eps) * max(Me.shape)) @ (b / rn)
-        sol = sol / cn
+        sol = _min_norm_solve(Mx / rn[:, None] / cn[None, :], b / rn) / cn
         res = jnp.linalg.norm((Mx @ sol - b) / rn) / jnp.maximum(
             jnp.linalg.norm(b / rn), jnp.finfo(A.dtype).tiny
         )

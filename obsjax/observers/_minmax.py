@@ -37,6 +37,8 @@ def _np(x, name):
         raise ValueError(
             f"`{name}` must be concrete (the min-max LP runs in SciPy/HiGHS, not under jit)."
         )
+    if np.iscomplexobj(v):  # (NumPy would drop the imaginary part with a warning)
+        raise ValueError(f"`{name}` must be real, got an array of dtype {np.asarray(v).dtype}.")
     v = np.asarray(v, dtype=float)
     if not np.all(np.isfinite(v)):
         raise ValueError(f"`{name}` must be finite, found NaN or inf.")
