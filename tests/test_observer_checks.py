@@ -12,6 +12,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg as sl
 import pytest
 
 import obsjax
@@ -444,6 +445,37 @@ def test_functional_observer_traced_equals_eager_and_moves_smoothly_with_the_pol
     p1 = np.linspace(-1.1030, -1.1040, 11)
     v = np.array([float(design(jnp.array([q, -2.0]))[1][-1].sum()) for q in p1])
     assert np.abs(np.diff(v, 2)).max() < 1e-6 * np.abs(v).max()
+
+
+def test_functional_observer_follows_a_change_of_state_units_and_refuses_singular_conditions():
+    """x' = S x with S spread over 1e±3 (n = 6, one output, order 5: a unique observer, T' = T S⁻¹): with
+    the time unit set by ‖A‖₂ in the user's units the conditions became numerically singular and a
+    truncated least-squares solution passed the residual test (kᵀT x0 −0.82 for 48.99).  The design runs
+    in balanced state units now.  Conditions that are numerically singular in any units (poles from
+    −0.01 to −1000: kᵀT x0 −17.7 for 1.0e6) are refused, eagerly and under jit."""
+    rng = np.random.default_rng(5)
+    n = 6
+    A, B, C, a = rng.standard_normal((n, n)), rng.standard_normal((n, 1)), rng.standard_normal((1, n)), rng.standard_normal(n)
+    poles = -np.logspace(-1, 1, 5)
+    ref = obsjax.FunctionalObserver(obsjax.LTI(A=A, B=B, C=C), a, poles)
+    s = np.logspace(3, -3, n)
+    scaled = obsjax.LTI(A=s[:, None] * A / s[None, :], B=s[:, None] * B, C=C / s[None, :])
+    x0 = np.ones(n)
+
+    def error(F, T, x0):  # kᵀ e^{Ft} T (x̂0 − x0) from x̂0 = 0: the functional error, whatever z's realisation
+        return np.array([-(sl.expm(np.asarray(F) * t) @ np.asarray(T) @ x0)[-1] for t in (0.0, 0.5, 2.0)])
+
+    want = error(ref.F, ref.T, x0)
+    design = jax.jit(lambda p: (lambda o: (o.F, o.T))(obsjax.FunctionalObserver(scaled, a / s, p)))
+    got = obsjax.FunctionalObserver(scaled, a / s, poles)
+    for F, T in ((got.F, got.T), design(jnp.asarray(poles))):
+        np.testing.assert_allclose(error(F, T, s * x0), want, rtol=1e-6)
+    bad = -np.logspace(-2, 3, 5)
+    plant = obsjax.LTI(A=A, B=B, C=C)
+    with pytest.raises(ValueError, match="numerically singular"):
+        obsjax.FunctionalObserver(plant, a, bad)
+    with pytest.raises(Exception, match="numerically singular"):
+        jax.block_until_ready(jax.jit(lambda p: obsjax.FunctionalObserver(plant, a, p).T)(jnp.asarray(bad)))
 
 
 @pytest.mark.extended

@@ -411,6 +411,22 @@ def _equilibrate(M, sweeps: int = 8):
     return r, c
 
 
+#: FunctionalObserver refuses conditions whose equilibrated matrix has σ_min/σ_max at or below this: its
+#: least-squares solution is then another observer (a unique design with σ_min/σ_max ≈ 1e-16 was returned
+#: with kᵀTx0 = −17.7 for 1.0e6), though its residual passes.
+_FUNCTIONAL_SINGULAR = 1e-12
+
+
+def _state_balancing(A, C) -> np.ndarray:
+    """The state scaling d of the balanced pair (:func:`obsjax.analysis._lti.balancing`), rounded to powers
+    of two (exact to apply and undo): FunctionalObserver is designed in the units x = diag(d) x_b."""
+    A, C = np.asarray(A, float), np.asarray(C, float)
+    if not A.size:
+        return np.ones(A.shape[0])
+    d, _ = balancing(A, C)
+    return 2.0 ** np.round(np.log2(d))
+
+
 def _functional_equilibration(A, C, r: int):
     """Row and column scalings of FunctionalObserver's conditions, from A/‖A‖₂ and C alone (concrete).
 
@@ -496,11 +512,18 @@ class FunctionalObserver(AbstractObserver):
         ż = F z + G y + T B u,      ŝ = kᵀ z + eᵀ y,
 
     with T A − F T = G C (Theorem 1, (2.4)) and aᵀ = kᵀ T + eᵀ C, so that ŝ − s = kᵀ e^{Ft}(z(0) − T x(0)).
-    F = σ F_σ, F_σ the observer-companion matrix of the poles divided by σ = √(mean |p_i|² + ‖A‖₂²) (the
-    companion form in a time unit of the poles and the plant; its eigenvalues are the requested poles),
-    and k = e_r; the linear conditions are solved for (T, G, e) by least squares with equilibrated rows
-    and columns (powers of two, from A/‖A‖₂ and C), in that time unit (so the test does not depend on the units of time, A, C and a), and a relative
-    residual above ``rtol`` raises ``ValueError`` (the functional is not observable with that order).  When ν = 1 (r = 0) the functional is a static map of y.
+    F = σ F_σ, F_σ the observer-companion matrix of the poles divided by σ = √(mean |p_i|² + ‖A_b‖₂²), A_b
+    the plant's A in balanced state units (the companion form in a time unit of the poles and the plant,
+    which no change of the units of time, states or outputs changes; its eigenvalues are the requested
+    poles),
+    and k = e_r; the linear conditions are solved for (T, G, e) in balanced state units (x = D x_b, D the
+    state scaling of the balanced pair, powers of two; then T = T_b D⁻¹) and in that time unit, by least
+    squares with equilibrated rows and columns (powers of two, from the balanced A/‖A‖₂ and C), so that
+    neither the design nor its tests depend on the units of time, states, outputs and a.  A relative
+    residual above ``rtol`` raises ``ValueError`` (the functional is not observable with that order), and
+    so do conditions that are numerically singular (σ_min/σ_max ≤ 1e-12 of the equilibrated system: poles
+    far from the plant's time scale), whose least-squares solution would be another observer.  When ν = 1
+    (r = 0) the functional is a static map of y.
 
     ``estimate`` returns ŝ (shape (1,)) and ``target(t, x) = aᵀx``, so ``Trajectory.error`` is ŝ − aᵀx.
 
@@ -517,7 +540,8 @@ class FunctionalObserver(AbstractObserver):
     the order stay concrete; traced complex poles are refused (a conjugate pair is built from concrete
     poles only).  With several outputs the conditions have many solutions: the observer is the
     minimum-norm solution in unknowns scaled by powers of two chosen from A and C alone, so it moves
-    smoothly with the poles and the traced design is the eager one.  The stored leaves (F, T, G, k, e) are those of one design:
+    smoothly with the poles and the traced design is the eager one.  First derivatives only (``jax.hessian``
+    is not available through the minimum-norm solve).  The stored leaves (F, T, G, k, e) are those of one design:
     ``tune`` on them moves them apart from the conditions, so tune the poles through construction.
 
     **Example:** thesis §3.3, x2 + x4 of the fourth-order example with the pole −3::
@@ -544,9 +568,17 @@ class FunctionalObserver(AbstractObserver):
         a = require_finite(vector(a, "a", n), "a")
         nu = max(observability_indices(A, C, tol))
         r = nu - 1
+        # The design runs in balanced state units x = D x_b (A_b = D⁻¹AD, C_b = CD, a_b = Da; then
+        # T = T_b D⁻¹, and G, e are unchanged), so that no change of the units of the states changes it:
+        # in the user's units, states in units 1e±3 made the conditions numerically singular.
+        d = _state_balancing(A, C)
+        A = np.asarray(A, float) * d[None, :] / d[:, None]
+        C = np.asarray(C, float) * d[None, :]
+        a_user, a = a, a * jnp.asarray(d)
         if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(poles)):
             # traced (jit), or carrying a derivative (grad, jvp: a concrete primal is still traced)
             self._traced_design(model, A, C, a, poles, r, nu, rtol)
+            self.a, self.T = a_user, self.T / jnp.asarray(d)[None, :]
             return
         pv = np.atleast_1d(np.asarray(poles))
         if pv.ndim != 1 or pv.shape[0] != r:
@@ -554,7 +586,8 @@ class FunctionalObserver(AbstractObserver):
                 f"`poles` must hold ν − 1 = {r} poles (observability index ν = {nu}), got "
                 f"{pv.shape[0] if pv.ndim == 1 else pv.shape}."
             )
-        # The conditions are solved in the time unit s = √(mean |p|² + ‖A‖₂²): with A_s = A/s and F_s
+        # The conditions are solved in the time unit s = √(mean |p|² + ‖A_b‖₂²) (A_b: A in balanced state
+        # units): with A_s = A/s and F_s
         # the companion matrix of p/s, T A_s − F_s T = G_s C is T A − F T = G C for F = s F_s,
         # G = s G_s.  The companion matrix of p itself has entries up to |p|^r, so the test refused
         # well-posed designs after a change of time unit (A → 1e4 A, p → 1e4 p, r = 3).  (The geometric
@@ -565,7 +598,7 @@ class FunctionalObserver(AbstractObserver):
         scale = 1.0
         if r > 0:
             pole_structure(pv)  # finite, conjugate-closed
-            a_norm = float(np.linalg.norm(np.asarray(A, float), 2))
+            a_norm = float(np.linalg.norm(A, 2))  # A in balanced state units
             scale = float(np.sqrt(np.mean(np.abs(pv) ** 2) + a_norm**2)) or 1.0
             F = _companion(np.real(np.poly(pv / scale)))
         else:
@@ -596,8 +629,17 @@ class FunctionalObserver(AbstractObserver):
             rows.append(row)
             rhs.append(av[j])
         Mx, b = np.array(rows), np.array(rhs)
-        sol, *_ = np.linalg.lstsq(Mx / rn[:, None] / cn[None, :], b / rn, rcond=None)
+        Me = Mx / rn[:, None] / cn[None, :]
+        sol, *_ = np.linalg.lstsq(Me, b / rn, rcond=None)
         sol = sol / cn
+        sv = np.linalg.svd(Me, compute_uv=False)
+        if sv.size and not sv[-1] > _FUNCTIONAL_SINGULAR * sv[0]:
+            raise ValueError(
+                f"FunctionalObserver: the conditions TA − FT = GC, aᵀ = kᵀT + eᵀC are numerically singular "
+                f"with these poles (σ_min/σ_max = {sv[-1] / sv[0]:.1e} of the equilibrated system): a "
+                "least-squares solution would be another observer.  Choose other poles (closer to the "
+                "plant's time scale)."
+            )
         res = np.linalg.norm((Mx @ sol - b) / rn) / max(np.linalg.norm(b / rn), np.finfo(float).tiny)
         if not res <= rtol:
             raise ValueError(
@@ -605,9 +647,9 @@ class FunctionalObserver(AbstractObserver):
                 f"(relative residual {res:.2e} > rtol = {rtol:.1e} of TA − FT = GC, aᵀ = kᵀT + eᵀC)."
             )
         self.model = model
-        self.a = a
+        self.a = a_user
         self.F = jnp.asarray(scale * F)
-        self.T = jnp.asarray(sol[:nT].reshape(r, n))
+        self.T = jnp.asarray(sol[:nT].reshape(r, n) / d[None, :])
         self.G = jnp.asarray(scale * sol[nT : nT + nG].reshape(r, m))
         self.k = jnp.asarray(k)
         self.e = jnp.asarray(sol[nT + nG :])
@@ -627,7 +669,7 @@ class FunctionalObserver(AbstractObserver):
             )
         p = p.astype(jnp.result_type(float))
         n, m = A.shape[0], C.shape[0]
-        a_norm = float(np.linalg.norm(np.asarray(A, float), 2))
+        a_norm = float(np.linalg.norm(np.asarray(A, float), 2))  # A in balanced state units
         rn, cn = (jnp.asarray(v) for v in _functional_equilibration(np.asarray(A, float), np.asarray(C, float), r))
         A = jnp.asarray(np.asarray(A, float))
         C = jnp.asarray(np.asarray(C, float))
@@ -661,7 +703,15 @@ class FunctionalObserver(AbstractObserver):
         )
         Mx = jnp.concatenate([top, bottom], axis=0)
         b = jnp.concatenate([jnp.zeros(nT, A.dtype), jnp.asarray(a, A.dtype)])
-        sol = _min_norm_solve(Mx / rn[:, None] / cn[None, :], b / rn) / cn
+        Me = Mx / rn[:, None] / cn[None, :]
+        sol = _min_norm_solve(Me, b / rn) / cn
+        sv = jnp.linalg.svd(jax.lax.stop_gradient(Me), compute_uv=False)
+        sol = eqx.error_if(
+            sol,
+            ~(sv[-1] > _FUNCTIONAL_SINGULAR * sv[0]),
+            "FunctionalObserver: the conditions TA − FT = GC, aᵀ = kᵀT + eᵀC are numerically singular with "
+            "these poles: choose other poles (closer to the plant's time scale).",
+        )
         res = jnp.linalg.norm((Mx @ sol - b) / rn) / jnp.maximum(
             jnp.linalg.norm(b / rn), jnp.finfo(A.dtype).tiny
         )
