@@ -250,7 +250,10 @@ def test_jump_in_the_vector_field_against_the_closed_form():
 
 @pytest.mark.parametrize(
     "solver, rtol, tol",
-    [(diffrax.Tsit5(), 1e-11, 1e-8), (diffrax.Heun(), 1e-9, 1e-5)],
+    [  # (the FSAL path's moving breakpoints: the default tier's Chen & Yen tests on the masked loop)
+        pytest.param(diffrax.Tsit5(), 1e-11, 1e-8, marks=pytest.mark.extended),
+        (diffrax.Heun(), 1e-9, 1e-5),
+    ],
     ids=["Tsit5 (FSAL)", "Heun (not FSAL)"],
 )
 def test_moving_reset_and_jump_times_against_closed_forms(solver, rtol, tol):
@@ -471,6 +474,7 @@ def test_bad_block_size_fails_fast():
             adaptive_rk_solve(f, jnp.ones((2, 1)), 0.0, 1.0, block_size=bad)
 
 
+@pytest.mark.extended
 def test_blocks_cut_args_along_their_mapped_axis():
     # args mapped at axis 1 (and at -1): cut along that axis, as jax.vmap reads them
     rates = jnp.stack([jnp.linspace(0.5, 2.0, 5), jnp.linspace(0.1, 0.3, 5)])  # (2, B)

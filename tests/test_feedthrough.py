@@ -35,6 +35,7 @@ def test_filters_subtract_the_feedthrough(make):
     np.testing.assert_allclose(tr.xhat, ref.xhat, atol=1e-9)
 
 
+@pytest.mark.extended
 def test_kalman_bucy_with_a_feedthrough_matches_the_extended_filter():
     """The extended Kalman filter reads the output through h(t, x, u) = C x + D u (independent of the
     feedthrough term added to the Kalman–Bucy filter); on a linear plant the two are the same filter."""
