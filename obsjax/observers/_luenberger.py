@@ -427,6 +427,21 @@ def _state_balancing(A, C) -> np.ndarray:
     return 2.0 ** np.round(np.log2(d))
 
 
+def _functional_conditions(A, F, C, k, xp=np):
+    """The matrix of FunctionalObserver's conditions T A − F T − G C = 0 (r n rows) and kᵀ T + eᵀ C = aᵀ
+    (n rows) in the unknowns (vec T, vec G, e), vec row-major; `xp` is ``np`` (concrete) or ``jnp``
+    (traced poles)."""
+    n, m, r = A.shape[0], C.shape[0], F.shape[0]
+    nT, nG = r * n, r * m
+    eye_r, eye_n = xp.eye(r, dtype=A.dtype), xp.eye(n, dtype=A.dtype)
+    top = xp.concatenate(
+        [xp.kron(eye_r, A.T) - xp.kron(F, eye_n), -xp.kron(eye_r, C.T), xp.zeros((nT, m), A.dtype)],
+        axis=1,
+    )
+    bottom = xp.concatenate([xp.kron(k[None, :], eye_n), xp.zeros((n, nG), A.dtype), C.T], axis=1)
+    return xp.concatenate([top, bottom], axis=0)
+
+
 def _functional_equilibration(A, C, r: int):
     """Row and column scalings of FunctionalObserver's conditions, from A/‖A‖₂ and C alone (concrete).
 
@@ -435,23 +450,43 @@ def _functional_equilibration(A, C, r: int):
     poles, or the chosen observer would jump as they move (powers of two switching) and a traced
     design could differ from the eager one by the rounding of a logarithm.  The poles' companion block
     is left out (it is of order 1 in the poles' time unit, in which the conditions are solved)."""
-    n, m = A.shape[0], C.shape[0]
     a_norm = np.linalg.norm(A, 2) if A.size else 0.0
     Au = A / a_norm if a_norm > 0 else A
+    return _equilibrate(_functional_conditions(Au, np.zeros((r, r)), C, _functional_k(r)))
+
+
+def _functional_k(r: int, xp=np):
+    """k = e_r: the functional is read from the last state of the companion-form observer."""
     k = np.zeros(r)
     if r:
         k[-1] = 1.0
-    nT, nG = r * n, r * m
-    top = np.concatenate([np.kron(np.eye(r), Au.T), -np.kron(np.eye(r), C.T), np.zeros((nT, m))], axis=1)
-    bottom = np.concatenate([np.kron(k[None, :], np.eye(n)), np.zeros((n, nG)), C.T], axis=1)
-    return _equilibrate(np.concatenate([top, bottom], axis=0))
+    return xp.asarray(k)
+
+
+def _functional_singular_message(ratio=None) -> str:
+    got = "" if ratio is None else f" (σ_min/σ_max = {ratio:.1e} of the equilibrated system)"
+    return (
+        f"FunctionalObserver: the conditions TA − FT = GC, aᵀ = kᵀT + eᵀC are numerically singular with "
+        f"these poles{got}: a least-squares solution would be another observer.  Choose other poles "
+        "(closer to the plant's time scale)."
+    )
+
+
+def _functional_residual_message(r: int, rtol: float, res=None) -> str:
+    got = "above" if res is None else f"{res:.2e} >"
+    return (
+        f"The functional aᵀx cannot be observed with order ν − 1 = {r} and these poles (relative "
+        f"residual {got} rtol = {rtol:.1e} of TA − FT = GC, aᵀ = kᵀT + eᵀC)."
+    )
 
 
 @jax.custom_jvp
 def _min_norm_solve(M, b):
     """The minimum-norm solution x = M⁺ b of a consistent system (SVD, the cut-off of NumPy's lstsq),
-    with a derivative that stays accurate when M is ill-conditioned (see ``_min_norm_solve_jvp``)."""
-    return _min_norm_parts(M, b)[0]
+    with a derivative that stays accurate when M is ill-conditioned (see ``_min_norm_solve_jvp``), and
+    M's singular values (carrying no derivative: for the conditioning test)."""
+    x, (_, _, _, _, s) = _min_norm_parts(M, b)
+    return x, s
 
 
 def _min_norm_parts(M, b):
@@ -463,7 +498,7 @@ def _min_norm_parts(M, b):
     x = Vt[:k].T @ (inv * (U[:, :k].T @ b))
     # the null space of M: the right singular vectors of the cut singular values and those beyond min(rows, cols)
     null = jnp.concatenate([~keep, jnp.ones(Vt.shape[0] - k, bool)])
-    return x, (U[:, :k], inv, Vt, null)
+    return x, (U[:, :k], inv, Vt, null, s)
 
 
 @_min_norm_solve.defjvp
@@ -476,7 +511,7 @@ def _min_norm_solve_jvp(primals, tangents):
     −0.1 to −100)."""
     M, b = primals
     dM, db = tangents
-    x, (Uk, inv, Vt, null) = _min_norm_parts(M, b)
+    x, (Uk, inv, Vt, null, s) = _min_norm_parts(M, b)
     k = inv.shape[0]
 
     def pinv_apply(v):  # M⁺ v
@@ -486,7 +521,7 @@ def _min_norm_solve_jvp(primals, tangents):
     z = Uk @ (inv * (Vt[:k] @ x))  # M⁺ᵀ x
     Vn = Vt.T * null[None, :]
     dx = dx + Vn @ (Vn.T @ (dM.T @ z))
-    return x, dx
+    return (x, s), (dx, jnp.zeros_like(s))
 
 
 def _companion(coeffs):
@@ -604,48 +639,19 @@ class FunctionalObserver(AbstractObserver):
         else:
             F = np.zeros((0, 0))
         rn, cn = _functional_equilibration(np.asarray(A, float), np.asarray(C, float), r)
-        A = np.asarray(A, float) / scale
-        k = np.zeros(r)
-        if r:
-            k[-1] = 1.0
-        # Unknowns: vec(T) (r n, row-major), vec(G) (r m), e (m).
+        k = _functional_k(r)
         nT, nG = r * n, r * m
-        rows, rhs = [], []
-        for i in range(r):  # T A − F T − G C = 0 : entry (i, j)
-            for j in range(n):
-                row = np.zeros(nT + nG + m)
-                row[i * n : (i + 1) * n] += A[:, j]
-                for l in range(r):
-                    row[l * n + j] -= F[i, l]
-                row[nT + i * m : nT + (i + 1) * m] -= C[:, j]
-                rows.append(row)
-                rhs.append(0.0)
-        av = np.asarray(a)
-        for j in range(n):  # kᵀ T + eᵀ C = aᵀ
-            row = np.zeros(nT + nG + m)
-            for i in range(r):
-                row[i * n + j] += k[i]
-            row[nT + nG :] += C[:, j]
-            rows.append(row)
-            rhs.append(av[j])
-        Mx, b = np.array(rows), np.array(rhs)
+        Mx = _functional_conditions(np.asarray(A, float) / scale, F, np.asarray(C, float), k)
+        b = np.concatenate([np.zeros(nT), np.asarray(a, float)])
         Me = Mx / rn[:, None] / cn[None, :]
         sol, *_ = np.linalg.lstsq(Me, b / rn, rcond=None)
         sol = sol / cn
         sv = np.linalg.svd(Me, compute_uv=False)
         if sv.size and not sv[-1] > _FUNCTIONAL_SINGULAR * sv[0]:
-            raise ValueError(
-                f"FunctionalObserver: the conditions TA − FT = GC, aᵀ = kᵀT + eᵀC are numerically singular "
-                f"with these poles (σ_min/σ_max = {sv[-1] / sv[0]:.1e} of the equilibrated system): a "
-                "least-squares solution would be another observer.  Choose other poles (closer to the "
-                "plant's time scale)."
-            )
+            raise ValueError(_functional_singular_message(sv[-1] / sv[0]))
         res = np.linalg.norm((Mx @ sol - b) / rn) / max(np.linalg.norm(b / rn), np.finfo(float).tiny)
         if not res <= rtol:
-            raise ValueError(
-                f"The functional aᵀx cannot be observed with order ν − 1 = {r} and these poles "
-                f"(relative residual {res:.2e} > rtol = {rtol:.1e} of TA − FT = GC, aᵀ = kᵀT + eᵀC)."
-            )
+            raise ValueError(_functional_residual_message(r, rtol, res))
         self.model = model
         self.a = a_user
         self.F = jnp.asarray(scale * F)
@@ -685,42 +691,18 @@ class FunctionalObserver(AbstractObserver):
         else:
             scale = jnp.asarray(1.0)
             F = jnp.zeros((0, 0), A.dtype)
-        As = A / scale
-        k = jnp.zeros(r, A.dtype).at[-1].set(1.0) if r else jnp.zeros(0, A.dtype)
+        k = _functional_k(r, jnp).astype(A.dtype)
         nT, nG = r * n, r * m
-        # the rows of __init__'s loops, as Kronecker products (vec row-major): T A − F T − G C = 0 and
-        # kᵀ T + eᵀ C = aᵀ in the unknowns (vec T, vec G, e)
-        top = jnp.concatenate(
-            [
-                jnp.kron(jnp.eye(r, dtype=A.dtype), As.T) - jnp.kron(F, jnp.eye(n, dtype=A.dtype)),
-                -jnp.kron(jnp.eye(r, dtype=A.dtype), C.T),
-                jnp.zeros((nT, m), A.dtype),
-            ],
-            axis=1,
-        )
-        bottom = jnp.concatenate(
-            [jnp.kron(k[None, :], jnp.eye(n, dtype=A.dtype)), jnp.zeros((n, nG), A.dtype), C.T], axis=1
-        )
-        Mx = jnp.concatenate([top, bottom], axis=0)
+        Mx = _functional_conditions(A / scale, F, C, k, jnp)
         b = jnp.concatenate([jnp.zeros(nT, A.dtype), jnp.asarray(a, A.dtype)])
         Me = Mx / rn[:, None] / cn[None, :]
-        sol = _min_norm_solve(Me, b / rn) / cn
-        sv = jnp.linalg.svd(jax.lax.stop_gradient(Me), compute_uv=False)
-        sol = eqx.error_if(
-            sol,
-            ~(sv[-1] > _FUNCTIONAL_SINGULAR * sv[0]),
-            "FunctionalObserver: the conditions TA − FT = GC, aᵀ = kᵀT + eᵀC are numerically singular with "
-            "these poles: choose other poles (closer to the plant's time scale).",
-        )
+        sol, sv = _min_norm_solve(Me, b / rn)
+        sol = sol / cn
+        sol = eqx.error_if(sol, ~(sv[-1] > _FUNCTIONAL_SINGULAR * sv[0]), _functional_singular_message())
         res = jnp.linalg.norm((Mx @ sol - b) / rn) / jnp.maximum(
             jnp.linalg.norm(b / rn), jnp.finfo(A.dtype).tiny
         )
-        sol = eqx.error_if(
-            sol,
-            ~(res <= rtol),
-            f"The functional aᵀx cannot be observed with order ν − 1 = {r} and these poles (relative "
-            f"residual above rtol = {rtol:.1e} of TA − FT = GC, aᵀ = kᵀT + eᵀC).",
-        )
+        sol = eqx.error_if(sol, ~(res <= rtol), _functional_residual_message(r, rtol))
         self.model = model
         self.a = a
         self.F = scale * F
