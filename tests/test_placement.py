@@ -322,3 +322,22 @@ def test_rtol_must_be_positive(rtol):
     C = np.array([[1.0, 0.0]])
     with pytest.raises(ValueError, match="`rtol` must be a positive number"):
         obsjax.design.place(A, C, [-1.0, -2.0], rtol=rtol)
+
+
+@pytest.mark.parametrize("seed, s", [(100, 1.0), (100, 1e-3), (104, 1.0)])
+def test_a_start_that_breaks_down_does_not_shut_out_the_finite_ones(seed, s):
+    """One of the Newton starts breaks down (NaN gradient, which stops its loop early) while the others
+    run to the iteration limit: the broken start counted as converged and was chosen, and a well-posed
+    design (SciPy's YT places it to 3e-7) was refused as "the computed gain is not finite" in some time
+    units only.  The finite starts are now chosen: the gain places the poles, in every time unit."""
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((8, 8))
+    C = rng.standard_normal((4, 8))
+    p = -1e-4 * np.arange(1, 9)
+    L = place(s * A, C, s * p, rtol=1e-3)
+    assert np.all(np.isfinite(np.asarray(L)))
+    ev = np.sort(np.linalg.eigvals(s * A - np.asarray(L) @ C).real)
+    assert np.max(np.abs(ev - np.sort(s * p))) <= 1e-6 * s * np.max(np.abs(p))
+    # with the default rtol the design is refused for its conditioning, not as a breakdown
+    with pytest.raises(ValueError, match="does not place the poles to rtol"):
+        place(s * A, C, s * p)

@@ -401,7 +401,10 @@ def forward(lay: Layout, A, C, pr, pi, *, m: int, depth: int, maxiter: int = _MA
         phis = jax.vmap(lambda x: _phi(x, K, Tfix, lay))(after(Ls, xs))
         score = phis + jnp.log(jnp.linalg.norm(Ls, axis=(1, 2)))
         score = jnp.where(jnp.isfinite(score), score, jnp.inf)
-        converged = its < maxiter  # a start still running at maxiter is used only if all are
+        # a start still running at maxiter is used only if all are; one whose gain broke down (not
+        # finite: a NaN gradient also stops its loop early) never counts as converged, so that it cannot
+        # shut out the finite starts
+        converged = (its < maxiter) & jnp.isfinite(score)
         k = jnp.argmin(jnp.where(converged | ~jnp.any(converged), score, jnp.inf))
         x, it, gn = xs[k], its[k], gns[k]
     T = _T(x, K, Tfix)
