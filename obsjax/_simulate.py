@@ -166,6 +166,7 @@ def simulate(
         traj = obsjax.simulate(plant, obs, jnp.array([1., 1.]), jnp.zeros(2), jnp.linspace(0, 5, 51))
     """
     require_x64("obsjax.simulate")
+    max_steps, max_segments = _validate.plain_int(max_steps), _validate.plain_int(max_segments)
     _validate.check_types(plant, observer, noise)
     if noise is not None and key is None:
         raise ValueError("`key` is required when `noise` is given (the noise is drawn from it).")

@@ -137,6 +137,7 @@ def _first_plant(plants, B):
 def _simulate_members(plant, observer, x0s, xhat0s, ts, keys, *, lockstep, plant_batched, u=None,
                       controller=None, noise=None, solver=None, rtol=1e-6, atol=1e-8, dt0=None, adaptive=True,
                       max_steps=16384, max_segments=None, adjoint=None, throw=True):
+    max_steps, max_segments = _validate.plain_int(max_steps), _validate.plain_int(max_segments)
     if plant_batched:
         x0s = _validate.check_state(x0s, "x0s", "(B, n) (a batch of plant states)", 2)
         plant0 = _first_plant(plant, x0s.shape[0])

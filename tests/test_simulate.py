@@ -278,3 +278,41 @@ def test_observer_constructor_errors():
         obsjax.ReducedOrder.from_poles(obsjax.LTI(A28, B28, np.eye(2)), [])
     with pytest.raises(ValueError, match="ν − 1"):
         obsjax.FunctionalObserver(PLANT, [1.0, 1.0], [-3.0, -4.0])
+
+
+def test_numpy_integer_max_steps_in_simulate():
+    """`max_steps` as a NumPy integer was traced as an array (TracerBoolConversionError inside diffrax);
+    it is the same count as a Python int (the other entry points: the extended test below)."""
+    plant = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+    obs = obsjax.Luenberger(plant, L=[[3.0], [4.0]])
+    ts = jnp.linspace(0.0, 2.0, 5)
+    x0, xh0 = jnp.array([1.0, -1.0]), jnp.zeros(2)
+    ref = obsjax.simulate(plant, obs, x0, xh0, ts, max_steps=100).error_norm
+    np.testing.assert_array_equal(obsjax.simulate(plant, obs, x0, xh0, ts, max_steps=np.int64(100)).error_norm, ref)
+
+
+@pytest.mark.extended
+def test_numpy_integer_step_counts_are_taken_as_ints():
+    """`max_steps` (and `max_segments`) as NumPy integers pass the argument check, but were traced as
+    arrays: simulate, the lock-step batch and estimate failed inside diffrax (TracerBoolConversionError)
+    and monte_carlo refused them as "got JitTracer".  They are the same counts as Python ints."""
+    import jax
+
+    plant = obsjax.LTI([[-2.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+    obs = obsjax.Luenberger(plant, L=[[3.0], [4.0]])
+    ts = jnp.linspace(0.0, 2.0, 5)
+    x0, xh0 = jnp.array([1.0, -1.0]), jnp.zeros(2)
+    ref = obsjax.simulate(plant, obs, x0, xh0, ts, max_steps=100).error_norm
+    data = obsjax.Measurements(ts, np.asarray(obsjax.simulate(plant, obs, x0, xh0, ts).y), np.zeros(5))
+    est_ref = obsjax.estimate(obs, data, xh0, max_steps=100).xhat
+    for ms in (np.int64(100), np.int32(100)):
+        np.testing.assert_array_equal(obsjax.simulate(plant, obs, x0, xh0, ts, max_steps=ms).error_norm, ref)
+        for lockstep in (True, False):
+            tr = obsjax.simulate_batch(plant, obs, x0[None], xh0[None], ts, max_steps=ms, lockstep=lockstep)
+            np.testing.assert_allclose(tr.error_norm[0], ref, rtol=1e-9, atol=1e-12)
+        np.testing.assert_array_equal(obsjax.estimate(obs, data, xh0, max_steps=ms).xhat, est_ref)
+        res = obsjax.monte_carlo(
+            plant, obs, jax.random.PRNGKey(0), 2, x0_sampler=lambda k: x0, xhat0_sampler=lambda k: xh0, ts=ts,
+            simulate_kwargs=dict(max_steps=ms), progress=False,
+        )
+        np.testing.assert_allclose(res.error_norm[0], ref, rtol=1e-9, atol=1e-12)

@@ -14,7 +14,7 @@ from .._checks import concrete_value, real_array
 from .._config import require_x64
 from .._integrate import _diffrax, _schedule, _segments
 from .._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, code_of, is_finite
-from .._integrate._validate import check_options, concrete_times
+from .._integrate._validate import check_options, concrete_times, plain_int
 from ..montecarlo._fingerprint import content_key
 from ..observers._base import AbstractObserver
 from ._measurements import Measurements, hermite_coefficients
@@ -191,8 +191,9 @@ def estimate(
         raise ValueError(f"`observer` must be an obsjax observer, got {type(observer).__name__}.")
     if not isinstance(data, Measurements):
         raise ValueError(f"`data` must be an obsjax.Measurements, got {type(data).__name__}.")
-    kwargs = dict(ts=ts, solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive, max_steps=max_steps,
-                  max_segments=max_segments, adjoint=adjoint, throw=throw)
+    kwargs = dict(ts=ts, solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive,
+                  max_steps=plain_int(max_steps), max_segments=plain_int(max_segments), adjoint=adjoint,
+                  throw=throw)
     if data.batched:
         xhat0 = real_array(xhat0, "xhat0")
         B = data.ts.shape[0]

@@ -100,6 +100,18 @@ def check_state(x, name, shape_text, ndim):
     return arr
 
 
+def plain_int(v):
+    """A NumPy integer as a Python int, anything else unchanged (checked where it is used): step and
+    segment counts are static (they size the solver's buffers), and a NumPy scalar would be traced as an
+    array inside a ``jit``."""
+    return int(v) if isinstance(v, np.integer) else v
+
+
+def plain_int_kwargs(kwargs: dict) -> dict:
+    """`kwargs` with its ``max_steps`` and ``max_segments`` through :func:`plain_int`."""
+    return {k: plain_int(v) if k in ("max_steps", "max_segments") else v for k, v in kwargs.items()}
+
+
 def check_options(rtol, atol, dt0, adaptive, max_steps, noise):
     for name, v in (("rtol", rtol), ("atol", atol)):
         if isinstance(v, (str, bytes, bool)) or v is None:

@@ -1067,7 +1067,7 @@ def monte_carlo(
     xhat0_sampler = _sampler(xhat0_sampler, "xhat0_sampler")
     takes_x0 = isinstance(xhat0_sampler, _Fixed) or _n_positional(xhat0_sampler) >= 2
 
-    sim_kwargs = dict(simulate_kwargs or {})
+    sim_kwargs = _validate.plain_int_kwargs(dict(simulate_kwargs or {}))
     for bad in ("throw", "noise", "key"):
         if bad in sim_kwargs:
             raise ValueError(f"`simulate_kwargs` must not contain {bad!r}: monte_carlo sets it.")

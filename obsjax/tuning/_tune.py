@@ -715,6 +715,8 @@ def tune(
         observer, plant, where, loss, optimizer, steps, positive, rtol, patience, max_rejections
     )
     simulate_kwargs = {} if simulate_kwargs is None else simulate_kwargs
+    if isinstance(simulate_kwargs, dict):
+        simulate_kwargs = _validate.plain_int_kwargs(simulate_kwargs)
     x0s, xhat0s, ts_np = _check_data(
         plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_kwargs
     )
