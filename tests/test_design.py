@@ -57,6 +57,26 @@ def test_sylvester_against_scipy():
     np.testing.assert_allclose(T, scipy.linalg.solve_sylvester(-F, A, H), rtol=1e-10, atol=1e-12)
 
 
+
+def test_sylvester_refuses_non_finite_data_and_a_shared_eigenvalue_under_jit():
+    """A NaN in H gave an all-NaN T without a word, a NaN in A or F NumPy's LinAlgError; under jit,
+    A and F sharing an eigenvalue gave [[nan, inf, -1]] (the eager call raised)."""
+    import jax
+
+    A, F, H = np.diag([-1.0, -2.0, -3.0]), np.array([[-2.0]]), np.array([[1.0, 0.0, -1.0]])
+    with pytest.raises(ValueError, match="`H` must be finite"):
+        sylvester(A, np.array([[-5.0]]), np.array([[np.nan, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="`A` must be finite"):
+        sylvester(np.diag([np.nan, -2.0, -3.0]), np.array([[-5.0]]), H)
+    with pytest.raises(ValueError, match="`F` must be finite"):
+        sylvester(A, np.array([[np.inf]]), H)
+    with pytest.raises(ValueError, match="share an eigenvalue"):
+        sylvester(A, F, H)
+    with pytest.raises(Exception, match="no unique finite solution"):
+        jax.block_until_ready(jax.jit(sylvester)(A, F, H))
+    # a unique solution is the same under jit
+    np.testing.assert_allclose(jax.jit(sylvester)(A, np.array([[-5.0]]), H), [[0.25, 0.0, -0.5]], rtol=1e-14)
+
 def test_single_output_matches_ackermann_and_python_control():
     """m = 1: the gain is unique; python-control's Ackermann formula (acker) on the dual pair agrees."""
     rng = np.random.default_rng(4)

@@ -603,3 +603,12 @@ def test_least_squares_identifier_names_a_data_regressor_mismatch_and_a_complex_
     bad = obsjax.LeastSquaresIdentifier(3, lambda t, u: jnp.array([1.0, jnp.sin(t), 1j]))
     with pytest.raises(ValueError, match="must return real values"):
         obsjax.simulate(ident.plant(), bad, jnp.ones(3), jnp.zeros(3), jnp.linspace(0.0, 1.0, 3))
+
+
+@pytest.mark.parametrize("rtol", [-1.0, 0.0, float("nan"), True, "1e-8"])
+def test_functional_observer_refuses_a_bad_rtol(rtol):
+    """`rtol` = −1 or NaN was reported as "the functional cannot be observed" (a residual of 8e-16 against
+    the bad tolerance): the argument itself is named now."""
+    plant = obsjax.LTI([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -3.0, -3.0]], [[0.0], [0.0], [1.0]], [[1.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="`rtol`"):
+        obsjax.FunctionalObserver(plant, [0.0, 1.0, 1.0], [-2.0, -3.0], rtol=rtol)

@@ -599,6 +599,11 @@ class FunctionalObserver(AbstractObserver):
         if A is None or C is None:
             raise ValueError("FunctionalObserver is designed from concrete model matrices (not under jit).")
         design_pair(A, C, "FunctionalObserver")
+        if isinstance(rtol, bool) or not (isinstance(rtol, (int, float, np.integer, np.floating)) and rtol > 0):
+            raise ValueError(
+                f"FunctionalObserver: `rtol` (the residual tolerance of the conditions) must be a positive "
+                f"number, got {rtol!r}."
+            )
         n, m = model.n, model.m
         a = require_finite(vector(a, "a", n), "a")
         nu = max(observability_indices(A, C, tol))
