@@ -91,7 +91,10 @@ def simulate(
     ``event_times`` (discrete updates of a sampled-data observer, ``observer.update``).  A ``lax.scan`` runs
     one solve per segment and applies the reset, then the update, at its start, so no solve ever steps
     across a discontinuity and gradients with respect to T are those of smooth solves.  A save time at a
-    breakpoint sees the state after it.  A plant switch that is *not* declared is stepped over by the
+    breakpoint sees the state after it; "at" is to the schedule's time tolerance, 1e-9 of the horizon
+    (plus 4 ulp of the times), and a concrete save time that is within it before a reset or an update but
+    not at the instant to rounding is refused (``ValueError``), since it would show the state after the
+    jump.  A plant switch that is *not* declared is stepped over by the
     adaptive solver (accurate to the tolerances, at the price of rejected steps); its gradients stay finite
     (a rejected step whose stages left the domain of the vector field contributes zero) but are not
     accurate: the discrete solution is not differentiable where a step straddles the switch.  Declare known

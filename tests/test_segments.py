@@ -182,3 +182,38 @@ def test_event_semantics_reset_first_then_update_with_the_measurement():
         # the update sees y(t_e): the saved measurement at the same instant
         at = np.array([0, 1, 3, 5])
         np.testing.assert_allclose(np.asarray(y_seen)[at], np.asarray(tr.y)[at], atol=1e-9)
+
+
+def test_a_save_time_just_before_a_reset_or_update_is_refused():
+    """A save time less than the schedule's tolerance (1e-9 of the horizon) before an observer update or a
+    reset was taken at the instant: on a 1000 s horizon the save time 0.5 µs before the Kalman update at
+    t = 3 showed the updated estimate (1.7e-3 from the value before it, which the fixed-step path gave).
+    It is refused now, on every path."""
+    plant = obsjax.LTI([[0.0, 1.0], [-2.0, -0.3]], [[0.0], [1.0]], [[1.0, 0.0]])
+    kf = obsjax.ContinuousDiscreteKalman(plant, Qw=0.1 * np.eye(2), Rv=np.array([[0.01]]), P0=np.eye(2), period=1.0)
+    ls = obsjax.LeastSquaresReset(plant, gamma=5.0, p0=0.4, T=1.0)
+    x0, xh0 = np.array([1.0, -1.0]), np.zeros(2)
+    ts = np.array([0.0, 3.0 - 5e-7, 3.0, 1000.0])
+    for obs in (kf, ls):
+        with pytest.raises(ValueError, match=r"ts\[1\] .* before the (observer update \(event\)|reset) at t = 3\.0"):
+            obsjax.simulate(plant, obs, x0, xh0, ts)
+        with pytest.raises(ValueError, match="within the schedule's time tolerance"):
+            obsjax.simulate(plant, obs, x0, xh0, ts, adaptive=False, dt0=0.01)
+        with pytest.raises(ValueError, match="within the schedule's time tolerance"):
+            obsjax.simulate_batch(plant, obs, x0[None], xh0[None], ts, lockstep=False)
+
+
+@pytest.mark.extended
+def test_save_times_at_an_update_to_rounding_or_clearly_before_it_are_accepted():
+    """The other side of the refusal above: save times at the update instants to rounding and 2e-5
+    before one are taken as before, the one before seeing the state before the update."""
+    plant = obsjax.LTI([[0.0, 1.0], [-2.0, -0.3]], [[0.0], [1.0]], [[1.0, 0.0]])
+    kf = obsjax.ContinuousDiscreteKalman(plant, Qw=0.1 * np.eye(2), Rv=np.array([[0.01]]), P0=np.eye(2), period=1.0)
+    x0, xh0 = np.array([1.0, -1.0]), np.zeros(2)
+    # at the instant to rounding (0.1·30 is 3.0000000000000004) and 2e-6 before it: accepted
+    ts = np.concatenate([np.arange(0, 41) * 0.1, [3.0 - 2e-5]])
+    ts.sort()
+    tr = obsjax.simulate(plant, kf, x0, xh0, ts, rtol=1e-10, atol=1e-12)
+    assert int(tr.status) == 0
+    before, at = np.asarray(tr.xhat)[30], np.asarray(tr.xhat)[31]  # 3 − 2e-5 and 3.0000000000000004
+    assert np.max(np.abs(before - at)) > 1e-4  # the update lies between them

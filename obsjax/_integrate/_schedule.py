@@ -245,6 +245,33 @@ def _event_part(ts, ts_np, event_times, tol, tol_rt):
     return _Part("event", jnp.clip(ev, t0, t1), (ev >= t0 - tol_rt) & (ev <= t1 + tol_rt), None)
 
 
+def _refuse_saves_just_before(ts_np, vals, is_reset, is_event, tol):
+    """``ValueError`` for a save time less than `tol` before a reset or an observer event (an update),
+    but not at it to rounding (4 ulp): the schedule takes such a save time at the instant, where the
+    state is the one after the jump, so the saved value would be that of a later time (an update 0.5 µs
+    after a save time of a 1000 s horizon was seen in it).  A plant jump (a discontinuity of the vector
+    field) leaves the state continuous, and is not refused."""
+    jump = is_reset | is_event
+    if not np.any(jump):
+        return
+    eps = float(np.finfo(np.float64).eps)
+    ulps = TIME_ULPS * eps * max(abs(float(ts_np[0])), abs(float(ts_np[-1])))
+    tau = vals[jump]
+    lo = np.searchsorted(ts_np, tau - tol, side="left")
+    hi = np.searchsorted(ts_np, tau - ulps, side="left")  # save times below τ − 4 ulp
+    bad = np.flatnonzero(hi > lo)
+    if bad.size:
+        k = int(bad[0])
+        i = int(lo[k])
+        what = "reset" if is_reset[jump][k] else "observer update (event)"
+        raise ValueError(
+            f"save time ts[{i}] = {float(ts_np[i])!r} lies {tau[k] - ts_np[i]:.2e} before the {what} at "
+            f"t = {float(tau[k])!r}, within the schedule's time tolerance {tol:.2e} (1e-9 of the horizon): it "
+            "would be taken at that instant and show the state after the jump.  Put it onto the instant "
+            f"(the state after it) or at least {tol:.2e} before it (the state before)."
+        )
+
+
 def _merge(ts, ts_np, tol, tol_rt, parts) -> Schedule:
     t0, t1 = ts[0], ts[-1]
     N = ts.shape[0]
@@ -273,6 +300,7 @@ def _merge(ts, ts_np, tol, tol_rt, parts) -> Schedule:
             for kind in ("reset", "event", "jump")
         ]
         vals = vals[order]
+        _refuse_saves_just_before(ts_np, vals, np_flags[0], np_flags[1], tol)
         first = np.concatenate([[0], np.searchsorted(ts_np, vals - tol, side="left"), [N]])
         window = max(1, int(np.max(np.diff(first))))
         first_save = jnp.asarray(first, jnp.int32)
