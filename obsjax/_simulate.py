@@ -127,7 +127,7 @@ def simulate(
     - `solver`: a diffrax solver.  Default: the observer's ``recommended_solver(ts)`` when it has one (the
       high-gain :class:`obsjax.TrajectoryLinearization` returns the implicit ``Kvaerno5`` when
       max|ρ̄|·ω/ε makes the problem stiff), else ``Tsit5``.
-    - `rtol`, `atol`: tolerances of the adaptive PID controller (> 0): each component of the joint
+    - `rtol`, `atol`: tolerances of the adaptive PID controller, scalars > 0: each component of the joint
       state (plant and observer) must meet |error| ≤ atol + rtol·|value| per step.  `atol` is in the
       units of the states, so scale it with them: with every state around 1e-6 (a unit 10⁶ times
       larger) the default 1e-8 is a 1 % tolerance, and status 0 means solved to *that* tolerance (with

@@ -316,3 +316,20 @@ def test_numpy_integer_step_counts_are_taken_as_ints():
             simulate_kwargs=dict(max_steps=ms), progress=False,
         )
         np.testing.assert_allclose(res.error_norm[0], ref, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["rtol", "atol"])
+def test_array_tolerances_are_refused_by_name(name):
+    """rtol/atol as arrays: an (n,) array was accepted by simulate and the lock-step batch (broadcast
+    against each leaf of the joint state) and refused by the masked batch with a broadcasting error, a
+    (2n,) one the other way round.  Every path refuses them, naming the argument, before any solve."""
+    plant = obsjax.LTI([[0.0, 1.0], [-2.0, -0.3]], [[0.0], [1.0]], [[1.0, 0.0]])
+    obs = obsjax.Luenberger(plant, L=[[3.0], [4.0]])
+    ts, x0, xh0 = np.linspace(0.0, 3.0, 7), np.array([1.0, -1.0]), np.zeros(2)
+    for tol in (jnp.full(2, 1e-9), jnp.full(4, 1e-9)):
+        kw = {name: tol}
+        with pytest.raises(ValueError, match=f"`{name}` must be a scalar"):
+            obsjax.simulate(plant, obs, x0, xh0, ts, **kw)
+        for lockstep in (True, False):
+            with pytest.raises(ValueError, match=f"`{name}` must be a scalar"):
+                obsjax.simulate_batch(plant, obs, x0[None], xh0[None], ts, lockstep=lockstep, **kw)

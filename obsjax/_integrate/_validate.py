@@ -116,6 +116,13 @@ def check_options(rtol, atol, dt0, adaptive, max_steps, noise):
     for name, v in (("rtol", rtol), ("atol", atol)):
         if isinstance(v, (str, bytes, bool)) or v is None:
             raise ValueError(f"`{name}` must be a finite number > 0, got {v!r}.")
+        if np.ndim(v) != 0:
+            # the joint state (plant, observer) has no one layout for per-component tolerances, and the
+            # back-ends broadcast an array against different leaves
+            raise ValueError(
+                f"`{name}` must be a scalar (one tolerance for every component of the plant's and the "
+                f"observer's states; `atol` is in the units of the states), got shape {np.shape(v)}."
+            )
         c = concrete_value(v)
         if c is not None and not np.issubdtype(np.asarray(c).dtype, np.number):
             raise ValueError(f"`{name}` must be a finite number > 0, got {v!r}.")
