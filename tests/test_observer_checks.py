@@ -612,3 +612,26 @@ def test_functional_observer_refuses_a_bad_rtol(rtol):
     plant = obsjax.LTI([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -3.0, -3.0]], [[0.0], [0.0], [1.0]], [[1.0, 0.0, 0.0]])
     with pytest.raises(ValueError, match="`rtol`"):
         obsjax.FunctionalObserver(plant, [0.0, 1.0, 1.0], [-2.0, -3.0], rtol=rtol)
+
+
+def test_a_structure_that_contradicts_concrete_real_poles_is_refused():
+    """Luenberger/ReducedOrder with concrete real poles and a `structure` of another pattern: the repeated
+    pole of the structure (which the values do not have) was warned about and the gain then failed at run
+    time with a callback error.  It is refused at construction, as `design.place` refuses it; a structure
+    that matches the real encoding is accepted."""
+    from obsjax.design import pole_structure
+    from obsjax.design._poles import encode
+
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -3.0]])
+    plant = obsjax.LTI(A, np.eye(3)[:, :1], np.eye(3)[:2])
+    with pytest.raises(ValueError, match="`structure` .* does not match the pattern of `poles`"):
+        obsjax.Luenberger(plant, poles=np.array([-1.0, -2.0, -3.0]), structure=pole_structure([-1.0, -1.0, -2.0]))
+    with pytest.raises(ValueError, match="`structure` .* does not match the pattern of `poles`"):
+        obsjax.ReducedOrder(
+            obsjax.LTI(A, np.eye(3)[:, :1], np.eye(3)[:1]), poles=np.array([-1.0, -2.0]),
+            structure=pole_structure([-1.0, -1.0]),
+        )
+    pair = np.array([-1 + 2j, -1 - 2j, -3.0])
+    st = pole_structure([-5 + 1j, -5 - 1j, -2.0])
+    obs = obsjax.Luenberger(plant, poles=encode(pair, st), structure=st)  # accepted (its gain: other tests)
+    assert obs.structure == st

@@ -58,6 +58,15 @@ def _poles_leaf(poles, n: int, structure, who: str):
         raise ValueError(f"{who}: `structure` must be a PoleStructure of {n} poles.")
     if not np.all(np.isfinite(v)):
         raise ValueError(f"{who}: `poles` must be finite, got {v.tolist()}.")
+    re, im = decode(v, structure)
+    found = pole_structure(np.asarray(re) + 1j * np.asarray(im))
+    if found != structure:
+        # (a repeated pole that the values do not have was warned about, and the gain then failed at run
+        # time with a callback error)
+        raise ValueError(
+            f"{who}: `structure` {structure} does not match the pattern of `poles` {found} (read from "
+            "their real encoding: a pair a ± ib as a, b)."
+        )
     return p, structure
 
 
