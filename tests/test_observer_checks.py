@@ -635,3 +635,25 @@ def test_a_structure_that_contradicts_concrete_real_poles_is_refused():
     st = pole_structure([-5 + 1j, -5 - 1j, -2.0])
     obs = obsjax.Luenberger(plant, poles=encode(pair, st), structure=st)  # accepted (its gain: other tests)
     assert obs.structure == st
+
+
+def test_plant_forms_and_place_name_their_bad_arguments():
+    """A NaN in `a` (kreisselmeier_form) or `lambdas` (luders_narendra_form) was reported as "`A` must be
+    finite"; luders_narendra_form built the form (5.2) with a non-positive λ, which LudersNarendra refuses;
+    place took boolean poles as 0/1 and reported tol ≥ 1 as "(A, C) is not observable"."""
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -3.0]])
+    C = np.eye(3)[:1]
+    with pytest.raises(ValueError, match="`a` must be finite"):
+        obsjax.kreisselmeier_form([1.0, np.nan], [1.0, 1.0])
+    with pytest.raises(ValueError, match="`b` must be finite"):
+        obsjax.kreisselmeier_form([1.0, 2.0], [np.inf, 1.0])
+    with pytest.raises(ValueError, match="`lambdas` must be > 0 and finite"):
+        obsjax.luders_narendra_form([1.0, 2.0], [1.0, 1.0], [np.nan])
+    with pytest.raises(ValueError, match="`lambdas` must be > 0"):
+        obsjax.luders_narendra_form([1.0, 2.0], [1.0, 1.0], [-1.0])
+    with pytest.raises(ValueError, match="`poles` must be numbers, got booleans"):
+        obsjax.design.place(A, C, [True, True, True])
+    with pytest.raises(ValueError, match=r"`tol` \(a relative rank tolerance\) must be in \(0, 1\)"):
+        obsjax.design.place(A, C, [-1.0, -2.0, -3.0], tol=2.0)
+    # λ_1 of a length-n `lambdas` is the observer's own and not part of the form: not checked
+    np.testing.assert_array_equal(obsjax.luders_narendra_form([1.0, 2.0], [1.0, 1.0], [-7.0, 3.0]).A, [[1.0, 1.0], [2.0, -3.0]])

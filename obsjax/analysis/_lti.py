@@ -388,8 +388,10 @@ def observability_staircase(A, C, *, tol: float | None = None) -> ObservabilityS
     """
     A, C = _concrete_pair(A, C, "observability_staircase")
     tol = DEFAULT_TOL if tol is None else float(tol)
-    if not tol > 0:
-        raise ValueError(f"`tol` must be > 0, got {tol}.")
+    if not 0 < tol < 1:
+        # a relative tolerance of 1 or more declares every direction negligible: the pair would be
+        # reported unobservable whatever it is
+        raise ValueError(f"`tol` (a relative rank tolerance) must be in (0, 1), got {tol}.")
     n, m = A.shape[0], C.shape[0]
     rows = np.linalg.norm(C, axis=1)
     if np.any((rows > 0) & (rows < OUTPUT_SCALE_WARN * rows.max())):

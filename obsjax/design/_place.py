@@ -57,6 +57,8 @@ def pole_vector(poles, n: int, who: str = "place") -> jax.Array:
         p = jnp.asarray(poles)
     except Exception as e:  # noqa: BLE001
         raise ValueError(f"`poles` must be array-like, got {type(poles).__name__}: {e}") from None
+    if p.dtype == jnp.bool_:
+        raise ValueError(f"{who}: `poles` must be numbers, got booleans {np.asarray(p).tolist()}.")
     if p.ndim == 0:
         p = p.reshape(1)
     if p.ndim != 1 or p.shape[0] != n:

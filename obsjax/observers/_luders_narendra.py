@@ -31,6 +31,10 @@ def luders_narendra_form(a, b, lambdas):
         lam = lam[1:]
     if lam.shape[0] != n - 1:
         raise ValueError(f"`lambdas` must have length {n} or {n - 1}, got {lam.shape[0]}.")
+    require_finite(a, "a")
+    require_finite(b, "b")
+    if lam.shape[0]:
+        positive_scalar(lam, "lambdas", " (the stable Λ of the form (5.2), as LudersNarendra requires)")
     A = jnp.zeros((n, n)).at[:, 0].set(a).at[0, 1:].set(1.0)
     A = A.at[jnp.arange(1, n), jnp.arange(1, n)].set(-lam)
     from ..systems._plants import LTI
