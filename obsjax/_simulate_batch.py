@@ -8,6 +8,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _integrate
 from ._config import require_x64
@@ -38,8 +39,8 @@ def simulate_batch(
     atol: float | jax.Array = 1e-8,
     dt0: float | jax.Array | None = None,
     adaptive: bool = True,
-    max_steps: int | None = 16384,
-    max_segments: int | None = None,
+    max_steps: int | np.integer | None = 16384,
+    max_segments: int | np.integer | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
     lockstep: bool = True,
     throw: bool = True,

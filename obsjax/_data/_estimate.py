@@ -134,8 +134,8 @@ def estimate(
     atol=1e-8,
     dt0=None,
     adaptive: bool = True,
-    max_steps: int | None = 4096,
-    max_segments: int | None = None,
+    max_steps: int | np.integer | None = 4096,
+    max_segments: int | np.integer | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
 ) -> Estimate:
