@@ -339,8 +339,6 @@ def kreisselmeier_form(a, b):
             f"`a` and `b` must be vectors of the same length n, got {tuple(a.shape)} and {tuple(b.shape)}."
         )
     n = a.shape[0]
-    from ._validation import require_finite
-
     require_finite(a, "a")
     require_finite(b, "b")
     return LTI(observer_form(a), b.reshape(n, 1), jnp.eye(1, n))
