@@ -55,8 +55,15 @@ class Trajectory(eqx.Module):
 
     @property
     def error_norm(self) -> jax.Array:
-        """‖x̃(t)‖ at each save time, shape (T,)."""
-        return jnp.linalg.norm(self.error, axis=-1)
+        """‖x̃(t)‖ at each save time, shape (T,).
+
+        Scaled by the largest component before squaring, so errors of 1e-200 (or 1e200) neither underflow
+        to 0 nor overflow to inf; the scale is held out of the derivative, which is exact for a norm
+        (‖e‖ = s‖e/s‖ for any s > 0)."""
+        e = self.error
+        s = jax.lax.stop_gradient(jnp.max(jnp.abs(e), axis=-1, keepdims=True))
+        s = jnp.where((s > 0) & jnp.isfinite(s), s, 1.0)
+        return s[..., 0] * jnp.linalg.norm(e / s, axis=-1)
 
 
 def simulate(
@@ -125,6 +132,8 @@ def simulate(
       defaulting to span/2000) or :class:`obsjax.noise.BandLimitedNoise`; needs ``key``.  Under white
       noise the reset instants and event times of the observer cannot be differentiated (the pathwise
       solution is not differentiable in them); a derivative in them raises ``ValueError``.
+    - `key`: the PRNG key the noise is drawn from; only with `noise` (a key without it is refused, so a run
+      meant to be noisy never runs noise-free without a word).
     - `solver`: a diffrax solver.  Default: the observer's ``recommended_solver(ts)`` when it has one (the
       high-gain :class:`obsjax.TrajectoryLinearization` returns the implicit ``Kvaerno5`` when
       max|ρ̄|·ω/ε makes the problem stiff), else ``Tsit5``.
@@ -174,6 +183,7 @@ def simulate(
     _validate.check_types(plant, observer, noise)
     if noise is not None and key is None:
         raise ValueError("`key` is required when `noise` is given (the noise is drawn from it).")
+    _validate.check_keys_need_noise(noise, key, "key")
     ts_np = _validate.concrete_times(ts)
     ts = _validate.check_ts(ts)
     x0 = _validate.check_state(x0, "x0", f"({plant.n},) (the plant's state)", 1)

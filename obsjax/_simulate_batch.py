@@ -87,7 +87,8 @@ def simulate_batch(
     **Arguments:** as :func:`obsjax.simulate`, except
 
     - `x0s`, `xhat0s`: (B, n) initial plant states and estimates.
-    - `keys`: (B,) PRNG keys, one per member, required with `noise` (each member draws its own noise).
+    - `keys`: (B,) PRNG keys, one per member, required with `noise` (each member draws its own noise) and
+      refused without it.
     - `lockstep`: see above.
 
     **Returns:** a :class:`obsjax.Trajectory` whose fields have a leading batch axis B (as from
@@ -157,6 +158,13 @@ def _simulate_members(plant, observer, x0s, xhat0s, ts, keys, *, lockstep, plant
         )
     if B == 0:
         raise ValueError(f"`x0s` must hold at least one member, got shape {tuple(x0s.shape)}.")
+    n_obs = _validate.estimate_dim(observer)
+    if n_obs is not None and xhat0s.shape[1] != n_obs:
+        raise ValueError(
+            f"`xhat0s` must have shape ({B}, {n_obs}) (one estimate per member, of the observer's state "
+            f"dimension {n_obs}), got {tuple(xhat0s.shape)}."
+        )
+    _validate.check_keys_need_noise(noise, keys, "keys")
     if noise is not None:
         if keys is None:
             raise ValueError("`keys` (one PRNG key per member) is required when `noise` is given.")

@@ -44,6 +44,21 @@ def _giode(F=np.diag([-4.0, -5.0, -6.0]), G=np.ones((3, 1)), T0=None):
 SHAPE_CASES = {
     "x0": (lambda: sim(PLANT, OBS, jnp.ones(3), XH0, TS), "`x0`"),
     "xhat0": (lambda: sim(PLANT, OBS, X0, jnp.zeros(3), TS), "`xhat0`"),
+    # a batch's wrongly shaped estimates were named `xhat0`, which simulate_batch does not take
+    "xhat0s (lock step)": (
+        lambda: obsjax.simulate_batch(PLANT, OBS, jnp.ones((3, 2)), jnp.zeros((3, 3)), TS, lockstep=True),
+        "`xhat0s` must have shape (3, 2)",
+    ),
+    "xhat0s (masked)": (
+        lambda: obsjax.simulate_batch(PLANT, OBS, jnp.ones((3, 2)), jnp.zeros((3, 3)), TS, throw=False),
+        "`xhat0s` must have shape (3, 2)",
+    ),
+    "xhat0s (fixed steps, vmap)": (
+        lambda: obsjax.simulate_batch(
+            PLANT, OBS, jnp.ones((3, 2)), jnp.zeros((3, 3)), TS, adaptive=False, dt0=0.1, throw=False
+        ),
+        "`xhat0s` must have shape (3, 2)",
+    ),
     "observer n": (
         lambda: sim(PLANT, obsjax.Luenberger.from_poles(_plant3(), [-4.0, -5.0, -6.0]), X0, XH0, TS),
         "`observer`",
@@ -127,6 +142,13 @@ VALUE_CASES = {
     "atol None": (lambda: _validate.check_options(1e-6, None, None, True, 100, None), "`atol` must be a finite number"),
     "ts nan": (lambda: sim(PLANT, OBS, X0, XH0, np.array([0.0, np.nan, 1.0])), "`ts`"),
     "ts decreasing": (lambda: sim(PLANT, OBS, X0, XH0, TS[::-1]), "`ts` must be strictly increasing"),
+    # a key without a noise model was ignored: a study meant to be noisy ran noise-free without a word
+    "key without noise": (lambda: sim(PLANT, OBS, X0, XH0, TS, key=jax.random.key(0)), "`key` is given but `noise`"),
+    "keys without noise": (
+        lambda: obsjax.simulate_batch(PLANT, OBS, jnp.ones((2, 2)), jnp.zeros((2, 2)), TS,
+                                      keys=jax.random.split(jax.random.key(0), 2)),
+        "`keys` is given but `noise`",
+    ),
     "x0 complex": (lambda: sim(PLANT, OBS, X0 + 1j, XH0, TS), "`x0` must be real"),
     # a complex input failed inside the integration with a message naming nothing
     "u complex": (lambda: sim(PLANT, OBS, X0, XH0, TS, u=lambda t: jnp.ones(1) * (1 + 1j)), "`u(t)` must return real"),
@@ -200,6 +222,24 @@ def test_overflowing_error_with_a_finite_state_is_nonfinite():
     assert int(tr.status) == obsjax._simulate.NONFINITE
     with pytest.raises(Exception, match="diverged or contains non-finite"):
         obsjax.simulate(PLANT, OBS, X0, xh0, TS)
+
+
+def test_error_norm_of_tiny_errors_does_not_underflow():
+    """‖x̃‖ of an error of 1e-200 was 0 (the squares underflow); the norm is scaled by the largest entry,
+    against NumPy's norm of the rescaled error, and its derivative still matches central differences."""
+    tr = obsjax.simulate(PLANT, OBS, X0 * 1e-200, XH0, TS)
+    ref = np.linalg.norm(np.asarray(tr.error) * 1e200, axis=-1) * 1e-200
+    assert np.all(ref > 0)
+    np.testing.assert_allclose(tr.error_norm, ref, rtol=1e-14)
+    assert tr.error_norm.shape == (len(TS),)
+
+    def last(x0):
+        return obsjax.simulate(PLANT, OBS, x0, XH0, TS, rtol=1e-10, atol=1e-12).error_norm[-1]
+
+    g = jax.grad(last)(X0)
+    h = 1e-6
+    fd = [(last(X0 + h * e) - last(X0 - h * e)) / (2 * h) for e in np.eye(2)]
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
 
 
 def _xhat0_sometimes_huge(key):

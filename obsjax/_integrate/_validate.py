@@ -154,6 +154,25 @@ def _shape(fn, what):
         raise ValueError(f"{what} failed: {type(e).__name__}: {e}") from None
 
 
+def estimate_dim(observer):
+    """The length of x̂0 the observer takes (its model's n, or its own `n`), or ``None`` where it does not
+    say (checked then by ``observer.init``'s shape)."""
+    model = getattr(observer, "model", None)
+    n_obs = model.n if isinstance(model, AbstractSystem) else getattr(observer, "n", None)
+    return int(n_obs) if isinstance(n_obs, (int, np.integer)) and not isinstance(n_obs, bool) else None
+
+
+def check_keys_need_noise(noise, key, name):
+    """A PRNG key given without a noise model draws nothing: refused, so that a study meant to be noisy
+    does not run noise-free without a word."""
+    if noise is None and key is not None:
+        raise ValueError(
+            f"`{name}` is given but `noise` is None: nothing would be drawn from it, and the result would be "
+            f"noise-free. Pass the noise model (`noise=obsjax.noise.WhiteNoise(...)` or BandLimitedNoise) "
+            f"or leave `{name}` out."
+        )
+
+
 def check_dimensions(plant, observer, x0, xhat0, t0, u, controller, noise):
     """Shapes across plant, observer, x0, x̂0, u, controller and noise (x0, x̂0 of one member)."""
     n, m, p = plant.n, plant.m, plant.p
@@ -175,8 +194,8 @@ def check_dimensions(plant, observer, x0, xhat0, t0, u, controller, noise):
             )
         if model.n != n:
             raise ValueError(f"`observer`'s model has n = {model.n} states but `plant` has n = {n}.")
-    n_obs = model.n if isinstance(model, AbstractSystem) else getattr(observer, "n", None)
-    if isinstance(n_obs, (int, np.integer)) and xhat0.shape != (n_obs,):
+    n_obs = estimate_dim(observer)
+    if n_obs is not None and xhat0.shape != (n_obs,):
         raise ValueError(
             f"`xhat0` must have shape ({n_obs},) (the observer's state dimension), got {tuple(xhat0.shape)}."
         )
