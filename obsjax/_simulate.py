@@ -12,7 +12,7 @@ import numpy as np
 
 from . import _integrate
 from ._config import require_x64
-from ._integrate import _validate
+from ._integrate import _compiled, _validate
 from ._integrate._schedule import MAX_RESET_SEGMENTS, num_segments
 from ._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, is_finite
 from ._integrate._system import Args as _Args
@@ -201,12 +201,17 @@ def simulate(
         path = realise_band_limited(noise, key, t0c, t1c, plant.m)
     args = _with_content(plant, observer, u, controller, path)
     state0 = initial_state(args, ts[0], x0, xhat0)
+    traj = _compiled.call(_solve, args, state0, plan, ts)  # compiled once per problem structure
+    return _raise_if(traj, throw, "obsjax.simulate", traj.status)
+
+
+def _solve(args: _Args, state0, plan, ts) -> Trajectory:
+    """The back-end's solve and the trajectory at the save times (one program, see ``_compiled``)."""
     (xs, zs), code = _integrate.integrate(args, state0, plan)
     # a non-finite initial state is NONFINITE whatever the solver made of it (an implicit solver or a
     # gain's own guard may stop it otherwise, and the code must not depend on jit: eager read 2, jit 1)
     code = jnp.where(is_finite(state0), code, NONFINITE).astype(jnp.int32)
-    traj = trajectory(args, ts, xs, zs, code)
-    return _raise_if(traj, throw, "obsjax.simulate", traj.status)
+    return trajectory(args, ts, xs, zs, code)
 
 
 def trajectory(args: _Args, ts, xs, zs, code) -> Trajectory:

@@ -12,7 +12,7 @@ import numpy as np
 
 from . import _integrate
 from ._config import require_x64
-from ._integrate import _masked, _validate
+from ._integrate import _compiled, _masked, _validate
 from ._integrate._lockstep import lockstep_norm, per_member
 from ._integrate._status import NONFINITE, is_finite
 from ._integrate._system import initial_state
@@ -194,15 +194,20 @@ def _simulate_members(plant, observer, x0s, xhat0s, ts, keys, *, lockstep, plant
         t0c, t1c = _validate.concrete_span(ts_np)
         paths = eqx.filter_vmap(lambda k: realise_band_limited(noise, k, t0c, t1c, plant0.m))(keys)
     args_b = _with_content(plant, observer, u, controller, paths)
+    state0 = per_member(args_b, lambda a, x, xh: initial_state(a, ts[0], x, xh), plant_batched)(x0s, xhat0s)
+    traj = _compiled.call(_solve_batch, args_b, state0, plan, ts, lockstep, plant_batched)  # once per structure
+    return _raise_if(traj, throw, "obsjax.simulate_batch", traj.status)
+
+
+def _solve_batch(args_b, state0, plan, ts, lockstep: bool, plant_batched: bool) -> Trajectory:
+    """The batch back-end's solve and the members' trajectories (one program, see ``_integrate._compiled``)."""
     each = lambda fn: per_member(args_b, fn, plant_batched)
-    state0 = each(lambda a, x, xh: initial_state(a, ts[0], x, xh))(x0s, xhat0s)
     if lockstep:
         (xs, zs), codes = _integrate.integrate_batch(args_b, state0, plan)
     else:
         (xs, zs), codes = _masked.integrate(args_b, state0, plan, plant_batched)
     codes = jnp.where(jax.vmap(is_finite)(state0), codes, NONFINITE).astype(jnp.int32)  # as simulate
-    traj = each(lambda a, x, z, c: trajectory(a, ts, x, z, c))(xs, zs, codes)
-    return _raise_if(traj, throw, "obsjax.simulate_batch", traj.status)
+    return each(lambda a, x, z, c: trajectory(a, ts, x, z, c))(xs, zs, codes)
 
 
 def _vmap_simulate(plant, observer, x0s, xhat0s, ts, keys, common, plant_batched=False):
