@@ -12,8 +12,8 @@ digest of :class:`obsjax._integrate._system.Args`, which covers the globals that
 Python scalars, the NumPy arrays by value (the concrete save times and breakpoints, which the fixed-step grid
 and the schedule are built from) and the functions by identity.  JAX arrays, tracers included, are the
 program's arguments.  A second call that differs only in array values (initial states, gains, plant
-matrices) runs the compiled program; inside an outer ``jit``/``grad``/``vmap`` the program is traced once
-per structure and transformation too.  The integration core's dataclasses (``Plan``, ``Schedule``,
+matrices) runs the compiled program.  Inside an outer ``jit``/``grad``/``vmap`` (a tracer among the
+arguments) ``fn`` is traced there, as before: the outer program compiles it once.  The integration core's dataclasses (``Plan``, ``Schedule``,
 ``Options``) are walked field by field.
 """
 
@@ -100,6 +100,10 @@ def call(fn, *args):
     (its identity is part of the key).  Arguments that cannot be keyed (an unhashable leaf) run ``fn``
     directly, as before."""
     leaves, treedef = jax.tree_util.tree_flatten(_to_tree(args))
+    if any(isinstance(v, jax.core.Tracer) for v in leaves):
+        # inside an outer jit/grad/vmap: traced there, as before (constants of the outer trace stay constants,
+        # so checks on them fold away and a study's kernel carries no host callback)
+        return fn(*args)
     dynamic = tuple(isinstance(v, jax.Array) for v in leaves)
     try:
         key = (fn, treedef, dynamic, tuple(None if d else _static_key(v) for v, d in zip(leaves, dynamic)))

@@ -196,7 +196,7 @@ def _value_and_grad(theta, signs, observer, plant, x0s, xhat0s, keys, weights, s
                 ts,
                 u=u,
                 noise=noise,
-                key=k,
+                key=k if noise is not None else None,
                 throw=False,
                 max_segments=max_segments,
                 **sim_kwargs,
