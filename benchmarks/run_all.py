@@ -27,6 +27,7 @@ BENCHMARKS = {
     "i": "i_recorded_data.py",
     "j": "j_forward_gradient.py",
     "k": "k_plant_uncertainty.py",
+    "l": "l_eager_calls.py",
     "s": "s_streaming_study.py",
 }
 
