@@ -39,34 +39,22 @@ def case_luenberger():
     return call
 
 
-def case_least_squares():
-    import jax.numpy as jnp
+def _least_squares_case(**kw):
+    def case():
+        import jax.numpy as jnp
 
-    import obsjax
+        import obsjax
 
-    p = obsjax.chen_yen_example()
-    ts = jnp.linspace(0.0, 10.0, 81)
+        p = obsjax.chen_yen_example()
+        ts = jnp.linspace(0.0, 10.0, 81)
 
-    def call(i):
-        obs = obsjax.LeastSquaresReset(p, gamma=jnp.asarray(20.0 + i), p0=0.1, T=0.25)
-        return obsjax.simulate(p, obs, jnp.array([1.0 + i, -1.0]), jnp.zeros(2), ts).x
+        def call(i):
+            obs = obsjax.LeastSquaresReset(p, gamma=jnp.asarray(20.0 + i), p0=0.1, T=0.25)
+            return obsjax.simulate(p, obs, jnp.array([1.0 + i, -1.0]), jnp.zeros(2), ts, **kw).x
 
-    return call
+        return call
 
-
-def case_least_squares_fixed():
-    import jax.numpy as jnp
-
-    import obsjax
-
-    p = obsjax.chen_yen_example()
-    ts = jnp.linspace(0.0, 10.0, 81)
-
-    def call(i):
-        obs = obsjax.LeastSquaresReset(p, gamma=jnp.asarray(20.0 + i), p0=0.1, T=0.25)
-        return obsjax.simulate(p, obs, jnp.array([1.0 + i, -1.0]), jnp.zeros(2), ts, adaptive=False, dt0=0.0125).x
-
-    return call
+    return case
 
 
 def case_cd_kalman():
@@ -105,8 +93,8 @@ def _batch_case(lockstep):
 
 CASES = {
     "Luenberger (no breakpoint), simulate": case_luenberger,
-    "LeastSquaresReset (40 resets), simulate": case_least_squares,
-    "LeastSquaresReset, fixed steps h = 0.0125, simulate": case_least_squares_fixed,
+    "LeastSquaresReset (40 resets), simulate": _least_squares_case(),
+    "LeastSquaresReset, fixed steps h = 0.0125, simulate": _least_squares_case(adaptive=False, dt0=0.0125),
     "ContinuousDiscreteKalman (50 updates), simulate": case_cd_kalman,
     "LeastSquaresReset, simulate_batch of 64 (own steps)": _batch_case(False),
     "LeastSquaresReset, simulate_batch of 64 (lock step)": _batch_case(True),
