@@ -15,14 +15,12 @@ import math
 import diffrax
 import equinox as eqx
 import jax
-import jax.numpy as jnp
-import numpy as np
 
 from .._checks import concrete_value
 from ..systems._noise import WhiteNoise
 from . import _segments, _system
 from ._schedule import Schedule
-from ._status import GuardedController, code_of, is_finite
+from ._status import GuardedController, code_of, finite_gradient_call
 
 tmap = jax.tree_util.tree_map
 
@@ -86,22 +84,7 @@ def _finite_gradient_step(solver, terms, t0, t1, y0, args, solver_state, made_ju
         y1, err, dense, state1, _ = solver.step(terms_, t0_, t1_, y0_, args_, state_, jump_)
         return y1, err, dense, state1
 
-    @jax.custom_vjp
-    def call(d, a):
-        return run(d, a)
-
-    def fwd(d, a):
-        out, vjp = jax.vjp(lambda dd: run(dd, a), d)
-        return out, (vjp, is_finite(eqx.filter(out, eqx.is_inexact_array)), a)
-
-    def bwd(res, ct):
-        vjp, ok, a = res
-        (g,) = vjp(ct)
-        g = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), g)
-        return g, jax.tree_util.tree_map(lambda x: np.zeros(x.shape, jax.dtypes.float0), a)
-
-    call.defvjp(fwd, bwd)
-    y1, err, dense, state1 = call(diff, arrs)
+    y1, err, dense, state1 = finite_gradient_call(run, diff, arrs)
     return y1, err, dense, state1, diffrax.RESULTS.successful
 
 

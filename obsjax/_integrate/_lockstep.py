@@ -33,7 +33,7 @@ import numpy as np
 
 from . import _diffrax, _segments, _system
 from ._schedule import Schedule
-from ._status import COLLAPSE_ULPS, SOLVER_FAILED, SUCCESS, ulp, frozen, is_finite
+from ._status import COLLAPSE_ULPS, SOLVER_FAILED, SUCCESS, finite_gradient_call, frozen, is_finite, ulp
 
 tmap = jax.tree_util.tree_map
 
@@ -166,29 +166,15 @@ def _drift(t, y, a):
 def _finite_gradient(fn, *args):
     """``fn(*args)``, whose reverse-mode derivative is zero when its floating inputs or its output are not
     finite (under ``vmap``: per member).  Non-floating arrays travel as a second argument (float0
-    cotangents), everything else is closed over (no tracers in it)."""
+    cotangents), everything else is closed over (closed-over tracers: see
+    :func:`_status.finite_gradient_call`)."""
     diff, rest = eqx.partition(args, eqx.is_inexact_array)
     arrs, static = eqx.partition(rest, eqx.is_array)
 
     def run(d, a):
         return fn(*eqx.combine(d, a, static))
 
-    @jax.custom_vjp
-    def call(d, a):
-        return run(d, a)
-
-    def fwd(d, a):
-        out, vjp = jax.vjp(lambda dd: run(dd, a), d)
-        return out, (vjp, is_finite(out) & is_finite(d), a)
-
-    def bwd(res, ct):
-        vjp, ok, a = res
-        (g,) = vjp(ct)
-        g = tmap(lambda v: jnp.where(ok, v, jnp.zeros_like(v)), g)
-        return g, tmap(lambda v: np.zeros(v.shape, jax.dtypes.float0), a)
-
-    call.defvjp(fwd, bwd)
-    return call(diff, arrs)
+    return finite_gradient_call(run, diff, arrs, inputs_too=True)
 
 
 def _drift_finite_gradient(t, y, a):

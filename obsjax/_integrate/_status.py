@@ -42,6 +42,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 SUCCESS = 0
 SOLVER_FAILED = 1
@@ -60,6 +61,52 @@ def sum_of_squares(tree):
 def is_finite(tree):
     """True when Σ y² over the pytree is finite: no NaN/inf and no overflow of the squared norm."""
     return jnp.isfinite(sum_of_squares(tree))
+
+
+def finite_gradient_call(run, d, a, *, inputs_too: bool = False):
+    """``run(d, a)``, whose reverse-mode derivative is zero where its output (with ``inputs_too``: or its
+    floating inputs ``d``) is not finite; under ``vmap``, member by member.  ``d`` holds the floating arrays,
+    ``a`` the other arrays (float0 cotangents).
+
+    Such a result is rejected or replaced afterwards and its cotangent is zero, but its partial derivatives
+    are NaN there, and 0 × NaN poisons the whole gradient.  Values that ``run`` closes over and that may
+    carry a derivative (a plant's ``A(t)``, an input ``u(t)`` or a nonlinear plant function that reads a
+    parameter being differentiated) are made explicit arguments first (closure conversion), because a
+    ``custom_vjp`` cannot differentiate closed-over values: JAX refused such a gradient with
+    "Detected differentiation of a custom_vjp function with respect to a closed-over value".
+    """
+    closed, out_shape = jax.make_jaxpr(run, return_shape=True)(d, a)
+    jaxpr, consts = closed.jaxpr, list(closed.consts)
+    hoist = [isinstance(c, jax.core.Tracer) and is_floating(c) for c in consts]
+    kept = [None if h else c for c, h in zip(consts, hoist)]
+    out_tree = jax.tree_util.tree_structure(out_shape)
+
+    def converted(dd, aa, hoisted):
+        it = iter(hoisted)
+        cs = [next(it) if h else k for k, h in zip(kept, hoist)]
+        out = jax.core.eval_jaxpr(jaxpr, cs, *jax.tree_util.tree_leaves((dd, aa)))
+        return jax.tree_util.tree_unflatten(out_tree, out)
+
+    @jax.custom_vjp
+    def call(dd, aa, hoisted):
+        return converted(dd, aa, hoisted)
+
+    def fwd(dd, aa, hoisted):
+        out, vjp = jax.vjp(lambda x, h: converted(x, aa, h), dd, hoisted)
+        ok = is_finite(eqx.filter(out, eqx.is_inexact_array))
+        if inputs_too:
+            ok = ok & is_finite(dd)
+        return out, (vjp, ok, aa)
+
+    def bwd(res, ct):
+        vjp, ok, aa = res
+        g, gh = vjp(ct)
+        mask = lambda v: jnp.where(ok, v, jnp.zeros_like(v))  # noqa: E731
+        float0 = lambda v: np.zeros(v.shape, jax.dtypes.float0)  # noqa: E731
+        return jax.tree_util.tree_map(mask, g), jax.tree_util.tree_map(float0, aa), [mask(v) for v in gh]
+
+    call.defvjp(fwd, bwd)
+    return call(d, a, [c for c, h in zip(consts, hoist) if h])
 
 
 def is_floating(v) -> bool:

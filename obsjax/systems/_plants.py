@@ -190,7 +190,9 @@ class LTV(AbstractSystem):
     **Arguments:**
 
     - `A`, `C`, `B`: callables of t returning (n, n), (m, n) and (n, p) matrices (``B=None``: free system).
-      They may be equinox modules with array leaves (then a plant family can be vmapped).
+      They may be equinox modules with array leaves (then a plant family can be vmapped), or closures over
+      a parameter being differentiated (``jax.grad`` of a loss that builds ``LTV(lambda t: a * A0(t), ...)``
+      differentiates in ``a``, with or without ``jit``).
     - `jump_ts`: times where A, B or C switch (piecewise-constant parameters); every solve of
       :func:`obsjax.simulate` ends at them (segment boundaries), none steps across.
 
