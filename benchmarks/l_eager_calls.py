@@ -9,6 +9,10 @@ directly (``_compiled.call`` replaced by ``fn(*args)``, the behaviour before).  
 process (first call: tracing and compilation, the compilation cache off); then CALLS calls with new initial
 states (and a new gain where the observer has an array gain), median and best reported.
 
+The last two cases differentiate eagerly (``jax.grad`` without ``jit``): the compiled program is then
+differentiated as a whole and JAX keeps the derivative programs, where before the backward pass ran as
+separate primitives and compiled its loop again on every call.
+
 Usage: ``python benchmarks/l_eager_calls.py``.
 """
 
@@ -91,6 +95,35 @@ def _batch_case(lockstep):
     return case
 
 
+def _gradient_case(lockstep=None):
+    """jax.grad without jit, in the gain γ: of the ISE of one trajectory (lockstep None), or of Σ‖x̃‖² over a
+    batch of 64."""
+
+    def case():
+        import jax
+        import jax.numpy as jnp
+
+        import obsjax
+
+        p = obsjax.chen_yen_example()
+        ts = jnp.linspace(0.0, 10.0, 81)
+        x0s = jnp.stack([jnp.linspace(-1.0, 1.0, 64), jnp.linspace(2.0, -2.0, 64)], axis=1)
+
+        def loss(gamma, scale):
+            obs = obsjax.LeastSquaresReset(p, gamma=gamma, p0=0.1, T=0.25)
+            if lockstep is None:
+                return obsjax.losses.ise(obsjax.simulate(p, obs, x0s[0] * scale, jnp.zeros(2), ts))
+            tb = obsjax.simulate_batch(p, obs, x0s * scale, jnp.zeros((64, 2)), ts, lockstep=lockstep)
+            return jnp.sum(tb.error**2)
+
+        def call(i):
+            return jax.grad(loss)(jnp.asarray(20.0 + i), 1.0 + i)
+
+        return call
+
+    return case
+
+
 CASES = {
     "Luenberger (no breakpoint), simulate": case_luenberger,
     "LeastSquaresReset (40 resets), simulate": _least_squares_case(),
@@ -98,6 +131,8 @@ CASES = {
     "ContinuousDiscreteKalman (50 updates), simulate": case_cd_kalman,
     "LeastSquaresReset, simulate_batch of 64 (own steps)": _batch_case(False),
     "LeastSquaresReset, simulate_batch of 64 (lock step)": _batch_case(True),
+    "LeastSquaresReset (40 resets), jax.grad (no jit) of the ISE in γ": _gradient_case(),
+    "LeastSquaresReset, jax.grad (no jit) in γ over a simulate_batch of 64 (lock step)": _gradient_case(True),
 }
 
 

@@ -479,8 +479,8 @@ BENCHMARKS = {
     "against the forward pass; where the two modes cross",
     "k": "a batch of plants (model uncertainty) on the masked adaptive loop against jax.vmap(simulate): "
     "throughput, a monte_carlo study with a param_sampler, a tune step with plant_batched=True",
-    "l": "later eager calls of simulate and simulate_batch (resets, observer updates, batches) against "
-    "the first call, with and without the table of compiled programs, each in fresh processes",
+    "l": "later eager calls of simulate and simulate_batch and eager jax.grad (resets, observer updates, "
+    "batches) against the first call, with and without the table of compiled programs, each in fresh processes",
     "m": "monte_carlo in 2 jax.distributed processes on localhost against 1 process: agreement, resume "
     "from process 0's checkpoint, timings",
     "s": "a 1e7-trajectory monte_carlo(keep='summary') study in a fresh process: peak resident memory "
