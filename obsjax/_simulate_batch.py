@@ -80,8 +80,12 @@ def simulate_batch(
     blocks of members whose arrays stay in the cache (2.0× the throughput of ``jax.vmap(simulate)`` on
     one CPU core for Chen & Yen's example: benchmarks/results/g_numba_dopri5.md).  Member by member it is the
     solve of :func:`obsjax.simulate` (first step 0.01 when `dt0` is not given, ``max_steps`` per segment,
-    the same status codes), up to rounding and the step choices near save times.  Other problems are
-    ``jax.vmap(simulate)``.  With fixed steps (``adaptive=False``, already lock step) or with white noise (a
+    the same status codes), up to rounding and the step choices near save times.  One difference in
+    reverse mode: a step that is rejected because its stages left the domain of the vector field (a step
+    across an undeclared switch into a region where the field is NaN) contributes zero to the gradient of
+    :func:`obsjax.simulate` and of the lock-step batch, but makes the masked loop's gradient NaN (a
+    visible failure, not a wrong number: ``tune`` rejects such a step).  For such problems, differentiate
+    with ``lockstep=True`` or declare the switch.  Other problems are ``jax.vmap(simulate)``.  With fixed steps (``adaptive=False``, already lock step) or with white noise (a
     fixed-step SDE), this is ``jax.vmap`` of :func:`obsjax.simulate` over the members.
 
     **Arguments:** as :func:`obsjax.simulate`, except

@@ -138,3 +138,52 @@ def test_a_gradient_through_a_plant_function_that_closes_over_the_parameter(how)
     assert g == pytest.approx((float(f(a + h)) - float(f(a - h))) / (2 * h), rel=1e-5)
     if how == "simulate":
         assert float(jax.grad(cost)(a)) == pytest.approx(g, rel=1e-9)
+
+
+_A0, _C0 = jnp.array([[0.0, 1.0], [-2.0, -0.3]]), jnp.array([[1.0, 0.0]])
+_LUEN = obsjax.Luenberger(obsjax.LTI(_A0, C=_C0), L=jnp.array([[3.0], [2.0]]))
+_TS4 = jnp.linspace(0.0, 2.0, 5)
+
+
+def test_a_global_that_holds_a_tracer_is_not_served_a_program_of_another_tracer():
+    """A plant function reads a global that the loss sets to the parameter, twice per loss with other
+    values.  Both solves had one key (a traced value was left out of the content digest), so the second
+    ran the program traced with the first tracer: value −12.574 and derivative −0.642 for −11.893 and
+    5.364, eagerly and under jit (or an UnexpectedTracerError on a later call).  A traced value now makes
+    the key unique."""
+    P = {"a": 0.0}
+    plant = obsjax.LTV(lambda t: _A0 + P["a"] * jnp.array([[0.0, 0.0], [jnp.sin(t), 0.0]]), lambda t: _C0)
+
+    def loss(a):
+        P["a"] = a
+        s1 = jnp.sum(obsjax.simulate(plant, _LUEN, jnp.array([1.0, 0.0]), jnp.zeros(2), _TS4, adaptive=False,
+                                     dt0=0.01).x[-1])
+        P["a"] = 2 * a
+        s2 = jnp.sum(obsjax.simulate(plant, _LUEN, jnp.array([1.0, 0.0]), jnp.zeros(2), _TS4, adaptive=False,
+                                     dt0=0.01).x[-1])
+        return s1 + 10 * s2
+
+    a, h = 0.7, 1e-5
+    plain = float(loss(a))
+    fd = (float(loss(a + h)) - float(loss(a - h))) / (2 * h)
+    for vg in (jax.value_and_grad(loss), jax.jit(jax.value_and_grad(loss))):
+        for _ in range(2):  # a second eager call once the first trace has ended
+            v, g = vg(a)
+            assert float(v) == pytest.approx(plain, rel=1e-12)
+            assert float(g) == pytest.approx(fd, rel=1e-6)
+
+
+@pytest.mark.extended
+def test_a_plant_function_that_closes_over_a_traced_integer():
+    """An integer traced by jit (or vmap) that the plant function reads, with a gradient in another
+    parameter: the zero-gradient guard of rejected steps kept it as a constant of its custom_vjp, and
+    jit(grad) failed ("No constant handler for type DynamicJaxprTracer").  Equal to the eager values."""
+    def loss(a, n):
+        plant = obsjax.LTV(lambda t: _A0 + a * (n % 2 + 1) * jnp.array([[0.0, 0.0], [jnp.sin(t), 0.0]]),
+                           lambda t: _C0)
+        tr = obsjax.simulate(plant, _LUEN, jnp.array([1.0, 0.0]), jnp.zeros(2), _TS4, rtol=1e-10, atol=1e-12)
+        return jnp.sum(tr.error**2) + jnp.sum(tr.x[-1])
+
+    jitted = jax.jit(jax.grad(loss))
+    assert float(jitted(0.7, 1)) == pytest.approx(float(jax.grad(loss)(0.7, 1)), rel=1e-10)
+    assert float(jitted(0.7, 0)) != pytest.approx(float(jitted(0.7, 1)), rel=1e-3)  # n is read

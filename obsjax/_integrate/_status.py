@@ -77,36 +77,39 @@ def finite_gradient_call(run, d, a, *, inputs_too: bool = False):
     """
     closed, out_shape = jax.make_jaxpr(run, return_shape=True)(d, a)
     jaxpr, consts = closed.jaxpr, list(closed.consts)
-    hoist = [isinstance(c, jax.core.Tracer) and is_floating(c) for c in consts]
-    kept = [None if h else c for c, h in zip(consts, hoist)]
+    # 1: a floating tracer (may carry a derivative); 2: another tracer (an integer one under jit or vmap,
+    # float0 cotangent); 0: a concrete constant, kept in the jaxpr
+    kind = [(1 if is_floating(c) else 2) if isinstance(c, jax.core.Tracer) else 0 for c in consts]
     out_tree = jax.tree_util.tree_structure(out_shape)
 
-    def converted(dd, aa, hoisted):
-        it = iter(hoisted)
-        cs = [next(it) if h else k for k, h in zip(kept, hoist)]
+    def converted(dd, aa, hf, hi):
+        it = {1: iter(hf), 2: iter(hi)}
+        cs = [c if k == 0 else next(it[k]) for c, k in zip(consts, kind)]
         out = jax.core.eval_jaxpr(jaxpr, cs, *jax.tree_util.tree_leaves((dd, aa)))
         return jax.tree_util.tree_unflatten(out_tree, out)
 
     @jax.custom_vjp
-    def call(dd, aa, hoisted):
-        return converted(dd, aa, hoisted)
+    def call(dd, aa, hf, hi):
+        return converted(dd, aa, hf, hi)
 
-    def fwd(dd, aa, hoisted):
-        out, vjp = jax.vjp(lambda x, h: converted(x, aa, h), dd, hoisted)
+    def fwd(dd, aa, hf, hi):
+        out, vjp = jax.vjp(lambda x, h: converted(x, aa, h, hi), dd, hf)
         ok = is_finite(eqx.filter(out, eqx.is_inexact_array))
         if inputs_too:
             ok = ok & is_finite(dd)
-        return out, (vjp, ok, aa)
+        return out, (vjp, ok, aa, hi)
 
     def bwd(res, ct):
-        vjp, ok, aa = res
+        vjp, ok, aa, hi = res
         g, gh = vjp(ct)
         mask = lambda v: jnp.where(ok, v, jnp.zeros_like(v))  # noqa: E731
-        float0 = lambda v: np.zeros(v.shape, jax.dtypes.float0)  # noqa: E731
-        return jax.tree_util.tree_map(mask, g), jax.tree_util.tree_map(float0, aa), [mask(v) for v in gh]
+        float0 = lambda v: np.zeros(np.shape(v), jax.dtypes.float0)  # noqa: E731
+        tm = jax.tree_util.tree_map
+        return tm(mask, g), tm(float0, aa), [mask(v) for v in gh], [float0(v) for v in hi]
 
     call.defvjp(fwd, bwd)
-    return call(d, a, [c for c, h in zip(consts, hoist) if h])
+    pick = lambda k: [c for c, kk in zip(consts, kind) if kk == k]  # noqa: E731
+    return call(d, a, pick(1), pick(2))
 
 
 def is_floating(v) -> bool:

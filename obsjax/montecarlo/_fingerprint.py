@@ -38,6 +38,7 @@ import dataclasses
 import enum
 import functools
 import hashlib
+import itertools
 import importlib.metadata
 import os
 import random as _pyrandom
@@ -295,6 +296,7 @@ class _Hasher:
         self.memo: dict[int, int] = {}
         self.keep: list = []  # keeps visited objects alive, so that their ids are not reused
         self.opaque: list[str] = []
+        self.traced = False  # a traced array was met (its value is not known here)
 
     def put(self, tag: str, data: bytes | str = b"") -> None:
         if isinstance(data, str):
@@ -427,6 +429,7 @@ class _Hasher:
 
     def _jax_array(self, a, path: str) -> None:
         if isinstance(a, jax.core.Tracer):
+            self.traced = True
             self.opaque.append(f"{path} (a traced array: call monte_carlo outside jit)")
             return
         if getattr(a, "weak_type", False):  # promotes like a Python scalar: another computation
@@ -753,6 +756,10 @@ class _deep_recursion:
         return False
 
 
+#: unique suffixes of the keys of trees that read a traced array (never equal to another key)
+_TRACED_KEYS = itertools.count()
+
+
 def content_key(tree) -> str:
     """A digest of what tracing ``tree`` reads besides its arrays, for an in-process compilation key.
 
@@ -761,9 +768,12 @@ def content_key(tree) -> str:
     those included) hashed as :func:`fingerprint` does, without the version header (one process has one
     set of versions).  ``jax.jit`` and ``eqx.filter_jit`` key a function argument by its identity, so a
     function that reads a global changed since the last call was served the program traced with the old
-    value; a key that holds this digest is traced again instead.  What cannot be hashed by content
-    (a traced array, an object of a compiled extension) is left out; a failure gives ``""`` (the identity
-    key alone, as before)."""
+    value; a key that holds this digest is traced again instead.  A traced array among what the
+    functions read (a closure or a global that holds a tracer of an enclosing ``jit`` or ``grad``) makes
+    the key unique: its value is not known here, and a program traced with one tracer must not be served
+    for another (it gave the numbers of the first, or an ``UnexpectedTracerError`` once that trace had
+    ended).  What else cannot be hashed by content (an object of a compiled extension) is left out; a
+    failure gives ``""`` (the identity key alone, as before)."""
     import equinox as eqx
 
     try:
@@ -771,6 +781,8 @@ def content_key(tree) -> str:
         h = _Hasher(False)
         with _deep_recursion():
             h.visit(static, "static")
+        if h.traced:
+            return f"traced:{next(_TRACED_KEYS)}"
         return h.h.hexdigest()
     except Exception:  # noqa: BLE001 - an object the hasher cannot walk: keyed by identity as before
         return ""
