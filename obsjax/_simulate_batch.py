@@ -85,7 +85,8 @@ def simulate_batch(
     across an undeclared switch into a region where the field is NaN) contributes zero to the gradient of
     :func:`obsjax.simulate` and of the lock-step batch, but makes the masked loop's gradient NaN (a
     visible failure, not a wrong number: ``tune`` rejects such a step).  For such problems, differentiate
-    with ``lockstep=True`` or declare the switch.  Other problems are ``jax.vmap(simulate)``.  With fixed steps (``adaptive=False``, already lock step) or with white noise (a
+    with ``lockstep=True`` or declare the switch.  Other problems are ``jax.vmap(simulate)``.  With fixed
+    steps (``adaptive=False``, already lock step) or with white noise (a
     fixed-step SDE), this is ``jax.vmap`` of :func:`obsjax.simulate` over the members.
 
     **Arguments:** as :func:`obsjax.simulate`, except

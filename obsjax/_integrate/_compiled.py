@@ -19,8 +19,8 @@ Eager differentiation (``jax.grad``, ``jax.value_and_grad`` or ``jax.jvp`` witho
 innermost primal value is concrete) goes through the table too.  JAX then differentiates the compiled
 program as a whole and keeps the programs it derives, so a second gradient of the same problem at other
 values runs them: on the Chen & Yen example with 40 resets, 8.0 s per eager gradient before (the backward
-pass ran as separate primitives and compiled its loop again) and 88 ms for a later one now (benchmark (l)).  Inside an
-outer ``jit`` or ``vmap`` (any other tracer among the arguments) ``fn`` is traced there, as before: the
+pass ran as separate primitives and compiled its loop again) and 88 ms for a later one now (benchmark
+(l)).  Inside an outer ``jit`` or ``vmap`` (any other tracer among the arguments) ``fn`` is traced there, as before: the
 outer program compiles it once, constants of the outer trace stay constants, checks on them fold away, and
 a study's kernel carries no host callback.
 """
