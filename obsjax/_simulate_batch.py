@@ -71,22 +71,20 @@ def simulate_batch(
     −32.75).
 
     With ``lockstep=False`` every member takes its own steps, as under ``jax.vmap`` of
-    :func:`obsjax.simulate`.  When the solver is an explicit Runge–Kutta pair with an error estimate (Tsit5,
+    :func:`obsjax.simulate`. When the solver is an explicit Runge–Kutta pair with an error estimate (Tsit5,
     Dopri5, Bosh3, Dopri8, …), the observer has no event times, ``max_steps`` is set and the adjoint is
-    diffrax's default, ``ForwardMode`` or ``DirectAdjoint``, the batch runs on a masked adaptive
-    Runge–Kutta loop instead: one loop in which each member steps with its own step size and PID history
-    (diffrax's tableau and controller), crosses its own resets and jumps, and is masked once finished, so
-    the loop's bookkeeping is paid once per iteration for the whole batch; on the CPU a large batch runs in
-    blocks of members whose arrays stay in the cache (2.0× the throughput of ``jax.vmap(simulate)`` on
-    one CPU core for Chen & Yen's example: benchmarks/results/g_numba_dopri5.md).  Member by member it is the
-    solve of :func:`obsjax.simulate` (first step 0.01 when `dt0` is not given, ``max_steps`` per segment,
-    the same status codes), up to rounding and the step choices near save times.  One difference in
-    reverse mode: a step that is rejected because its stages left the domain of the vector field (a step
-    across an undeclared switch into a region where the field is NaN) contributes zero to the gradient of
-    :func:`obsjax.simulate` and of the lock-step batch, but makes the masked loop's gradient NaN (a
-    visible failure, not a wrong number: ``tune`` rejects such a step).  For such problems, differentiate
-    with ``lockstep=True`` or declare the switch.  Other problems are ``jax.vmap(simulate)``.  With fixed
-    steps (``adaptive=False``, already lock step) or with white noise (a
+    diffrax's default, ``ForwardMode`` or ``DirectAdjoint``, the batch runs on a masked adaptive Runge–Kutta
+    loop instead: one loop in which each member steps with its own step size and PID history (diffrax's
+    tableau and controller), crosses its own resets and jumps, and is masked once finished, so the loop's
+    bookkeeping is paid once per iteration for the whole batch; on the CPU a large batch runs in blocks of
+    members whose arrays stay in the cache (2.0× the throughput of ``jax.vmap(simulate)`` on one CPU core for
+    Chen & Yen's example: benchmarks/results/g_numba_dopri5.md). Member by member it is the solve of
+    :func:`obsjax.simulate` (first step 0.01 when `dt0` is not given, ``max_steps`` per segment, the same
+    status codes), up to rounding and the step choices near save times. In reverse mode a step that is
+    rejected because its stages left the domain of the vector field (a step across an undeclared switch into a
+    region where the field is NaN) contributes zero to the gradient, as in :func:`obsjax.simulate` and the
+    lock-step batch (its cotangent is zero, its partial derivatives NaN). Other problems are
+    ``jax.vmap(simulate)``. With fixed steps (``adaptive=False``, already lock step) or with white noise (a
     fixed-step SDE), this is ``jax.vmap`` of :func:`obsjax.simulate` over the members.
 
     **Arguments:** as :func:`obsjax.simulate`, except

@@ -317,6 +317,42 @@ def test_reset_time_gradient_where_a_mid_segment_reset_leaves_the_domain():
     np.testing.assert_allclose(fwd, [1.5], rtol=1e-7)
 
 
+def test_rejected_steps_outside_the_domain_carry_no_gradient():
+    # ẏ = −λ(t) y with λ = k before s = 1 and 50 k after (a switch the solver is not told of), the field
+    # written so that it is defined for y > 0 only (NaN below), and a reset y ← 2 y at 1.5 written the
+    # same way.  After the slow phase the steps are long; those that cross s have stages with y < 0 and
+    # are rejected (dozens per member).  Closed form: y(t) = e^{−k t} before s, e^{−k s − 50 k (t − s)}
+    # after (times 2 after 1.5), dy/dk = −y·(t or s + 50 (t − s)).  The rejected stages' cotangent is
+    # zero and their partial derivatives NaN: reverse mode gave a NaN gradient for every member (and so
+    # did the reset, evaluated at the rejected candidates of members not arriving at it).
+    k = jnp.array([0.5, 0.8, 1.1])
+    ts = jnp.linspace(0.0, 2.0, 9)
+    s, r, c = 1.0, 50.0, 2.0
+
+    def f(t, y, k_):
+        return -k_ * jnp.where(t < s, 1.0, r) * jnp.exp(jnp.log(y))
+
+    def run(k_, adjoint):
+        return adaptive_rk_solve(
+            f, jnp.ones(3), 0.0, 2.0, args=k_, args_axes=0, ts=ts,
+            stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-12),
+            reset=lambda t, y, k_: c * jnp.exp(jnp.log(y)), reset_ts=jnp.array([1.5]), adjoint=adjoint,
+        )  # fmt: skip
+
+    sol = jax.jit(lambda k_: run(k_, None))(k)
+    tt, kk = np.asarray(ts)[None, :], np.asarray(k)[:, None]
+    y = np.exp(-np.where(tt < s, kk * tt, kk * s + r * kk * (tt - s))) * np.where(tt >= 1.5, c, 1.0)
+    dy = -y * np.where(tt < s, tt, s + r * (tt - s))
+    assert np.all(np.asarray(sol.status) == SUCCESS)
+    assert np.all(np.asarray(sol.num_rejected_steps) >= 20)
+    np.testing.assert_allclose(sol.ys, y, rtol=0, atol=1e-6)
+    exact = np.sum(2 * y * dy, axis=1)
+    rev = jax.jit(jax.grad(lambda k_: jnp.sum(run(k_, None).ys ** 2)))(k)
+    fwd = jax.jit(jax.jacfwd(lambda k_: jnp.sum(run(k_, diffrax.ForwardMode()).ys ** 2)))(k)
+    np.testing.assert_allclose(rev, exact, rtol=1e-6)
+    np.testing.assert_allclose(fwd, exact, rtol=1e-6)
+
+
 def test_per_member_horizons():
     t1 = jnp.array([1.0, 2.5, 4.0])
     f = lambda t, y, a: jnp.array([y[1], -y[0]])

@@ -67,6 +67,36 @@ def test_undeclared_jumps_give_finite_gradients():
     assert np.isfinite(float(value)) and np.isfinite(float(slope))
 
 
+@pytest.mark.extended
+def test_undeclared_jumps_give_the_masked_batch_the_gradient_of_simulate():
+    """The same on the masked loop of ``simulate_batch(lockstep=False)`` (adaptive steps per member): its
+    rejected steps' NaN stages made the gradient NaN for the whole batch (status 0 for every member); now each
+    member's derivative is that of its own solve by :func:`obsjax.simulate` (the diffrax back-end, the same
+    steps up to rounding; ``jax.vmap`` over the members)."""
+    x0s = jnp.array([[1.0, -0.5, 0.8], [0.3, 0.2, -1.0]])
+    ts = jnp.linspace(0.0, 7.5, 16)
+    kw = dict(rtol=1e-6, atol=1e-8, max_segments=4)
+
+    def obs(T, g):
+        return eqx.tree_at(lambda o: (o.T, o.gamma), LSR3, (T, g))
+
+    def masked(T, g):
+        tr = obsjax.simulate_batch(SWITCH_UNDECLARED, obs(T, g), x0s, jnp.zeros((2, 3)), ts, lockstep=False, **kw)
+        return jnp.sum(tr.error**2), tr.status
+
+    def alone(T, g):
+        one = lambda x0: obsjax.simulate(SWITCH_UNDECLARED, obs(T, g), x0, jnp.zeros(3), ts, dt0=0.01, **kw)
+        tr = jax.vmap(one)(x0s)
+        return jnp.sum(tr.error**2), tr.status
+
+    (v, st), g = jax.jit(jax.value_and_grad(masked, argnums=(0, 1), has_aux=True))(1.93, 1.0)
+    (v1, st1), g1 = jax.jit(jax.value_and_grad(alone, argnums=(0, 1), has_aux=True))(1.93, 1.0)
+    assert np.all(np.asarray(st) == 0) and np.all(np.asarray(st1) == 0)
+    np.testing.assert_allclose(float(v), float(v1), rtol=1e-5)
+    assert abs(float(g[0])) > 1e-2 and abs(float(g[1])) > 1.0
+    np.testing.assert_allclose(np.array(g, float), np.array(g1, float), rtol=1e-4)
+
+
 # ---------------------------------------------------------------- events: sampled-data observers
 
 

@@ -73,7 +73,10 @@ through equinox's checkpointed while loop with ``checkpoints`` checkpoints, as d
 ``diffrax.ForwardMode`` (a ``lax.while_loop``: forward mode, ``jax.jvp``/``jax.jacfwd``),
 ``diffrax.DirectAdjoint`` (a bounded loop, both modes).  As in diffrax, the step-size decisions
 carry no derivative (``stop_gradient``); the solution's derivative is that of the discrete scheme on
-the chosen steps.
+the chosen steps.  A step rejected because its stages left the domain of the vector field (NaN
+stages across an undeclared switch) contributes nothing to the derivative: in reverse mode each such
+stage's derivative is zero (:func:`_status.finite_gradient`), and the reset is applied to the
+candidate of an arriving member only; in forward mode the rejection's select drops its tangent.
 
 **Contract for a back-end** (how ``simulate``/``simulate_batch``/``monte_carlo`` drive it): ``y`` is
 the joint plant–observer state ``(x, z)`` with a leading batch axis; ``vector_field`` is the
@@ -103,7 +106,7 @@ import optimistix as optx
 
 # the status codes of every back-end (SOLVER_FAILED here: max_steps attempts, or step-size underflow)
 from . import _schedule
-from ._status import NONFINITE, SOLVER_FAILED, SUCCESS
+from ._status import NONFINITE, SOLVER_FAILED, SUCCESS, finite_gradient
 _RUNNING = -1
 
 tmap = jtu.tree_map
@@ -525,7 +528,20 @@ def adaptive_rk_solve(
     # The loop works on one (B, n) array (the members' states flattened): one operation per step of
     # the bookkeeping instead of one per leaf.
     flat0, ravel, unravel = _packing(y0)
-    F = jax.vmap(lambda t, u, a: ravel(vector_field(t, unravel(u), a)), in_axes=(0, 0, args_axes))
+
+    def field(t, u, a):
+        return ravel(vector_field(t, unravel(u), a))
+
+    F = jax.vmap(field, in_axes=(0, 0, args_axes))
+    # The stages of a step.  In reverse mode a stage that left the domain of the vector field (a rejected
+    # step across an undeclared switch) gets a zero derivative, member by member: its cotangent is zero but
+    # its partial derivatives are NaN, and 0 × NaN made the whole batch's gradient NaN.  (A custom_vjp, so
+    # the forward-mode loops keep the plain field; there a where() already drops the rejected tangents.)
+    F_stage = F
+    if kind == "checkpointed":
+        F_stage = jax.vmap(
+            lambda t, u, a: finite_gradient(field, t, u, a), in_axes=(0, 0, args_axes)
+        )
     R = None
     if reset is not None:
         R = jax.vmap(lambda t, u, a: ravel(reset(t, unravel(u), a)), in_axes=(0, 0, args_axes))
@@ -535,8 +551,8 @@ def adaptive_rk_solve(
     def loop(flat0, t0, seg0, ts, targets, dt0, args):
         Bk = flat0.shape[0]
         step = _make_body(
-            F, R, args, method, ctrl, norm, dt0, targets, ts, (max_steps, max_steps_per_segment),
-            kind, Bk, solver,
+            F, F_stage, R, args, method, ctrl, norm, dt0, targets, ts,
+            (max_steps, max_steps_per_segment), kind, Bk, solver,
         )
         return eqxi.while_loop(
             lambda c: jnp.any(c.status == _RUNNING),
@@ -685,7 +701,9 @@ def _initial_carry(y0, t0, seg0, ts, B, dtype):
     )
 
 
-def _make_body(F, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, kind, B, solver):
+def _make_body(
+    F, F_stage, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, kind, B, solver
+):
     a, b, be, c, fsal = method.a, method.b, method.b_error, method.c, method.fsal
     s = len(b)
     first = 1 if fsal else 0
@@ -715,7 +733,7 @@ def _make_body(F, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, ki
                 ti = jnp.where(init, tprev + h0, ti)
                 probe = tmap(lambda u, g, h=h0: u + _scale_member(h, g), y, g0)
                 yi = _where(init, probe, yi)
-            fi = F(ti, yi, args)
+            fi = F_stage(ti, yi, args)
             if i == first:
                 g0 = fi
                 h0, d1 = _probe_step(y, g0, scale_of(y), norm_b)
@@ -741,9 +759,12 @@ def _make_body(F, R, args, method, ctrl, norm_b, dt0, targets, ts, max_steps, ki
         nt1 = _clip_to_end(nt0, nt0 + dt_next, end, _pick(targets.floor, cr.seg), keep)
         limit = jnp.where(arrive, value - targets.tol, tnext)
         ys, save_idx = _save(cr, acc, limit, tprev, tnext, y, y1, ks, ts, rows, S, solver, kind)
+        # (members that do not arrive reset their own state, finite, not a rejected candidate: the
+        # result is dropped either way, but a candidate outside the reset's domain would make its
+        # partial derivatives, times the zero cotangent, NaN)
         y_arr = _arrival(
-            _pick(targets.motion, cr.seg), value, do_reset, arrive, y1, fs[-1] if fsal else None,
-            args, F=F, R=R,
+            _pick(targets.motion, cr.seg), value, do_reset, arrive, _where(arrive, y1, y),
+            fs[-1] if fsal else None, args, F=F, R=R,
         )
         y_new = _where(arrive, y_arr, _where(acc, y1, y))
         f0_new = fs[-1] if fsal else cr.f0

@@ -33,7 +33,7 @@ import numpy as np
 
 from . import _diffrax, _segments, _system
 from ._schedule import Schedule
-from ._status import COLLAPSE_ULPS, SOLVER_FAILED, SUCCESS, finite_gradient_call, frozen, is_finite, ulp
+from ._status import COLLAPSE_ULPS, SOLVER_FAILED, SUCCESS, finite_gradient, frozen, is_finite, ulp
 
 tmap = jax.tree_util.tree_map
 
@@ -163,20 +163,6 @@ def _drift(t, y, a):
     return per_member(args_b, lambda ai, xx, zz: _system.drift(t, (xx, zz), ai))(x, z)
 
 
-def _finite_gradient(fn, *args):
-    """``fn(*args)``, whose reverse-mode derivative is zero when its floating inputs or its output are not
-    finite (under ``vmap``: per member).  Non-floating arrays travel as a second argument (float0
-    cotangents), everything else is closed over (closed-over tracers: see
-    :func:`_status.finite_gradient_call`)."""
-    diff, rest = eqx.partition(args, eqx.is_inexact_array)
-    arrs, static = eqx.partition(rest, eqx.is_array)
-
-    def run(d, a):
-        return fn(*eqx.combine(d, a, static))
-
-    return finite_gradient_call(run, diff, arrs, inputs_too=True)
-
-
 def _drift_finite_gradient(t, y, a):
     """:func:`_drift` whose reverse-mode derivative leaves out the members whose state or vector field is
     not finite.  Such a member's result is replaced afterwards (:func:`_isolate`) and its cotangent is zero,
@@ -187,7 +173,7 @@ def _drift_finite_gradient(t, y, a):
     x, z = y
 
     def one(ai, xx, zz):
-        return _finite_gradient(lambda tt, aa, x_, z_: _system.drift(tt, (x_, z_), aa), t, ai, xx, zz)
+        return finite_gradient(lambda tt, aa, x_, z_: _system.drift(tt, (x_, z_), aa), t, ai, xx, zz)
 
     return per_member(args_b, one)(x, z)
 

@@ -32,8 +32,9 @@ Gradients.  :class:`GuardedController` stops the gradient of the proposed step s
 with the start of the solve (and of each segment) but does not depend on the state, so the derivative is
 that of a fixed grid, the consistent discretisation of the true sensitivity (the solution's derivative does
 not depend on the step choice).  A rejected step whose stages left the domain of the vector field would still
-poison reverse-mode derivatives (its cotangent is zero, its partial derivatives NaN); ``_diffrax.py`` gives
-such steps a zero gradient.
+poison reverse-mode derivatives (its cotangent is zero, its partial derivatives NaN); every adaptive back-end
+gives such steps a zero gradient (:func:`finite_gradient_call`: the step in ``_diffrax.py``, the members' vector
+field in ``_lockstep.py``, the stages in ``_adaptive_rk.py``).
 """
 
 from __future__ import annotations
@@ -110,6 +111,21 @@ def finite_gradient_call(run, d, a, *, inputs_too: bool = False):
     call.defvjp(fwd, bwd)
     pick = lambda k: [c for c, kk in zip(consts, kind) if kk == k]  # noqa: E731
     return call(d, a, pick(1), pick(2))
+
+
+def finite_gradient(fn, *args):
+    """``fn(*args)``, whose reverse-mode derivative is zero when its floating inputs or its output are not
+    finite (under ``vmap``: per member): a stage of a Runge–Kutta step evaluated outside the domain of the
+    vector field.  Non-floating arrays travel as a second argument (float0 cotangents), everything else is
+    closed over (closed-over tracers: see :func:`finite_gradient_call`).  A ``custom_vjp``: reverse mode
+    only."""
+    diff, rest = eqx.partition(args, eqx.is_inexact_array)
+    arrs, static = eqx.partition(rest, eqx.is_array)
+
+    def run(d, a):
+        return fn(*eqx.combine(d, a, static))
+
+    return finite_gradient_call(run, diff, arrs, inputs_too=True)
 
 
 def is_floating(v) -> bool:
