@@ -75,8 +75,11 @@ through equinox's checkpointed while loop with ``checkpoints`` checkpoints, as d
 carry no derivative (``stop_gradient``); the solution's derivative is that of the discrete scheme on
 the chosen steps.  A step rejected because its stages left the domain of the vector field (NaN
 stages across an undeclared switch) contributes nothing to the derivative: in reverse mode each such
-stage's derivative is zero (:func:`_status.finite_gradient`), and the reset is applied to the
-candidate of an arriving member only; in forward mode the rejection's select drops its tangent.
+stage's derivative is zero (:func:`_status.finite_gradient`), the reset is applied to the candidate
+of an arriving member only and the dense interpolant to those of members with something to save; in
+forward mode the rejection's select drops its tangent.  (Such a switch, if it is one in t, still
+needs declaring for the derivative in t0: the times of every step move with t0, and a switch the
+loop does not know of would move with them.)
 
 **Contract for a back-end** (how ``simulate``/``simulate_batch``/``monte_carlo`` drive it): ``y`` is
 the joint plant–observer state ``(x, z)`` with a leading batch axis; ``vector_field`` is the
@@ -533,14 +536,20 @@ def adaptive_rk_solve(
         return ravel(vector_field(t, unravel(u), a))
 
     F = jax.vmap(field, in_axes=(0, 0, args_axes))
-    # The stages of a step.  In reverse mode a stage that left the domain of the vector field (a rejected
-    # step across an undeclared switch) gets a zero derivative, member by member: its cotangent is zero but
-    # its partial derivatives are NaN, and 0 × NaN made the whole batch's gradient NaN.  (A custom_vjp, so
-    # the forward-mode loops keep the plain field; there a where() already drops the rejected tangents.)
-    F_stage = F
+    # A stage of a step: (f, h·f).  In reverse mode a stage that left the domain of the vector field (a
+    # rejected step across an undeclared switch) gets a zero derivative, member by member: its cotangent is
+    # zero but its partial derivatives are NaN, and 0 × NaN made the whole batch's gradient NaN (with the
+    # product h·f inside, so that the step length, which carries t0's derivative, is spared too).  (A
+    # custom_vjp, so the forward-mode loops keep the plain field; there a where() drops the rejected
+    # tangents.)
+    def stage(h, t, u, a):
+        f = field(t, u, a)
+        return f, h * f
+
+    F_stage = jax.vmap(stage, in_axes=(0, 0, 0, args_axes))
     if kind == "checkpointed":
         F_stage = jax.vmap(
-            lambda t, u, a: finite_gradient(field, t, u, a), in_axes=(0, 0, args_axes)
+            lambda h, t, u, a: finite_gradient(stage, h, t, u, a), in_axes=(0, 0, 0, args_axes)
         )
     R = None
     if reset is not None:
@@ -733,12 +742,12 @@ def _make_body(
                 ti = jnp.where(init, tprev + h0, ti)
                 probe = tmap(lambda u, g, h=h0: u + _scale_member(h, g), y, g0)
                 yi = _where(init, probe, yi)
-            fi = F_stage(ti, yi, args)
+            fi, ki = F_stage(dt, ti, yi, args)
             if i == first:
                 g0 = fi
                 h0, d1 = _probe_step(y, g0, scale_of(y), norm_b)
             fs.append(fi)
-            ks.append(tmap(lambda v: _scale_member(dt, v), fi))
+            ks.append(ki)
         h_init = _initial_step(
             init, y, g0, fs[first + 1], h0, d1, dt0, scale_of, norm_b, method, ctrl
         )
@@ -973,6 +982,9 @@ def _save(cr, acc, limit, tprev, tnext, y, y1, ks, ts, rows, S, solver, kind):
         w = jax.vmap(lambda a_, b_, t_: _interpolation_weights(solver, len(ks), a_, b_, t_))(
             tprev, tnext, s_
         )
+        # (members with nothing to save: weights 0, so that the derivative in the save times and the
+        # step's ends does not meet a rejected step's NaN stages)
+        w = jnp.where(pend[:, None], w, jnp.zeros_like(w))
         val = _axpy_member(w, [y, y1, *ks])
         col = jnp.where(pend, idx, S)  # column S: a scratch column, discarded
         ys = tmap(
