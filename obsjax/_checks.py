@@ -21,12 +21,15 @@ def as_float_array(x, name: str) -> jax.Array:
 
     Integers and narrower floats (float16, float32) become the default float (float64 under x64, which
     importing obsjax turns on), so a float32 input never meets a float64 state inside a solve; complex input is
-    returned as is (callers that need real values use :func:`real_array`).
+    returned as is (callers that need real values use :func:`real_array`); booleans are refused.
     """
     try:
         arr = jnp.asarray(x)
     except Exception as e:  # noqa: BLE001
         raise ValueError(f"`{name}` must be array-like, got {type(x).__name__}: {e}") from None
+    if arr.dtype == jnp.bool_:
+        # a mask passed where numbers belong (True/False read as 1/0 gave a result without a word)
+        raise ValueError(f"`{name}` must hold numbers, got booleans (dtype bool) of shape {tuple(arr.shape)}.")
     if jnp.issubdtype(arr.dtype, jnp.complexfloating):
         return arr
     default = jnp.result_type(float)

@@ -253,6 +253,21 @@ def test_lti_bad_shapes():
         obsjax.LTI(A28, B28, np.ones(2))
 
 
+def test_booleans_are_refused_where_numbers_belong():
+    """A mask passed as save times, a state, a matrix or measurements was read as 1/0 without a word."""
+    obs = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0])
+    with pytest.raises(ValueError, match="`ts` must hold numbers, got booleans"):
+        obsjax.simulate(PLANT, obs, jnp.ones(2), jnp.zeros(2), np.array([False, True]))
+    with pytest.raises(ValueError, match="`x0` must hold numbers, got booleans"):
+        obsjax.simulate(PLANT, obs, np.array([True, False]), jnp.zeros(2), TS)
+    with pytest.raises(ValueError, match="`xhat0s` must hold numbers, got booleans"):
+        obsjax.simulate_batch(PLANT, obs, jnp.ones((2, 2)), np.zeros((2, 2), bool), TS)
+    with pytest.raises(ValueError, match="`A` must hold numbers, got booleans"):
+        obsjax.LTI(np.eye(2, dtype=bool), B28, C28)
+    with pytest.raises(ValueError, match="`y` must hold numbers, got booleans"):
+        obsjax.Measurements(np.arange(3.0), np.array([True, False, True]))
+
+
 def test_simulate_bad_inputs():
     obs = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0])
     with pytest.raises(ValueError, match="`x0` must have shape"):
