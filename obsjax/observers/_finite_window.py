@@ -144,6 +144,33 @@ def _general_rows(A, B, C, T, gamma):
     return W, c
 
 
+_CLOCK_ULPS = 16.0  # rounding of sample times on a clock: this many ulp of the largest |t|
+_EPS = float(np.finfo(np.float64).eps)
+
+
+def _concrete_grid(ts):
+    """The sample times as a float64 NumPy array when they are constants (read before any conversion:
+    ``jnp.asarray`` of a NumPy grid inside ``jit`` is traced, which made ``rule="auto"`` fall back to the
+    trapezoid there), else ``None``."""
+    if isinstance(ts, jax.core.Tracer):
+        v = concrete_value(ts)
+    else:
+        try:
+            v = np.asarray(ts)
+        except Exception:  # noqa: BLE001  (refused by name by the checks that follow)
+            return None
+    if v is None or v.dtype == bool or not np.issubdtype(v.dtype, np.number) or np.iscomplexobj(v):
+        return None
+    return np.atleast_1d(np.asarray(v, np.float64))
+
+
+def _uniform(tsc: np.ndarray) -> bool:
+    """Whether concrete sample times are equally spaced, to 1e-9 of the step plus the rounding of the times
+    themselves (16 ulp of the largest |t|: a grid on a clock at t = 1e6 carries 1e-10 per step)."""
+    dt = np.diff(tsc)
+    return bool(np.allclose(dt, dt[0], rtol=1e-9, atol=_CLOCK_ULPS * _EPS * np.max(np.abs(tsc))))
+
+
 def _uniform_R(A, B, C, T):
     """(28): W of (27) and R = e^{AT} [∫₀ᵀ Φ¹¹(τ)ᵀ Cᵀ C e^{Aτ} dτ]⁻¹."""
     n = A.shape[0]
@@ -373,6 +400,7 @@ class FiniteWindow(AbstractObserver):
         """
         A = self.model.A
         m, p = self.model.m, self.model.p
+        tsc = _concrete_grid(ts)
         ts = vector(ts, "ts", None)
         K = ts.shape[0]
         if K < 2:
@@ -391,7 +419,7 @@ class FiniteWindow(AbstractObserver):
             )
         if rule not in ("auto", "simpson", "trapezoid"):
             raise ValueError(f"`rule` must be 'auto', 'simpson' or 'trapezoid', got {rule!r}.")
-        tsc, Tc = concrete_value(ts), concrete_value(self.T)
+        Tc = concrete_value(self.T)
         uniform = None
         if tsc is not None:
             dt = np.diff(tsc)
@@ -402,7 +430,7 @@ class FiniteWindow(AbstractObserver):
                     f"`ts` must span the window [t − T, t]: ts[-1] − ts[0] = {tsc[-1] - tsc[0]!r}, "
                     f"T = {float(Tc)!r}."
                 )
-            uniform = np.allclose(dt, dt[0], rtol=1e-9, atol=0.0)
+            uniform = _uniform(tsc)
         if rule == "auto":
             rule = "simpson" if (uniform and K % 2 == 1) else "trapezoid"
         if rule == "simpson":
@@ -425,7 +453,7 @@ class FiniteWindow(AbstractObserver):
             ts = eqx.error_if(ts, ~jnp.all(d > 0), "FiniteWindow.estimate_window: `ts` must be strictly increasing.")
             if rule == "simpson":
                 ts = eqx.error_if(
-                    ts, jnp.any(jnp.abs(d - d[0]) > 1e-9 * jnp.abs(d[0])),
+                    ts, jnp.any(jnp.abs(d - d[0]) > 1e-9 * jnp.abs(d[0]) + _CLOCK_ULPS * _EPS * jnp.max(jnp.abs(ts))),
                     "FiniteWindow.estimate_window: Simpson's rule needs a uniform grid `ts`; use rule='trapezoid'.",
                 )
         G1, G2 = self.kernels(ts - ts[0])
@@ -940,6 +968,7 @@ class FiniteWindowLTV(eqx.Module):
 
         **Returns:** the estimate, shape (N,) (N = n, or n + q with a parameter map).
         """
+        tsc = _concrete_grid(ts)
         ts = vector(ts, "ts", None)
         K = ts.shape[0]
         m = int(self.model.C_of(jnp.asarray(0.0)).shape[0])
@@ -954,7 +983,7 @@ class FiniteWindowLTV(eqx.Module):
             raise ValueError(f"`us` must have shape ({K}, {p}), got {tuple(us.shape)}.")
         if rule not in ("auto", "simpson", "trapezoid"):
             raise ValueError(f"`rule` must be 'auto', 'simpson' or 'trapezoid', got {rule!r}.")
-        tsc, t0, t1 = concrete_value(ts), concrete_value(self.t0), concrete_value(self.t1)
+        t0, t1 = concrete_value(self.t0), concrete_value(self.t1)
         uniform = None
         if tsc is not None:
             dt = np.diff(tsc)
@@ -967,7 +996,7 @@ class FiniteWindowLTV(eqx.Module):
                         f"`ts` must run from t0 = {float(t0)} to t1 = {float(t1)}, got "
                         f"[{tsc[0]}, {tsc[-1]}]."
                     )
-            uniform = bool(np.allclose(dt, dt[0], rtol=1e-9, atol=0.0))
+            uniform = bool(_uniform(tsc))
         if rule == "auto":
             rule = "simpson" if (uniform and K % 2 == 1) else "trapezoid"
         if rule == "simpson" and (K % 2 == 0 or uniform is False):
@@ -983,7 +1012,7 @@ class FiniteWindowLTV(eqx.Module):
             )
             if rule == "simpson":
                 ts = eqx.error_if(
-                    ts, jnp.any(jnp.abs(d - d[0]) > 1e-9 * jnp.abs(d[0])),
+                    ts, jnp.any(jnp.abs(d - d[0]) > 1e-9 * jnp.abs(d[0]) + _CLOCK_ULPS * _EPS * jnp.max(jnp.abs(ts))),
                     "FiniteWindowLTV.estimate_window: Simpson's rule needs a uniform grid `ts`.",
                 )
         G1, G2 = self.kernels(ts)
