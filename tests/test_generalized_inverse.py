@@ -371,6 +371,17 @@ def test_full_solvability_failure():
         obsjax.GeneralizedInverse(plant, F_full, lambda t: jnp.eye(4), horizon=(0.0, 1.0))
 
 
+def test_unstable_F_is_refused_by_both_observers():
+    """An F with an eigenvalue in the right half-plane was accepted (the reduced observer then reported
+    status 0 while its error grew from 1 to 3e3); GeneralizedInverseODE refused it already."""
+    plant = LTV(A_ex, lambda t: C_full, lambda t: B_ex)
+    F_bad = jnp.diag(jnp.array([2.0, -4.0, -5.0, -6.0]))
+    with pytest.raises(ValueError, match=r"`F` must have its eigenvalues in the open left half-plane"):
+        obsjax.GeneralizedInverse(plant, F_bad, lambda t: jnp.eye(4))
+    with pytest.raises(ValueError, match=r"`F` must have its eigenvalues in the open left half-plane"):
+        obsjax.GeneralizedInverseReduced(reduced_plant(), jnp.diag(jnp.array([-5.0, 0.0])), lambda t: jnp.eye(2))
+
+
 def test_bad_horizon():
     plant = LTV(A_ex, lambda t: C_full, lambda t: B_ex)
     T = lovass_nagy_T(A_ex, C_full, F_full, S_full)

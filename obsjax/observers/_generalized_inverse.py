@@ -141,6 +141,19 @@ def _guard_traced(obs, what):
     )
 
 
+def _require_stable_F(F, law):
+    """``ValueError`` when a concrete F has an eigenvalue with Re λ ≥ 0: the observer error `law` must decay
+    (an unstable F was accepted, and the simulation reported success while the error grew from 1 to 3e3).
+    A traced F (built under ``jit``) is not checked: the eigenvalues of a nonsymmetric matrix are
+    not computed there; the trajectory's error shows it."""
+    Fc = concrete_value(F)
+    if Fc is not None and not np.all(np.linalg.eigvals(Fc).real < 0):
+        raise ValueError(
+            f"`F` must have its eigenvalues in the open left half-plane ({law} must decay), got "
+            f"{np.round(np.linalg.eigvals(Fc), 6).tolist()}."
+        )
+
+
 class GeneralizedInverse(AbstractObserver):
     """Lovass-Nagy full-state LTV observer (slides, (2), (6)-(9), procedure steps 1-6).
 
@@ -152,7 +165,8 @@ class GeneralizedInverse(AbstractObserver):
     **Arguments:**
 
     - `model`: the observer's plant model (``obsjax.LTV`` or ``obsjax.LTI``: ``A_of``, ``B_of``, ``C_of``).
-    - `F`: (n, n) constant observer matrix with the desired eigenvalues (a leaf).
+    - `F`: (n, n) constant observer matrix with the desired eigenvalues, in the open left half-plane (a
+      leaf).
     - `T`: callable t -> (n, n), differentiable (e.g. from :func:`obsjax.design.lovass_nagy_T`).
     - `C1`: optional constant (n, m) {1}-inverse of C (Moore–Penrose of C(t) when ``None``).
     - `horizon`: optional (t0, t1): the condition and det T ≠ 0 are checked on `num_checks` points of
@@ -193,6 +207,7 @@ class GeneralizedInverse(AbstractObserver):
         self.T = T
         self.C1 = None if C1 is None else require_finite(matrix(C1, "C1", (n, m)), "C1")
         require_finite(self.F, "F")
+        _require_stable_F(self.F, "z − T x = e^{Ft}(z0 − T0 x0)")
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
@@ -296,7 +311,7 @@ class GeneralizedInverseReduced(AbstractObserver):
     **Arguments:**
 
     - `model`: plant model with C = [I_m, 0] (``obsjax.LTV`` or ``obsjax.LTI``).
-    - `F`: (n−m, n−m) constant observer matrix (a leaf).
+    - `F`: (n−m, n−m) constant observer matrix, eigenvalues in the open left half-plane (a leaf).
     - `T`: callable t -> (n−m, n−m), twice differentiable (see :func:`obsjax.design.lovass_nagy_T`).
     - `C1`: optional constant (n−m, m) {1}-inverse of A12; the Moore–Penrose inverse of A12(t) if None.
     - `horizon`, `num_checks`, `rtol`, `rcond_min`: as in :class:`GeneralizedInverse`.
@@ -348,6 +363,7 @@ class GeneralizedInverseReduced(AbstractObserver):
         self.T = T
         self.C1 = None if C1 is None else require_finite(matrix(C1, "C1", (q, m)), "C1")
         require_finite(self.F, "F")
+        _require_stable_F(self.F, "z − T w = e^{Ft}(z0 − T0 w0)")
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rtol = float(rtol)
@@ -512,12 +528,7 @@ class GeneralizedInverseODE(AbstractObserver):
         self.horizon = None if horizon is None else (float(horizon[0]), float(horizon[1]))
         self.num_checks = int(num_checks)
         self.rcond_min = float(rcond_min)
-        Fc = concrete_value(self.F)
-        if Fc is not None and not np.all(np.linalg.eigvals(Fc).real < 0):
-            raise ValueError(
-                f"`F` must have its eigenvalues in the open left half-plane (z − T x = e^{{Ft}}(z0 − T0 x0) "
-                f"must decay), got {np.round(np.linalg.eigvals(Fc), 6).tolist()}."
-            )
+        _require_stable_F(self.F, "z − T x = e^{Ft}(z0 − T0 x0)")
         self.check()
 
     def G_of(self, t):
