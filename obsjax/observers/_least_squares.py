@@ -234,7 +234,8 @@ class LeastSquaresReset(AbstractObserver):
     happens; keep T off the save grid when tuning it.  On recorded data (:func:`obsjax.estimate`)
     the samples are the save times and the same holds at a reset on a sample instant (the derivative
     from the left; :func:`obsjax.tune_on_data` warns, for every experiment of a batch).  At t1 itself
-    a reset is not applied, so there the derivative is the one from the right.
+    a reset is not applied, so there the derivative is the one from the right; a loss with kinks both
+    inside the horizon and at t1 gets a mix of the two sides, neither one-sided derivative of J.
 
     **Example:** Fig. 1 of the paper::
 
