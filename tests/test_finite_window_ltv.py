@@ -256,6 +256,8 @@ def test_norm_gradient_wrt_window_and_weights():
 def test_bad_inputs():
     with pytest.raises(ValueError, match="`t1` must be > `t0`"):
         obsjax.FiniteWindowLTV(PLANT3, 1.0, 1.0)
+    with pytest.raises(ValueError, match="`t1` must be a finite time, got inf"):  # was an error from the solve
+        obsjax.FiniteWindowLTV(PLANT3, 0.0, np.inf)
     with pytest.raises(ValueError, match="`alpha`"):
         obsjax.FiniteWindowLTV(PLANT3, 0.0, 1.0, alpha=[1.0, -1.0, 1.0])
     with pytest.raises(ValueError, match=r"`E\(t\)` must return a \(3, q\) matrix"):

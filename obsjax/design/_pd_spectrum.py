@@ -151,7 +151,7 @@ def check_rho_bar(
         if not np.all(np.isfinite(c)):
             raise ValueError(f"`{name}` must be finite (no NaN or inf), got {c.tolist()}.")
         if negative and not np.all(c < 0):
-            raise ValueError(f"`{name}` must be < 0 for a stable observer, got {c.tolist()}.")
+            raise ValueError(f"`{name}` must be < 0 (a stable PD-spectrum ρ̄ ω(t) of the observer or controller), got {c.tolist()}.")
         if distinct and bool(rho_bar_too_close(np.asarray(c, dtype=float))):
             raise ValueError(
                 f"`{name}` must hold distinct values, at least {RHO_BAR_MIN_GAP:g}·max|ρ̄| apart (the "
@@ -162,7 +162,7 @@ def check_rho_bar(
     # traced (jit, vmap, a tuned leaf): the same value checks at run time
     r = eqx.error_if(r, ~jnp.all(jnp.isfinite(r)), f"`{name}` must be finite (no NaN or inf).")
     if negative:
-        r = eqx.error_if(r, jnp.any(~(r < 0)), f"`{name}` must be < 0 for a stable observer.")
+        r = eqx.error_if(r, jnp.any(~(r < 0)), f"`{name}` must be < 0 (a stable PD-spectrum ρ̄ ω(t) of the observer or controller).")
     if distinct:
         r = eqx.error_if(
             r,

@@ -820,6 +820,9 @@ class FiniteWindowLTV(eqx.Module):
     def check(self) -> FiniteWindowLTV:
         """Re-validate t1 > t0, α > 0, β ≥ 0."""
         t0, t1, a, b = (concrete_value(v) for v in (self.t0, self.t1, self.alpha, self.beta))
+        for v, name in ((t0, "t0"), (t1, "t1")):
+            if v is not None and not np.isfinite(v):
+                raise ValueError(f"`{name}` must be a finite time, got {float(v)}.")
         if t0 is not None and t1 is not None and not t1 > t0:
             raise ValueError(f"`t1` must be > `t0` (a window), got t0 = {float(t0)}, t1 = {float(t1)}.")
         if a is not None and not np.all(a > 0):
