@@ -190,6 +190,7 @@ def simulate(
     xhat0 = _validate.check_state(xhat0, "xhat0", "(n̂,) (a vector)", 1)
     dt0 = _validate.check_options(rtol, atol, dt0, adaptive, max_steps, noise)
     observer = observer.prepare()
+    observer = _validate.check_span(observer, ts_np)
     _validate.check_dimensions(plant, observer, x0, xhat0, ts[0], u, controller, noise)
     plan = _validate.plan(
         plant, observer, ts, ts_np, noise=noise, key=key, solver=solver, rtol=rtol, atol=atol, dt0=dt0,

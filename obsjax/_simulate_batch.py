@@ -185,6 +185,7 @@ def _simulate_members(plant, observer, x0s, xhat0s, ts, keys, *, lockstep, plant
     ts = _validate.check_ts(ts)
     dt0 = _validate.check_options(rtol, atol, dt0, adaptive, max_steps, noise)
     observer = observer.prepare()
+    observer = _validate.check_span(observer, ts_np)
     _validate.check_dimensions(plant0, observer, x0s[0], xhat0s[0], ts[0], u, controller, noise)
     plan = _validate.plan(
         plant0, observer, ts, ts_np, noise=noise, key=None, solver=solver, rtol=rtol, atol=atol, dt0=dt0,

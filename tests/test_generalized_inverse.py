@@ -382,6 +382,31 @@ def test_unstable_F_is_refused_by_both_observers():
         obsjax.GeneralizedInverseReduced(reduced_plant(), jnp.diag(jnp.array([-5.0, 0.0])), lambda t: jnp.eye(2))
 
 
+def test_a_T_singular_inside_the_simulated_span_is_refused_without_a_horizon():
+    """With ``horizon=None`` only t = 0 was checked: a T(t) whose determinant changes sign near t = 0.79
+    (a design of the slides' procedure on a 4-state, 2-output plant) simulated over [0, 3] gave status 0
+    and an estimate error of 4.4 for an initial error of 1.3.  Each simulation now checks its span."""
+    def A4(t):
+        return jnp.array([[0.0, 1.0, 0.0, 0.0], [-1.0 - 0.3 * jnp.sin(t), -0.2, 0.5, 0.0],
+                          [0.0, 0.0, 0.0, 1.0], [0.4, 0.0, -2.0, -0.1 - 0.1 * jnp.cos(t)]])  # fmt: skip
+
+    C4 = jnp.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    F4 = jnp.diag(jnp.array([-2.0, -3.0, -4.0, -5.0]))
+    T4 = lovass_nagy_T(A4, C4, F4, lambda t: jnp.array([[1.0, 0.0], [0.2 * jnp.sin(t), 0.0], [0.0, 1.0], [0.0, 0.1 * jnp.cos(t)]]))
+    plant = LTV(A4, lambda t: C4)
+    obs = obsjax.GeneralizedInverse(plant, F4, T4)  # t = 0 is fine
+    x0 = jnp.array([0.5, -1.0, 0.2, 0.7])
+    short = obsjax.simulate(plant, obs, x0, jnp.zeros(4), jnp.linspace(0.0, 0.5, 6))
+    assert int(short.status) == 0
+    ts = np.linspace(0.0, 3.0, 31)
+    with pytest.raises(ValueError, match=r"simulated span.*det T changes sign between t = 0\.78"):
+        obsjax.simulate(plant, obs, x0, jnp.zeros(4), ts)
+    with pytest.raises(Exception, match=r"simulated span.*`T` must be invertible"):  # under jit: eqx.error_if
+        jax.jit(lambda x: obsjax.simulate(plant, obs, x, jnp.zeros(4), ts))(x0)
+    with pytest.raises(ValueError, match=r"simulated span.*det T changes sign"):
+        obsjax.simulate_batch(plant, obs, jnp.stack([x0, -x0]), jnp.zeros((2, 4)), np.linspace(0.0, 3.0, 31))
+
+
 def test_bad_horizon():
     plant = LTV(A_ex, lambda t: C_full, lambda t: B_ex)
     T = lovass_nagy_T(A_ex, C_full, F_full, S_full)

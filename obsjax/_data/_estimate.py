@@ -14,7 +14,7 @@ from .._checks import concrete_value, real_array
 from .._config import require_x64
 from .._integrate import _diffrax, _schedule, _segments
 from .._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, code_of, is_finite
-from .._integrate._validate import check_options, concrete_times, plain_int
+from .._integrate._validate import check_options, check_span, concrete_times, plain_int
 from ..montecarlo._fingerprint import content_key
 from ..observers._base import AbstractObserver
 from ._measurements import Measurements, hermite_coefficients
@@ -213,6 +213,7 @@ def _estimate_one(observer, data, xhat0, *, ts, solver, rtol, atol, dt0, adaptiv
     dt0 = check_options(rtol, atol, dt0, adaptive, max_steps, None)
     save_ts, ts_np, at_samples = _check_save_times(ts, data)
     observer = observer.prepare()
+    observer = check_span(observer, ts_np)
     _check_dimensions(observer, data, xhat0)
     if solver is not None and not isinstance(solver, diffrax.AbstractSolver):
         raise ValueError(f"`solver` must be a diffrax solver, got {type(solver).__name__}.")

@@ -99,6 +99,15 @@ class AbstractObserver(eqx.Module):
         """Precompute gains from design parameters (once per simulation)."""
         return self
 
+    def check_span(self, t0: float, t1: float) -> "AbstractObserver":
+        """Validate the observer on the span [t0, t1] of one simulation (called by :func:`obsjax.simulate`,
+        :func:`obsjax.simulate_batch` and :func:`obsjax.estimate` after :meth:`prepare`, when the save
+        times are concrete), returning the observer to simulate.  Nothing by default; observers whose
+        validity depends on time (the Lovass-Nagy observers' T(t), invertible and solving their
+        condition) raise ``ValueError`` there, or return themselves guarded by ``eqx.error_if`` when
+        their values are traced."""
+        return self
+
     def check(self) -> "AbstractObserver":
         """Re-validate invariants (``tune`` calls it after updating leaves with ``eqx.tree_at``)."""
         return self

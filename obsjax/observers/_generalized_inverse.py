@@ -116,11 +116,13 @@ def _check_over(obs, ts, what):
     return True
 
 
-def _guard_traced(obs, what):
+def _guard_traced(obs, what, ts=None):
     """`obs.F` guarded by ``eqx.error_if`` (survives jit): the solvability condition and the
-    invertibility of T on the check grid (the horizon's, or t = 0), the same scale-invariant tests as
-    :func:`_check_over` applies to concrete values eagerly."""
-    ts = jnp.asarray([0.0] if obs.horizon is None else _time_grid(obs.horizon, obs.num_checks))
+    invertibility of T on the check grid (`ts`, else the horizon's, or t = 0), the same scale-invariant
+    tests as :func:`_check_over` applies to concrete values eagerly."""
+    if ts is None:
+        ts = [0.0] if obs.horizon is None else _time_grid(obs.horizon, obs.num_checks)
+    ts = jnp.asarray(ts)
     res, scale, _det, rcond, sign = jax.vmap(lambda t: _checks_at(obs, t))(ts)
     rel = _relative(res, scale, jnp)
     F = eqx.error_if(
@@ -170,8 +172,10 @@ class GeneralizedInverse(AbstractObserver):
     - `T`: callable t -> (n, n), differentiable (e.g. from :func:`obsjax.design.lovass_nagy_T`).
     - `C1`: optional constant (n, m) {1}-inverse of C (Moore–Penrose of C(t) when ``None``).
     - `horizon`: optional (t0, t1): the condition and det T ≠ 0 are checked on `num_checks` points of
-      it at construction (and by :meth:`check`); with ``None`` only t = 0 is checked.  Use
-      :meth:`check_horizon` for another horizon.
+      it at construction (and by :meth:`check`); with ``None`` only t = 0 is checked there.  Use
+      :meth:`check_horizon` for another horizon.  Each simulation (:func:`obsjax.simulate`,
+      ``simulate_batch``, ``estimate``) checks its span of save times the same way where the
+      horizon does not cover it (:meth:`check_span`).
     - `rtol`: relative tolerance on the solvability residual: ‖(Ṫ + TA − FT)(I − C^{1}C)‖ ≤
       rtol·(‖Ṫ‖ + ‖TA‖ + ‖FT‖), the same verdict in any time unit and any units of z (T → sT).
     - `rcond_min`: smallest admissible σ_min(T)/σ_max(T) on the check grid (T invertible, a
@@ -244,6 +248,20 @@ class GeneralizedInverse(AbstractObserver):
         """Raise ValueError if the condition or det T ≠ 0 fails somewhere on [t0, t1]."""
         _check_over(self, _time_grid((t0, t1), num), "GeneralizedInverse")
         return self
+
+    def check_span(self, t0, t1):
+        """The checks of :meth:`check_horizon` on a simulated span not inside `horizon`, on
+        `num_checks` points (with ``horizon=None`` only t = 0 was checked at construction: a T(t)
+        singular later in the simulation gave a wrong estimate with status 0).  ``ValueError`` when
+        the values are concrete; under ``jit`` the same tests by ``eqx.error_if``."""
+        h = self.horizon
+        if h is not None and h[0] <= t0 and t1 <= h[1]:
+            return self
+        what = "GeneralizedInverse (on the simulated span)"
+        grid = _time_grid((t0, t1), self.num_checks)
+        if _check_over(self, grid, what):
+            return self
+        return eqx.tree_at(lambda o: o.F, self, _guard_traced(self, what, grid))
 
     def check(self):
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
@@ -413,6 +431,20 @@ class GeneralizedInverseReduced(AbstractObserver):
         """Raise ValueError if the condition or det T ≠ 0 fails somewhere on [t0, t1]."""
         _check_over(self, _time_grid((t0, t1), num), "GeneralizedInverseReduced")
         return self
+
+    def check_span(self, t0, t1):
+        """The checks of :meth:`check_horizon` on a simulated span not inside `horizon`, on
+        `num_checks` points (with ``horizon=None`` only t = 0 was checked at construction: a T(t)
+        singular later in the simulation gave a wrong estimate with status 0).  ``ValueError`` when
+        the values are concrete; under ``jit`` the same tests by ``eqx.error_if``."""
+        h = self.horizon
+        if h is not None and h[0] <= t0 and t1 <= h[1]:
+            return self
+        what = "GeneralizedInverseReduced (on the simulated span)"
+        grid = _time_grid((t0, t1), self.num_checks)
+        if _check_over(self, grid, what):
+            return self
+        return eqx.tree_at(lambda o: o.F, self, _guard_traced(self, what, grid))
 
     def check(self):
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
