@@ -143,6 +143,21 @@ def _guard_traced(obs, what, ts=None):
     )
 
 
+def _check_span(obs, t0, t1, what):
+    """`obs` after the checks of ``check_horizon`` on a simulated span [t0, t1] that its `horizon` does not
+    cover, on `num_checks` points (with ``horizon=None`` only t = 0 was checked at construction: a T(t)
+    singular later in the simulation gave a wrong estimate with status 0).  ``ValueError`` when the
+    values are concrete; under ``jit`` the same tests by ``eqx.error_if`` on the returned observer."""
+    h = obs.horizon
+    if h is not None and h[0] <= t0 and t1 <= h[1]:
+        return obs
+    what = f"{what} (on the simulated span)"
+    grid = _time_grid((t0, t1), obs.num_checks)
+    if _check_over(obs, grid, what):
+        return obs
+    return eqx.tree_at(lambda o: o.F, obs, _guard_traced(obs, what, grid))
+
+
 def _require_stable_F(F, law):
     """``ValueError`` when a concrete F has an eigenvalue with Re λ ≥ 0: the observer error `law` must decay
     (an unstable F was accepted, and the simulation reported success while the error grew from 1 to 3e3).
@@ -250,18 +265,8 @@ class GeneralizedInverse(AbstractObserver):
         return self
 
     def check_span(self, t0, t1):
-        """The checks of :meth:`check_horizon` on a simulated span not inside `horizon`, on
-        `num_checks` points (with ``horizon=None`` only t = 0 was checked at construction: a T(t)
-        singular later in the simulation gave a wrong estimate with status 0).  ``ValueError`` when
-        the values are concrete; under ``jit`` the same tests by ``eqx.error_if``."""
-        h = self.horizon
-        if h is not None and h[0] <= t0 and t1 <= h[1]:
-            return self
-        what = "GeneralizedInverse (on the simulated span)"
-        grid = _time_grid((t0, t1), self.num_checks)
-        if _check_over(self, grid, what):
-            return self
-        return eqx.tree_at(lambda o: o.F, self, _guard_traced(self, what, grid))
+        """The checks of :meth:`check_horizon` on a simulated span (:func:`_check_span`)."""
+        return _check_span(self, t0, t1, "GeneralizedInverse")
 
     def check(self):
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
@@ -433,18 +438,8 @@ class GeneralizedInverseReduced(AbstractObserver):
         return self
 
     def check_span(self, t0, t1):
-        """The checks of :meth:`check_horizon` on a simulated span not inside `horizon`, on
-        `num_checks` points (with ``horizon=None`` only t = 0 was checked at construction: a T(t)
-        singular later in the simulation gave a wrong estimate with status 0).  ``ValueError`` when
-        the values are concrete; under ``jit`` the same tests by ``eqx.error_if``."""
-        h = self.horizon
-        if h is not None and h[0] <= t0 and t1 <= h[1]:
-            return self
-        what = "GeneralizedInverseReduced (on the simulated span)"
-        grid = _time_grid((t0, t1), self.num_checks)
-        if _check_over(self, grid, what):
-            return self
-        return eqx.tree_at(lambda o: o.F, self, _guard_traced(self, what, grid))
+        """The checks of :meth:`check_horizon` on a simulated span (:func:`_check_span`)."""
+        return _check_span(self, t0, t1, "GeneralizedInverseReduced")
 
     def check(self):
         ts = [0.0] if self.horizon is None else _time_grid(self.horizon, self.num_checks)
