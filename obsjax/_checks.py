@@ -113,10 +113,18 @@ def concrete_value(x):
 
 
 def scalar_value(x):
-    """NumPy value of a Python or NumPy number as given (also under ``jit``, where ``jnp.asarray`` of a
-    constant is traced), else :func:`concrete_value` of it (``None`` when traced)."""
+    """NumPy value of a Python or NumPy number, array or list of numbers as given (also under ``jit``,
+    where ``jnp.asarray`` of a constant is traced), else :func:`concrete_value` of it (``None`` when
+    traced)."""
     if isinstance(x, (bool, int, float, complex, np.generic, np.ndarray)):
         return np.asarray(x)
+    if isinstance(x, (list, tuple)):
+        try:
+            v = np.asarray(x)
+        except Exception:  # noqa: BLE001  (e.g. a list holding tracers)
+            v = None
+        if v is not None and v.dtype != object:
+            return v
     return concrete_value(jnp.asarray(x))
 
 

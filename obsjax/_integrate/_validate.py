@@ -96,10 +96,9 @@ def check_ts(ts):
 def check_span(observer, ts_np):
     """The observer after its own check of the simulated span [ts[0], ts[-1]]
     (:meth:`AbstractObserver.check_span`), when the save times are concrete."""
-    hook = getattr(observer, "check_span", None)
-    if ts_np is not None and hook is not None and len(ts_np):
-        return hook(float(ts_np[0]), float(ts_np[-1]))
-    return observer
+    if ts_np is None or not len(ts_np):
+        return observer
+    return observer.check_span(float(ts_np[0]), float(ts_np[-1]))
 
 
 def check_state(x, name, shape_text, ndim):

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import expm
 
-from .._checks import as_float_array, concrete_value, static_value, vector
+from .._checks import as_float_array, concrete_value, scalar_value, static_value, vector
 from .._config import require_x64
 from ..analysis._lti import gram_relative_residuals, observability_staircase
 from ..systems._plants import LTI
@@ -149,16 +149,13 @@ _EPS = float(np.finfo(np.float64).eps)
 
 
 def _concrete_grid(ts):
-    """The sample times as a float64 NumPy array when they are constants (read before any conversion:
-    ``jnp.asarray`` of a NumPy grid inside ``jit`` is traced, which made ``rule="auto"`` fall back to the
-    trapezoid there), else ``None``."""
-    if isinstance(ts, jax.core.Tracer):
-        v = concrete_value(ts)
-    else:
-        try:
-            v = np.asarray(ts)
-        except Exception:  # noqa: BLE001  (refused by name by the checks that follow)
-            return None
+    """The sample times as a float64 NumPy array when they are constants (:func:`scalar_value`: read before
+    any conversion, since ``jnp.asarray`` of a NumPy grid inside ``jit`` is traced, which made
+    ``rule="auto"`` fall back to the trapezoid there), else ``None``."""
+    try:
+        v = scalar_value(ts)
+    except Exception:  # noqa: BLE001  (refused by name by the checks that follow)
+        return None
     if v is None or v.dtype == bool or not np.issubdtype(v.dtype, np.number) or np.iscomplexobj(v):
         return None
     return np.atleast_1d(np.asarray(v, np.float64))
