@@ -360,6 +360,34 @@ def test_rejected_steps_outside_the_domain_carry_no_gradient():
     np.testing.assert_allclose(np.asarray(d_ts)[away], np.sum(2 * y * ydot, axis=0)[away], rtol=1e-5, atol=1e-12)
 
 
+@pytest.mark.extended
+def test_rejected_steps_outside_the_domain_carry_no_gradient_with_direct_adjoint():
+    """The problem above with ``adjoint=diffrax.DirectAdjoint()`` (a bounded loop that allows both modes):
+    reverse mode was NaN for every member; the stages now mask their tangents where they are not finite
+    (a custom_jvp), so both modes give the closed form."""
+    k = jnp.array([0.5, 0.8, 1.1])
+    ts = jnp.linspace(0.0, 2.0, 9)
+    s, r, c = 1.0, 50.0, 2.0
+
+    def f(t, y, k_):
+        return -k_ * jnp.where(t < s, 1.0, r) * jnp.exp(jnp.log(y))
+
+    def loss(k_):
+        sol = adaptive_rk_solve(
+            f, jnp.ones(3), 0.0, 2.0, args=k_, args_axes=0, ts=ts,
+            stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-12),
+            reset=lambda t, y, k_: c * jnp.exp(jnp.log(y)), reset_ts=jnp.array([1.5]),
+            adjoint=diffrax.DirectAdjoint(), max_steps=2000,
+        )  # fmt: skip
+        return jnp.sum(sol.ys**2)
+
+    tt, kk = np.asarray(ts)[None, :], np.asarray(k)[:, None]
+    y = np.exp(-np.where(tt < s, kk * tt, kk * s + r * kk * (tt - s))) * np.where(tt >= 1.5, c, 1.0)
+    exact = np.sum(2 * y * (-y * np.where(tt < s, tt, s + r * (tt - s))), axis=1)
+    np.testing.assert_allclose(jax.jit(jax.grad(loss))(k), exact, rtol=1e-6)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(loss))(k), exact, rtol=1e-6)
+
+
 def test_per_member_horizons():
     t1 = jnp.array([1.0, 2.5, 4.0])
     f = lambda t, y, a: jnp.array([y[1], -y[0]])

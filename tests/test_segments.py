@@ -4,6 +4,7 @@ observer's discrete events (sampled-data observers against their discrete closed
 
 from __future__ import annotations
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -95,6 +96,51 @@ def test_undeclared_jumps_give_the_masked_batch_the_gradient_of_simulate():
     np.testing.assert_allclose(float(v), float(v1), rtol=1e-5)
     assert abs(float(g[0])) > 1e-2 and abs(float(g[1])) > 1.0
     np.testing.assert_allclose(np.array(g, float), np.array(g1, float), rtol=1e-4)
+
+
+@pytest.mark.extended
+def test_undeclared_jumps_with_direct_adjoint_give_the_default_gradient_in_both_modes():
+    """``adjoint=diffrax.DirectAdjoint()`` allows both modes of differentiation; its rejected steps' NaN stages
+    made the reverse-mode gradient NaN on every back-end (the diffrax solve of ``simulate``, the lock-step and
+    the masked batch), with status 0.  Now reverse mode gives the default adjoint's gradient on each (the
+    same steps: stop-gradient step sizes); forward mode (checked on the lock-step batch here, and on the
+    masked loop against a closed form in test_adaptive_rk) gives it too."""
+    x0s = jnp.array([[1.0, -0.5, 0.8], [0.3, 0.2, -1.0]])
+    ts = jnp.linspace(0.0, 7.5, 16)
+    kw = dict(rtol=1e-6, atol=1e-8, max_segments=4)
+    direct = diffrax.DirectAdjoint()
+
+    def obs(T, g):
+        return eqx.tree_at(lambda o: (o.T, o.gamma), LSR3, (T, g))
+
+    def loss(backend, adjoint):
+        extra = {} if adjoint is None else {"adjoint": adjoint}
+
+        def fn(p):
+            if backend == "simulate":
+                one = lambda x0: obsjax.simulate(
+                    SWITCH_UNDECLARED, obs(p[0], p[1]), x0, jnp.zeros(3), ts, dt0=0.01, **kw, **extra
+                )
+                tr = jax.vmap(one)(x0s)
+            else:
+                tr = obsjax.simulate_batch(
+                    SWITCH_UNDECLARED, obs(p[0], p[1]), x0s, jnp.zeros((2, 3)), ts,
+                    lockstep=backend == "lockstep", **kw, **extra,
+                )  # fmt: skip
+            return jnp.sum(tr.error**2), tr.status
+
+        return fn
+
+    p = jnp.array([1.93, 1.0])
+    for backend in ("simulate", "lockstep", "masked"):
+        (_, st), ref = jax.jit(jax.value_and_grad(loss(backend, None), has_aux=True))(p)
+        (_, st_d), rev = jax.jit(jax.value_and_grad(loss(backend, direct), has_aux=True))(p)
+        assert np.all(np.asarray(st) == 0) and np.all(np.asarray(st_d) == 0), backend
+        assert np.all(np.isfinite(np.asarray(rev))), (backend, rev)
+        np.testing.assert_allclose(np.asarray(rev), np.asarray(ref), rtol=1e-6, err_msg=backend)
+        if backend == "lockstep":
+            fwd = jax.jit(jax.jacfwd(lambda q: loss(backend, direct)(q)[0]))(p)
+            np.testing.assert_allclose(np.asarray(fwd), np.asarray(ref), rtol=1e-6, err_msg=backend)
 
 
 # ---------------------------------------------------------------- events: sampled-data observers

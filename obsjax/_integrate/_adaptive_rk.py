@@ -75,9 +75,10 @@ through equinox's checkpointed while loop with ``checkpoints`` checkpoints, as d
 carry no derivative (``stop_gradient``); the solution's derivative is that of the discrete scheme on
 the chosen steps.  A step rejected because its stages left the domain of the vector field (NaN
 stages across an undeclared switch) contributes nothing to the derivative: in reverse mode each such
-stage's derivative is zero (:func:`_status.finite_gradient`), the reset is applied to the candidate
-of an arriving member only and the dense interpolant to those of members with something to save; in
-forward mode the rejection's select drops its tangent.  (Such a switch, if it is one in t, still
+stage's derivative is zero (:func:`_status.finite_gradient`; with ``DirectAdjoint`` its tangents
+are masked, which serves both modes), the reset is applied to the candidate of an arriving member
+only and the dense interpolant to those of members with something to save; in forward mode the
+rejection's select drops its tangent.  (Such a switch, if it is one in t, still
 needs declaring for the derivative in t0: the times of every step move with t0, and a switch the
 loop does not know of would move with them.)
 
@@ -540,16 +541,18 @@ def adaptive_rk_solve(
     # rejected step across an undeclared switch) gets a zero derivative, member by member: its cotangent is
     # zero but its partial derivatives are NaN, and 0 × NaN made the whole batch's gradient NaN (with the
     # product h·f inside, so that the step length, which carries t0's derivative, is spared too).  (A
-    # custom_vjp, so the forward-mode loops keep the plain field; there a where() drops the rejected
-    # tangents.)
+    # custom_vjp, so the forward-mode loop keeps the plain field, where a where() drops the rejected
+    # tangents; DirectAdjoint's bounded loop allows both modes and gets a custom_jvp that masks tangents.)
     def stage(h, t, u, a):
         f = field(t, u, a)
         return f, h * f
 
     F_stage = jax.vmap(stage, in_axes=(0, 0, 0, args_axes))
-    if kind == "checkpointed":
+    if kind != "lax":  # reverse mode (DirectAdjoint: both modes, a custom_jvp)
+        both = kind == "bounded"
         F_stage = jax.vmap(
-            lambda h, t, u, a: finite_gradient(stage, h, t, u, a), in_axes=(0, 0, 0, args_axes)
+            lambda h, t, u, a: finite_gradient(stage, h, t, u, a, both_modes=both),
+            in_axes=(0, 0, 0, args_axes),
         )
     R = None
     if reset is not None:

@@ -163,19 +163,26 @@ def _drift(t, y, a):
     return per_member(args_b, lambda ai, xx, zz: _system.drift(t, (xx, zz), ai))(x, z)
 
 
-def _drift_finite_gradient(t, y, a):
+def _drift_finite_gradient(t, y, a, both_modes=False):
     """:func:`_drift` whose reverse-mode derivative leaves out the members whose state or vector field is
     not finite.  Such a member's result is replaced afterwards (:func:`_isolate`) and its cotangent is zero,
     but the partial derivatives of its vector field are NaN, and 0 × NaN, summed over the members into the
     derivative of the shared parameters, made the gradient NaN for the whole batch (the diffrax back-end
-    drops such steps per trajectory, :class:`_diffrax.FiniteGradientSolver`)."""
+    drops such steps per trajectory, :class:`_diffrax.FiniteGradientSolver`).  ``both_modes``: for
+    ``diffrax.DirectAdjoint``, which allows forward mode too (a ``custom_jvp`` that masks the tangents)."""
     args_b, _ = a
     x, z = y
 
     def one(ai, xx, zz):
-        return finite_gradient(lambda tt, aa, x_, z_: _system.drift(tt, (x_, z_), aa), t, ai, xx, zz)
+        return finite_gradient(
+            lambda tt, aa, x_, z_: _system.drift(tt, (x_, z_), aa), t, ai, xx, zz, both_modes=both_modes
+        )
 
     return per_member(args_b, one)(x, z)
+
+
+def _drift_finite_tangent(t, y, a):
+    return _drift_finite_gradient(t, y, a, both_modes=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -227,9 +234,12 @@ def integrate(args_b: _system.Args, state0, ts, sched: Schedule, opt: _diffrax.O
     carry0 = (state0, jnp.zeros((B,), bool))
     row = jax.eval_shape(lambda s: s, state0)
     # reverse mode by the default adjoint: the failed members' NaN partials are kept out of the gradient
-    # (a custom_vjp, which has no forward mode: ForwardMode and other adjoints get the plain field)
+    # (a custom_vjp, which has no forward mode); DirectAdjoint, which allows both modes, gets a custom_jvp
+    # that masks their tangents; ForwardMode and other adjoints get the plain field
     reverse = opt.adjoint is None or type(opt.adjoint) is diffrax.RecursiveCheckpointAdjoint
-    f = _system.for_check_mode(_drift_finite_gradient if reverse else _drift)
+    direct = type(opt.adjoint) is diffrax.DirectAdjoint
+    f = _drift_finite_gradient if reverse else (_drift_finite_tangent if direct else _drift)
+    f = _system.for_check_mode(f)
     solve = _Solve(args_b, opt, ctrl, f)
 
     def drift(t, carry):  # the batch's vector field; the eviction mask does not move

@@ -64,7 +64,7 @@ def is_finite(tree):
     return jnp.isfinite(sum_of_squares(tree))
 
 
-def finite_gradient_call(run, d, a, *, inputs_too: bool = False):
+def finite_gradient_call(run, d, a, *, inputs_too: bool = False, both_modes: bool = False):
     """``run(d, a)``, whose reverse-mode derivative is zero where its output (with ``inputs_too``: or its
     floating inputs ``d``) is not finite; under ``vmap``, member by member.  ``d`` holds the floating arrays,
     ``a`` the other arrays (float0 cotangents).
@@ -75,6 +75,12 @@ def finite_gradient_call(run, d, a, *, inputs_too: bool = False):
     parameter being differentiated) are made explicit arguments first (closure conversion), because a
     ``custom_vjp`` cannot differentiate closed-over values: JAX refused such a gradient with
     "Detected differentiation of a custom_vjp function with respect to a closed-over value".
+
+    ``both_modes``: a ``custom_jvp`` instead of a ``custom_vjp``, for loops that must allow forward mode
+    as well (``diffrax.DirectAdjoint``).  Its rule masks the input tangents as well as the output tangents
+    where the result is not finite: forward mode then carries no NaN tangent out, and in reverse mode the
+    transpose of the input mask zeroes the NaN that J^T·0 produces inside (J's entries being NaN there).
+    It linearises ``run`` in the rule, so it costs what a jvp costs, in both modes.
     """
     closed, out_shape = jax.make_jaxpr(run, return_shape=True)(d, a)
     jaxpr, consts = closed.jaxpr, list(closed.consts)
@@ -110,22 +116,52 @@ def finite_gradient_call(run, d, a, *, inputs_too: bool = False):
 
     call.defvjp(fwd, bwd)
     pick = lambda k: [c for c, kk in zip(consts, kind) if kk == k]  # noqa: E731
+    if both_modes:
+        return _finite_tangent_call(converted, inputs_too)(d, a, pick(1), pick(2))
     return call(d, a, pick(1), pick(2))
 
 
-def finite_gradient(fn, *args):
+def _finite_tangent_call(converted, inputs_too):
+    """The ``custom_jvp`` of :func:`finite_gradient_call` (``both_modes``)."""
+
+    @jax.custom_jvp
+    def call(dd, aa, hf, hi):
+        return converted(dd, aa, hf, hi)
+
+    def rule(primals, tangents):
+        dd, aa, hf, hi = primals
+        tdd, _, thf, _ = tangents
+        out, lin = jax.linearize(lambda x, h: converted(x, aa, h, hi), dd, list(hf))
+        ok = is_finite(eqx.filter(out, eqx.is_inexact_array))
+        if inputs_too:
+            ok = ok & is_finite(dd)
+
+        def mask(v):
+            if not is_floating(v):
+                return v
+            return jnp.where(ok, v, jnp.zeros_like(v))
+
+        tm = jax.tree_util.tree_map
+        tout = lin(tm(mask, tdd), [mask(v) for v in thf])
+        return out, tm(mask, tout)
+
+    call.defjvp(rule)
+    return call
+
+
+def finite_gradient(fn, *args, both_modes: bool = False):
     """``fn(*args)``, whose reverse-mode derivative is zero when its floating inputs or its output are not
     finite (under ``vmap``: per member): a stage of a Runge–Kutta step evaluated outside the domain of the
     vector field.  Non-floating arrays travel as a second argument (float0 cotangents), everything else is
     closed over (closed-over tracers: see :func:`finite_gradient_call`).  A ``custom_vjp``: reverse mode
-    only."""
+    only, unless ``both_modes`` (a ``custom_jvp``, see :func:`finite_gradient_call`)."""
     diff, rest = eqx.partition(args, eqx.is_inexact_array)
     arrs, static = eqx.partition(rest, eqx.is_array)
 
     def run(d, a):
         return fn(*eqx.combine(d, a, static))
 
-    return finite_gradient_call(run, diff, arrs, inputs_too=True)
+    return finite_gradient_call(run, diff, arrs, inputs_too=True, both_modes=both_modes)
 
 
 def is_floating(v) -> bool:
