@@ -129,7 +129,9 @@ def simulate(
     - `u`: open-loop input, a callable t -> (p,), zero when ``None``.
     - `controller`: output feedback ``controller(t, x̂) -> (p,)`` (closes the loop through the estimate).
     - `noise`: :class:`obsjax.noise.WhiteNoise` (an SDE; fixed steps, Euler–Maruyama by default, ``dt0``
-      defaulting to span/2000) or :class:`obsjax.noise.BandLimitedNoise`; needs ``key``.  Under white
+      defaulting to span/2000; a step that would pass a save time ends at it, so every saved value is a
+      state of the scheme, never an interpolant between two steps, whose variance would be too small)
+      or :class:`obsjax.noise.BandLimitedNoise`; needs ``key``.  Under white
       noise the reset instants and event times of the observer cannot be differentiated (the pathwise
       solution is not differentiable in them); a derivative in them raises ``ValueError``.
     - `key`: the PRNG key the noise is drawn from; only with `noise` (a key without it is refused, so a run

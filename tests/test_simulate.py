@@ -227,6 +227,43 @@ def test_white_noise_steady_state_covariance_matches_lyapunov():
     np.testing.assert_allclose(np.diag(emp), np.diag(P), rtol=0.15)
 
 
+def test_white_noise_statistics_do_not_depend_on_where_the_save_times_fall():
+    """Under white noise a save time between two Euler–Maruyama steps returned the straight line between
+    them, whose variance is below the path's (0.90 of it at mid-step here): the statistics at the save
+    times depended on the save grid.  The steps now end at the save times, so with save times at the
+    middles of the dt0 grid (then spaced dt0) the scalar error e' = −k e + L σ ξ has, at every save time,
+    the stationary variance of the scheme, L²σ² dt0 / (1 − (1 − k dt0)²)."""
+    a, L, sig, dt0 = 1.0, 3.0, 0.5, 0.05
+    k = a + L
+    plant = obsjax.LTI([[-a]], [[0.0]], [[1.0]])  # x = 0, so e = x̂
+    obs = obsjax.Luenberger(plant, L=[[L]])
+    # the middles of the steps of [0, 2.3] (46 steps of dt0), and its end
+    ts = jnp.concatenate([jnp.array([0.0]), 2.025 + dt0 * jnp.arange(6), jnp.array([2.3])])
+    N = 4000
+    tb = obsjax.simulate_batch(
+        plant, obs, jnp.zeros((N, 1)), jnp.zeros((N, 1)), ts, keys=jr.split(jr.PRNGKey(21), N),
+        noise=obsjax.noise.WhiteNoise(sig), dt0=dt0,
+    )  # fmt: skip
+    assert np.all(np.asarray(tb.status) == 0)
+    e = np.asarray(tb.error[:, 1:-1, 0])
+    v = L**2 * sig**2 * dt0 / (1 - (1 - k * dt0) ** 2)
+    ratio = (e**2).mean(0) / v
+    se = np.sqrt(2 / N)  # of a variance estimate, Gaussian samples
+    assert np.all(np.abs(ratio - 1) < 3 * se), ratio  # before: 0.90 at every save time (−4.5 s.e.)
+
+
+def test_a_traced_negative_noise_intensity_is_refused_under_jit():
+    """The eager call refused WhiteNoise(−0.5) and BandLimitedNoise(−0.5); under jit both gave status 0."""
+    obs = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0])
+    ts = jnp.linspace(0.0, 1.0, 6)
+    for make in (obsjax.noise.WhiteNoise, lambda s: obsjax.noise.BandLimitedNoise(s, dt=0.1)):
+        run = jax.jit(lambda s: obsjax.simulate(PLANT, obs, jnp.ones(2), jnp.zeros(2), ts, noise=make(s),
+                                                key=jr.PRNGKey(0), throw=False).status)  # fmt: skip
+        assert int(run(0.5)) == 0
+        with pytest.raises(Exception, match="`sigma` must be ≥ 0"):
+            jax.block_until_ready(run(-0.5))
+
+
 def test_lti_from_control_and_nonlinear_plant():
     sys = control.ss(A28, B28, C28, 0)
     p = obsjax.LTI.from_control(sys)

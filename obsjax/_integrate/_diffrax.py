@@ -15,6 +15,7 @@ import math
 import diffrax
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 
 from .._checks import concrete_value
 from ..systems._noise import WhiteNoise
@@ -59,6 +60,40 @@ def controller_of(opt: Options, t0, t1):
     return diffrax.ConstantStepSize()
 
 
+class SaveTimeStepSize(diffrax.AbstractStepSizeController):
+    """Steps of ``dt0`` that also end at every save time (white measurement noise).
+
+    Between two steps diffrax's dense output of an SDE solve is the straight line between the steps' ends;
+    at a save time inside a step that line's variance is below the path's (by up to a quarter of a step's
+    increment at mid-step), so the statistics at the save times would depend on the save grid.  A step that
+    would pass a save time ends at it instead, and the next one starts there; the Brownian path is sampled
+    there exactly (the virtual Brownian tree's bridge), so every saved value is a state of the scheme.
+    `save_ts` is sorted; entries at or before the current step's end are passed over.
+    """
+
+    save_ts: jax.Array
+
+    def wrap(self, direction):
+        return self
+
+    def _next(self, t, proposal):
+        ts = self.save_ts
+        i = jnp.searchsorted(ts, t, side="right")
+        nxt = jnp.where(i < ts.shape[0], ts[jnp.minimum(i, ts.shape[0] - 1)], jnp.inf)
+        return jnp.minimum(proposal, nxt)
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        del terms, t1, y0, args, func, error_order
+        if dt0 is None:
+            raise ValueError("white measurement noise needs a step `dt0`.")
+        return self._next(t0, t0 + dt0), jnp.asarray(dt0, jnp.result_type(t0, dt0))
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        del t0, y0, y1_candidate, args, y_error, error_order
+        dt = controller_state
+        return True, t1, self._next(t1, t1 + dt), False, dt, diffrax.RESULTS.successful
+
+
 def steps_budget(opt: Options) -> int | None:
     """max_steps, raised for constant steps to cover the horizon (per segment it is then always enough)."""
     dt0 = concrete_value(opt.dt0) if opt.dt0 is not None else None
@@ -68,7 +103,7 @@ def steps_budget(opt: Options) -> int | None:
     return max(opt.max_steps, math.ceil((t1c - t0c) / float(dt0)) + 16)
 
 
-def _finite_gradient_step(solver, terms, t0, t1, y0, args, solver_state, made_jump):
+def _finite_gradient_step(solver, terms, t0, t1, y0, args, solver_state, made_jump, both_modes=False):
     """``solver.step`` whose reverse-mode derivative is zero when the step's output is not finite.
 
     An adaptive solve rejects a step whose candidate is not finite (a stage left the domain of the vector
@@ -84,19 +119,26 @@ def _finite_gradient_step(solver, terms, t0, t1, y0, args, solver_state, made_ju
         y1, err, dense, state1, _ = solver.step(terms_, t0_, t1_, y0_, args_, state_, jump_)
         return y1, err, dense, state1
 
-    y1, err, dense, state1 = finite_gradient_call(run, diff, arrs)
+    y1, err, dense, state1 = finite_gradient_call(run, diff, arrs, both_modes=both_modes)
     return y1, err, dense, state1, diffrax.RESULTS.successful
 
 
 class FiniteGradientSolver(diffrax.AbstractWrappedSolver):
     """An explicit Runge–Kutta solver whose non-finite (rejected) steps contribute a zero gradient
-    (:func:`_finite_gradient_step`); everything else is the wrapped solver's."""
+    (:func:`_finite_gradient_step`); everything else is the wrapped solver's.  ``both_modes``: a
+    ``custom_jvp`` (for ``diffrax.DirectAdjoint``, which allows forward mode too) instead of a
+    ``custom_vjp``."""
 
     solver: diffrax.AbstractSolver
+    both_modes: bool = eqx.field(static=True, default=False)
 
     @property
     def term_structure(self):
         return self.solver.term_structure
+
+    @property
+    def scan_kind(self):  # read by DirectAdjoint (isinstance checks pass through to the wrapped solver)
+        return getattr(self.solver, "scan_kind", None)
 
     @property
     def interpolation_cls(self):
@@ -119,7 +161,9 @@ class FiniteGradientSolver(diffrax.AbstractWrappedSolver):
         return self.solver.init(terms, t0, t1, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        return _finite_gradient_step(self.solver, terms, t0, t1, y0, args, solver_state, made_jump)
+        return _finite_gradient_step(
+            self.solver, terms, t0, t1, y0, args, solver_state, made_jump, both_modes=self.both_modes
+        )
 
     def func(self, terms, t0, y0, args):
         return self.solver.func(terms, t0, y0, args)
@@ -127,11 +171,16 @@ class FiniteGradientSolver(diffrax.AbstractWrappedSolver):
 
 def solver_of(opt: Options):
     """The solver, wrapped by :class:`FiniteGradientSolver` when it is an explicit Runge–Kutta method
-    differentiated in reverse mode by the default adjoint (a ``custom_vjp`` has no forward mode)."""
+    differentiated in reverse mode by the default adjoint (a ``custom_vjp``, which has no forward mode)
+    or by ``diffrax.DirectAdjoint`` (both modes: a ``custom_jvp``)."""
     adj = opt.adjoint
     reverse = adj is None or type(adj) is diffrax.RecursiveCheckpointAdjoint
-    if reverse and isinstance(opt.solver, diffrax.AbstractERK) and opt.white_noise is None:
-        return FiniteGradientSolver(opt.solver)
+    direct = type(adj) is diffrax.DirectAdjoint
+    if (reverse or direct) and isinstance(opt.solver, diffrax.AbstractERK) and opt.white_noise is None:
+        solver = opt.solver
+        if direct and solver.scan_kind is None:  # what DirectAdjoint sets, which it cannot set on the wrapper
+            solver = eqx.tree_at(lambda s: s.scan_kind, solver, "bounded", is_leaf=lambda v: v is None)
+        return FiniteGradientSolver(solver, both_modes=direct)
     return opt.solver
 
 
@@ -141,12 +190,15 @@ def integrate(args: _system.Args, state0, ts, sched: Schedule, opt: Options):
     solver = solver_of(opt)
     ctrl = controller_of(opt, sched.t0, sched.t1)
     max_steps = steps_budget(opt)
+    if opt.white_noise is not None and max_steps is not None:
+        max_steps += int(ts.shape[0])  # a step more per save time (SaveTimeStepSize)
     adjoint = {} if opt.adjoint is None else {"adjoint": opt.adjoint}
 
     def solve(s0, s1, state, save_ts):
+        c = ctrl if opt.white_noise is None else SaveTimeStepSize(jax.lax.stop_gradient(save_ts))
         sol = diffrax.diffeqsolve(
             terms, solver, s0, s1, opt.dt0, state, args=args,
-            saveat=diffrax.SaveAt(ts=save_ts, t1=True), stepsize_controller=ctrl,
+            saveat=diffrax.SaveAt(ts=save_ts, t1=True), stepsize_controller=c,
             max_steps=max_steps, throw=False, **adjoint,
         )
         saved = tmap(lambda a: a[:-1], sol.ys)
