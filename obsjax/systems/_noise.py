@@ -29,7 +29,8 @@ from .._checks import concrete_value, real_array, require_finite
 
 
 def _sigma(sigma):
-    """σ: a real scalar or vector of finite, non-negative intensities (checked when known)."""
+    """σ: a real scalar or vector of finite, non-negative intensities (checked eagerly when known, else the
+    sign with ``eqx.error_if``)."""
     if isinstance(sigma, bool) or getattr(sigma, "dtype", None) == bool or (
         isinstance(sigma, (list, tuple)) and any(isinstance(v, bool) for v in sigma)
     ):
@@ -43,6 +44,8 @@ def _sigma(sigma):
     v = concrete_value(arr)
     if v is not None and np.any(v < 0):
         raise ValueError(f"`sigma` must be ≥ 0, got {v.tolist()}.")
+    if v is None:  # traced: checked under jit (a NaN σ is left to the trajectory's status, per member)
+        arr = eqx.error_if(arr, jnp.any(arr < 0), "`sigma` must be ≥ 0 (a noise intensity).")
     return arr
 
 
