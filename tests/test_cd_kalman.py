@@ -211,3 +211,16 @@ def test_sampling_instants_from_a_period_hold_at_clock_times():
     P8 = run(1e8 + np.array([0.0, 0.1, 0.2, 0.3])).z.P[-1, 0, 0]
     np.testing.assert_allclose(P8, P0, rtol=1e-5)  # the times at 1e8 carry a rounding of 1.5e-8
     assert float(P0) == pytest.approx(0.018859, abs=1e-6)
+
+
+def test_white_measurement_noise_is_refused_by_observers_with_discrete_updates():
+    """White noise has no value at an instant: the updates saw the noise-free output, so a study with
+    WhiteNoise(100) gave the estimate of the noise-free one without a word."""
+    cd = obsjax.ContinuousDiscreteKalman(MODEL, Qw=QW, Rv=RV, P0=P0, period=H)
+    ts = jnp.linspace(0.0, 1.0, 11)
+    with pytest.raises(ValueError, match="has no value at an instant"):
+        obsjax.simulate(MODEL, cd, jnp.array([1.0, 0.0]), jnp.zeros(2), ts,
+                        noise=obsjax.noise.WhiteNoise(0.2), key=jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="has no value at an instant"):
+        obsjax.simulate_batch(MODEL, cd, jnp.ones((2, 2)), jnp.zeros((2, 2)), ts,
+                              noise=obsjax.noise.WhiteNoise(0.2), keys=jax.random.split(jax.random.PRNGKey(0), 2))

@@ -325,4 +325,11 @@ def plan(plant, observer, ts, ts_np, *, noise, key, solver, rtol, atol, dt0, ada
     T = observer.reset_period
     n_reset = 1 if T is None else _schedule.reset_segments(T, ts, ts_np, max_segments)
     sched = _schedule.build(ts, ts_np, T, n_reset, getattr(plant, "jump_ts", None), observer.event_times)
+    if isinstance(noise, WhiteNoise) and sched.has_event:
+        raise ValueError(
+            f"{type(observer).__name__} updates its estimate from measurements at discrete instants, and "
+            "white measurement noise (WhiteNoise) has no value at an instant: those updates would see the "
+            "noise-free output. Use BandLimitedNoise(sigma, dt) (samples of variance sigma²; a "
+            "ContinuousDiscreteKalman's Rv = sigma²) or recorded measurements (obsjax.estimate)."
+        )
     return Plan(opt, sched, ts, ts_np)
