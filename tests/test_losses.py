@@ -21,6 +21,33 @@ def _traj(err, ts=TS):
     return SimpleNamespace(ts=jnp.asarray(ts), error=jnp.asarray(err))
 
 
+@pytest.mark.parametrize("units", [1e-200, 1e200])
+def test_itae_and_peak_do_not_underflow_or_overflow(units):
+    """‖x̃‖ was √Σx̃²: errors of 1e-200 gave itae = peak = 0 and errors of 1e200 gave NaN, both representable
+    values; an infinite error gave a NaN peak instead of inf."""
+    err = units * ERR
+    nrm = units * np.linalg.norm(ERR, axis=1)
+    f = (TS - TS[0]) * nrm
+    itae_ref = np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(TS))
+    np.testing.assert_allclose(float(obsjax.losses.itae(_traj(err))), itae_ref, rtol=1e-12)
+    pk = float(obsjax.losses.peak(_traj(err)))
+    assert nrm.max() <= pk <= nrm.max() * (1 + math.log(TS.size) / 50)
+    g = jax.grad(lambda e: obsjax.losses.peak(_traj(e)) / units)(jnp.asarray(err))
+    assert np.all(np.isfinite(np.asarray(g)))
+    inf_err = np.array(ERR).copy()
+    inf_err[5, 1] = np.inf
+    assert float(obsjax.losses.peak(_traj(inf_err))) == np.inf
+    assert float(obsjax.losses.itae(_traj(inf_err))) == np.inf
+
+
+def test_peak_checks_a_traced_sharpness():
+    """Under jit a negative sharpness gave −3.36 for a maximum of 1.0 ("never below the maximum")."""
+    tr = _traj(ERR)
+    assert float(jax.jit(lambda s: obsjax.losses.peak(tr, s))(50.0)) >= np.linalg.norm(ERR, axis=1).max()
+    with pytest.raises(Exception, match="`sharpness` must be a positive finite scalar"):
+        jax.block_until_ready(jax.jit(lambda s: obsjax.losses.peak(tr, s))(-1.0))
+
+
 @pytest.mark.parametrize("units", [1e-13, 1.0, 1e8])
 def test_itae_and_peak_in_any_units(units):
     """An absolute smoothing constant (√(‖x̃‖² + 1e-24), and a 1e-12 floor in peak) made itae 83× and peak

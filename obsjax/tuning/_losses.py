@@ -6,6 +6,7 @@ import math
 from fractions import Fraction
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -23,10 +24,16 @@ def ise(traj) -> jnp.ndarray:
 
 def _norm(error):
     """‖x̃‖ per save time, exact for every value (no absolute smoothing constant, so the states' units do
-    not matter); its derivative at x̃ = 0 is taken as 0 (where the norm has none)."""
-    sq = jnp.sum(error**2, axis=-1)
-    pos = sq > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+    not matter; scaled by max |x̃_i| first, so that errors of 1e-200 or 1e200 neither underflow nor
+    overflow, and inf for an infinite error); its derivative at x̃ = 0 is taken as 0 (where the norm has
+    none)."""
+    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(error), axis=-1))  # ‖x̃‖ = s ‖x̃/s‖ for any s > 0
+    pos = scale > 0
+    big = jnp.isinf(scale)
+    safe = jnp.where(pos & ~big, scale, 1.0)
+    sq = jnp.sum((error / safe[..., None]) ** 2, axis=-1)
+    nrm = safe * jnp.sqrt(jnp.where(pos, sq, 1.0))
+    return jnp.where(big, jnp.inf, jnp.where(pos, nrm, 0.0))
 
 
 def itae(traj) -> jnp.ndarray:
@@ -40,7 +47,7 @@ def terminal(traj) -> jnp.ndarray:
     return jnp.sum(traj.error[-1] ** 2)
 
 
-def peak(traj, sharpness: float = 50.0) -> jnp.ndarray:
+def peak(traj, sharpness: float | jax.Array = 50.0) -> jnp.ndarray:
     """Peak error max_t ‖x̃(t)‖ over the save times, as a smooth maximum so that its gradient spreads over
     near-maximal times: the log-sum-exp M + (M/s) log Σ_k exp(s (‖x̃(t_k)‖ − M)/M), M = max_k ‖x̃(t_k)‖,
     s = `sharpness` (> 0; relative to M, so the states' units do not matter).
@@ -54,10 +61,20 @@ def peak(traj, sharpness: float = 50.0) -> jnp.ndarray:
     sv = scalar_value(sharpness)
     if sv is not None and not (np.ndim(sv) == 0 and np.isrealobj(sv) and np.isfinite(sv) and sv > 0):
         raise ValueError(f"`sharpness` must be a positive finite scalar, got {np.asarray(sv).tolist()}.")
-    nrm = _norm(traj.error)
+    if sv is None:  # traced: checked under jit
+        sharpness = eqx.error_if(
+            sharpness, ~(jnp.isfinite(sharpness) & (sharpness > 0)), "`sharpness` must be a positive finite scalar."
+        )
+    # the peak is homogeneous of degree 1 in x̃: computed on x̃ / S, S = max |x̃_i| (no derivative), and
+    # multiplied by S, so that errors of 1e-200 or 1e200 neither underflow nor overflow (nor their gradients)
+    err = traj.error
+    S = jax.lax.stop_gradient(jnp.max(jnp.abs(err)))
+    safe = jnp.where(jnp.isfinite(S) & (S > 0), S, 1.0)
+    nrm = _norm(err / safe)
     top = jnp.max(nrm)
     ratio = nrm / jnp.where(top > 0, top, 1.0)  # in [0, 1]; all 0 for a zero error (then the peak is 0)
-    return top * (1.0 + jnp.log(jnp.sum(jnp.exp(sharpness * (ratio - 1.0)))) / sharpness)
+    smooth = top * (1.0 + jnp.log(jnp.sum(jnp.exp(sharpness * (ratio - 1.0)))) / sharpness)
+    return jnp.where(jnp.isinf(S), jnp.inf, safe * smooth)  # an infinite error: an infinite peak, not NaN
 
 
 def _valid_mean(values, valid):
@@ -122,6 +139,22 @@ def state_error(est) -> jnp.ndarray:
             "save at the samples (ts=None)."
         )
     return _valid_mean(jnp.sum(est.state_error**2, axis=-1), est.valid)
+
+
+def cvar_level(alpha) -> float:
+    """The level α of ``("cvar", α)``: a real number in [0, 1) (``ValueError`` otherwise)."""
+    try:
+        v = None if isinstance(alpha, (bool, str)) else scalar_value(alpha)
+    except Exception:  # noqa: BLE001  (not array-like)
+        v = None
+    if v is None or v.ndim != 0 or not (np.issubdtype(v.dtype, np.integer) or np.issubdtype(v.dtype, np.floating)):
+        raise ValueError(
+            f"CVaR level α must be a real number in [0, 1) (a static value, not traced), got {alpha!r}."
+        )
+    alpha = float(v)
+    if not 0.0 <= alpha < 1.0:
+        raise ValueError(f"CVaR level α must be in [0, 1), got {alpha}.")
+    return alpha
 
 
 def tail_count(alpha: float, n: int) -> int:
