@@ -157,6 +157,45 @@ def test_cvar_averages_the_worst_ceil_of_one_minus_alpha_n(alpha, n, k):
     assert s[f"ise_cvar{int(round(alpha * 100))}"] == pytest.approx(2 * expected, rel=1e-12)
 
 
+def test_risk_measure_and_weights_refuse_what_is_not_a_batch_of_real_losses():
+    """A (4, 2) array was averaged over both axes (2.0, a number mixing scenarios and columns), complex losses
+    and an empty batch (a silent NaN mean) were accepted, a −inf loss gave a finite CVaR where tune's weights
+    give NaN, and a batch size of 2.7 was truncated to 2."""
+    with pytest.raises(ValueError, match=r"non-empty 1-D array .* got shape \(4, 2\)"):
+        obsjax.risk_measure(jnp.zeros((4, 2)), ("cvar", 0.5))
+    with pytest.raises(ValueError, match=r"got shape \(0,\)"):
+        obsjax.risk_measure(jnp.zeros(0), "mean")
+    with pytest.raises(ValueError, match="real numbers, got dtype complex"):
+        obsjax.risk_measure(jnp.array([1 + 1j, 2.0]), "mean")
+    with pytest.raises(ValueError, match="got booleans"):
+        obsjax.risk_measure(np.array([True, False]), "mean")
+    for risk in ("mean", "worst", ("cvar", 0.5)):
+        for bad in (-np.inf, np.inf, np.nan):
+            x = jnp.array([bad, 1.0, 2.0])
+            assert np.isnan(float(obsjax.risk_measure(x, risk))), (risk, bad)
+            assert not np.isfinite(np.sum(obsjax.risk_weights(risk, 3) * np.sort(np.asarray(x))))
+    assert float(jax.jit(lambda v: obsjax.risk_measure(v, ("cvar", 0.5)))(jnp.arange(4.0))) == 2.5
+    for batch in (0, -3, True):
+        with pytest.raises(ValueError, match="`batch` must be a positive integer"):
+            obsjax.risk_weights("mean", batch)
+    with pytest.raises(Exception, match="batch"):  # refused by name (or by the test run's type check)
+        obsjax.risk_weights("mean", 2.7)
+    np.testing.assert_array_equal(obsjax.risk_weights("mean", np.int64(4)), np.full(4, 0.25))
+
+
+def test_summary_refuses_a_cvar_level_outside_zero_one_and_names_each_level_apart():
+    """summary(1.5) returned the maximum, summary(−0.5) the mean, and 0.995 was reported as ise_cvar100, the
+    key of α = 1."""
+    rows = np.tile(np.sqrt(np.arange(1.0, 201.0))[:, None], (1, 3))
+    res = summarise(np.array([0.0, 1.0, 2.0]), rows, np.zeros(200, int))
+    for bad in (1.0, 1.5, -0.5, float("nan")):
+        with pytest.raises(ValueError, match="CVaR level"):
+            res.summary(bad)
+    s = res.summary(0.995)
+    assert "ise_cvar99.5" in s and s["ise_cvar99.5"] == pytest.approx(2 * 200.0, rel=1e-12)  # the worst 1
+    assert res.summary(0.9)["ise_cvar90"] == pytest.approx(2 * np.mean(np.arange(181.0, 201.0)), rel=1e-12)
+
+
 def test_tune_bad_inputs():
     obs = obsjax.Luenberger(PLANT, L=[[0.0], [4.0]])
     with pytest.raises(ValueError, match="zero entries"):

@@ -27,7 +27,7 @@ from ._checkpoint import _read_chunk, write_chunk
 from ._checkpoint import chunk_path as _chunk_path
 from ._checkpoint import read_checkpoint as _resume
 from ._fingerprint import fingerprint
-from ..tuning._losses import tail_count
+from ..tuning._losses import cvar_level, tail_count
 from ._streaming import DEFAULT_SKETCH_RTOL, LogHistogram
 
 DEFAULT_QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
@@ -286,7 +286,10 @@ class MonteCarloResult:
         return mean, (float(np.mean(np.sort(ise)[-k:])) if k else float("nan"))
 
     def summary(self, cvar_alpha: float = 0.95) -> dict:
-        """Headline numbers: counts, final-error quantiles, convergence-time quantiles, ISE mean and CVaR."""
+        """Headline numbers: counts, final-error quantiles, convergence-time quantiles, ISE mean and CVaR
+        at level `cvar_alpha` ∈ [0, 1) (the mean of the worst ⌈(1 − α) N⌉ ISEs of the successful
+        trajectories), under the key ``"ise_cvar<100 α>"`` (``ise_cvar95``; ``ise_cvar99.5`` for 0.995)."""
+        cvar_alpha = cvar_level(cvar_alpha)
         fin = self._final_quantiles((0.5, 0.95))
         cq = self.convergence_quantiles((0.5, 0.95))
         ise_mean, ise_cvar = self._ise_mean_cvar(cvar_alpha)
@@ -300,7 +303,7 @@ class MonteCarloResult:
             "conv_p95": float(cq[1]),
             "converged_fraction": self.converged_fraction,
             "ise_mean": ise_mean,
-            f"ise_cvar{int(round(cvar_alpha * 100))}": ise_cvar,
+            cvar_key(cvar_alpha): ise_cvar,
         }
 
     def iter_chunks(self):
@@ -1308,8 +1311,15 @@ def monte_carlo(
     return dataclasses.replace(result, _store=store)
 
 
+def cvar_key(alpha: float) -> str:
+    """The summary key of the ISE CVaR at level α: ``ise_cvar95`` for 0.95, ``ise_cvar99.5`` for 0.995
+    (100 α to the shortest decimal: two levels never share a key)."""
+    return f"ise_cvar{float(repr(round(alpha * 100, 10))):g}"
+
+
 def comparison_table(results: dict, cvar_alpha: float = 0.95) -> str:
     """A plain-text table comparing several :class:`MonteCarloResult` (label -> result)."""
+    cvar_alpha = cvar_level(cvar_alpha)
     cols = [
         "n",
         "failed",
@@ -1319,7 +1329,7 @@ def comparison_table(results: dict, cvar_alpha: float = 0.95) -> str:
         "conv_p95",
         "converged_fraction",
         "ise_mean",
-        f"ise_cvar{int(round(cvar_alpha * 100))}",
+        cvar_key(cvar_alpha),
     ]
     heads = [
         "N",
@@ -1330,7 +1340,7 @@ def comparison_table(results: dict, cvar_alpha: float = 0.95) -> str:
         "t_conv p95",
         "converged",
         "ISE mean",
-        f"ISE CVaR{int(round(cvar_alpha * 100))}",
+        f"ISE CVaR{cvar_key(cvar_alpha)[len('ise_cvar'):]}",
     ]
     rows = []
     for label, res in results.items():

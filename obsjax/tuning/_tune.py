@@ -23,6 +23,7 @@ from .._simulate import SUCCESS, _check_ts, num_segments, simulate
 from .._simulate_batch import simulate_batch, simulate_plants
 from ..montecarlo._fingerprint import content_key
 from ..systems._noise import WhiteNoise
+from ._losses import cvar_level as _cvar_level
 from ._losses import tail_count
 
 #: Factor applied to the step after a rejected step (its inverse, up to 1, after an accepted one).
@@ -78,37 +79,38 @@ class TuneResult(eqx.Module):
     steps_taken: int = eqx.field(static=True, default=0)
 
 
-def _cvar_level(alpha) -> float:
-    """The level α of ``("cvar", α)``: a real number in [0, 1) (``ValueError`` otherwise)."""
-    try:
-        v = None if isinstance(alpha, (bool, str)) else scalar_value(alpha)
-    except Exception:  # noqa: BLE001  (not array-like)
-        v = None
-    if v is None or v.ndim != 0 or not (np.issubdtype(v.dtype, np.integer) or np.issubdtype(v.dtype, np.floating)):
-        raise ValueError(
-            f"CVaR level α must be a real number in [0, 1) (a static value, not traced), got {alpha!r}."
-        )
-    alpha = float(v)
-    if not 0.0 <= alpha < 1.0:
-        raise ValueError(f"CVaR level α must be in [0, 1), got {alpha}.")
-    return alpha
-
-
 def risk_measure(losses, risk):
     """Aggregate per-scenario losses: ``"mean"``, ``"worst"`` (max) or ``("cvar", α)`` — the mean of
-    the worst ⌈(1 − α)·N⌉ losses (conditional value at risk at level α)."""
+    the worst ⌈(1 − α)·N⌉ losses (conditional value at risk at level α).
+
+    `losses`: a non-empty 1-D array of real numbers (N,), one per scenario.  A non-finite loss (a failed or
+    diverged scenario) makes the result NaN whatever the risk measure, as in :func:`tune`
+    (:func:`risk_weights`): a failed scenario is never averaged away, nor chosen as a best case.
+    """
+    if getattr(losses, "dtype", None) == bool or isinstance(losses, bool):
+        raise ValueError("`losses` must hold real numbers, got booleans.")
+    losses = jnp.asarray(losses)
+    if not jnp.issubdtype(losses.dtype, jnp.floating) and not jnp.issubdtype(losses.dtype, jnp.integer):
+        raise ValueError(f"`losses` must hold real numbers, got dtype {losses.dtype}.")
+    if losses.ndim != 1 or losses.shape[0] == 0:
+        raise ValueError(
+            f"`losses` must be a non-empty 1-D array (N,) of per-scenario losses, got shape {tuple(losses.shape)}."
+        )
+    losses = losses.astype(jnp.result_type(float))
     if risk == "mean":
-        return jnp.mean(losses)
-    if risk in ("worst", "max"):
-        return jnp.max(losses)
-    if isinstance(risk, tuple) and len(risk) == 2 and risk[0] == "cvar":
+        out = jnp.mean(losses)
+    elif risk in ("worst", "max"):
+        out = jnp.max(losses)
+    elif isinstance(risk, tuple) and len(risk) == 2 and risk[0] == "cvar":
         alpha = _cvar_level(risk[1])
         k = tail_count(alpha, losses.shape[0])
-        return jnp.mean(jax.lax.top_k(losses, k)[0])
-    raise ValueError(f"`risk` must be 'mean', 'worst' or ('cvar', α), got {risk!r}.")
+        out = jnp.mean(jax.lax.top_k(losses, k)[0])
+    else:
+        raise ValueError(f"`risk` must be 'mean', 'worst' or ('cvar', α), got {risk!r}.")
+    return jnp.where(jnp.all(jnp.isfinite(losses)), out, jnp.nan)
 
 
-def risk_weights(risk, batch: int) -> np.ndarray:
+def risk_weights(risk, batch: int | np.integer) -> np.ndarray:
     """Weights w (batch,) on the ascending-sorted losses, so that
     ``risk_measure(l, risk) = Σ_i w_i l_(i)``.
 
@@ -117,7 +119,10 @@ def risk_weights(risk, batch: int) -> np.ndarray:
     makes the weighted sum non-finite whatever its weight (a failed scenario is never averaged
     away).
     """
-    batch = int(batch)
+    b = None if isinstance(batch, bool) else scalar_value(batch)
+    if b is None or np.ndim(b) != 0 or not float(b).is_integer() or float(b) < 1:
+        raise ValueError(f"`batch` must be a positive integer (the number of scenarios), got {batch!r}.")
+    batch = int(b)
     w = np.zeros(batch)
     if risk == "mean":
         w[:] = 1.0 / batch
