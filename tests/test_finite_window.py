@@ -745,3 +745,26 @@ def test_estimate_window_grid_checks_hold_under_jit():
         np.asarray(jax.jit(lambda a, b, c: obs.estimate_window(a, b, c, rule="simpson"))(ts, *yu)),
         np.asarray(obs.estimate_window(ts, *yu, rule="simpson")), rtol=1e-12, atol=1e-14,
     )
+
+
+def test_delay_closed_loop_refuses_bad_input_by_name():
+    """NaN or inf in P, x0 or the noise samples gave NaN trajectories without a word, a steps_per_window of
+    2.7 was truncated to 2, and a negative or NaN t1 failed with an unrelated TypeError or ValueError."""
+    model = obsjax.LTI([[0.0, 1.0], [-1.0, 0.2]], [[0.0], [1.0]], [[1.0, 0.0]])
+    fw = obsjax.FiniteWindow(model, 1.0)
+    P, x0, xh0 = np.array([[-2.0, -3.0]]), np.array([1.0, 0.0]), np.zeros(2)
+    cases = [
+        (dict(P=np.array([[np.nan, -3.0]])), "`P` must be finite"),
+        (dict(x0=np.array([np.inf, 0.0])), "`x0` must be finite"),
+        (dict(xhat0=np.array([0.0, np.nan])), "`xhat0` must be finite"),
+        (dict(steps_per_window=2.7), "`steps_per_window` must be an integer >= 2"),
+        (dict(steps_per_window=1), "`steps_per_window` must be an integer >= 2"),
+        (dict(t1=-1.0), "`t1` must be a concrete finite time > 0"),
+        (dict(t1=float("nan")), "`t1` must be a concrete finite time > 0"),
+        (dict(steps_per_window=4, v=np.full((21, 1), np.nan)), "`v` must be finite"),
+    ]
+    for change, msg in cases:
+        a = dict(P=P, x0=x0, xhat0=xh0, t1=5.0)
+        a.update(change)
+        with pytest.raises(ValueError, match=msg):
+            obsjax.delay_closed_loop(fw, a.pop("P"), a.pop("x0"), a.pop("xhat0"), a.pop("t1"), **a)

@@ -30,7 +30,7 @@ from .._config import require_x64
 from ..analysis._lti import gram_relative_residuals, observability_staircase
 from ..systems._plants import LTI
 from ._base import AbstractObserver
-from ._validation import require_finite
+from ._validation import require_finite, traced_finite
 
 _FORMULAS = ("auto", "(25)", "(28)")
 
@@ -1082,20 +1082,29 @@ def delay_closed_loop(observer, P, x0, xhat0, t1, *, steps_per_window=200, phi_x
     if P.shape != (p, n):
         raise ValueError(f"`P` must have shape ({p}, {n}), got {tuple(P.shape)}.")
     x0, xhat0 = vector(x0, "x0", n), vector(xhat0, "xhat0", n)
+    P, x0, xhat0 = traced_finite(P, "P"), traced_finite(x0, "x0"), traced_finite(xhat0, "xhat0")
     Tw = concrete_value(observer.T)
     if Tw is None:
         raise ValueError("`observer.T` must be concrete (the grid is built before tracing).")
-    N = int(steps_per_window)
-    if N < 2:
-        raise ValueError(f"`steps_per_window` must be >= 2, got {steps_per_window}.")
+    Ns = None if isinstance(steps_per_window, bool) else scalar_value(steps_per_window)
+    if Ns is None or np.ndim(Ns) != 0 or not float(Ns).is_integer() or float(Ns) < 2:
+        raise ValueError(f"`steps_per_window` must be an integer >= 2, got {steps_per_window!r}.")
+    N = int(Ns)
+    t1v = None if isinstance(t1, bool) else scalar_value(t1)
+    if t1v is None or np.ndim(t1v) != 0 or not np.isfinite(t1v) or not float(t1v) > 0:
+        raise ValueError(
+            f"`t1` must be a concrete finite time > 0 (the loop starts at t0 = 0; the grid is built before "
+            f"tracing), got {t1!r}."
+        )
     h = float(Tw) / N
-    K = int(np.ceil(float(t1) / h - 1e-9))
+    K = int(np.ceil(float(t1v) / h - 1e-9))
     ts = jnp.arange(K + 1) * h
     if v is None:
         v = jnp.zeros((K + 1, m))
     v = as_float_array(v, "v")
     if v.shape != (K + 1, m):
         raise ValueError(f"`v` must have shape ({K + 1}, {m}) (one sample per grid time), got {tuple(v.shape)}.")
+    v = traced_finite(v, "v")
     if phi_x is None:
         phi_x = lambda t: expm(A * t) @ xhat0
     if phi_u is None:
