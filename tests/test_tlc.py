@@ -262,6 +262,15 @@ def test_dynamic_inversion_refusals():
         obsjax.dynamic_inversion(
             obsjax.Nonlinear(arm, lambda t, x, u: x, 2, 2, 1), lambda t: jnp.zeros(2)
         )
+    # a reference output that is not finite at t_check (or whose derivative is not): named, where before
+    # Newton's method failed to converge with no word of the cause
+    with pytest.raises(ValueError, match="`y_ref` or one of its first 2 time derivatives is not finite"):
+        obsjax.dynamic_inversion(ARM, lambda t: jnp.array([jnp.nan * t]))
+    with pytest.raises(ValueError, match="not finite at t_check = 0.0"):
+        obsjax.dynamic_inversion(ARM, lambda t: jnp.array([jnp.sqrt(t)]))  # η̄' = ∞ at 0
+    late = obsjax.dynamic_inversion(ARM, lambda t: jnp.array([jnp.where(t < 1.0, jnp.sin(t), jnp.nan)]))
+    with pytest.raises(Exception, match="nominal output η̄\\(t\\) or one of its derivatives"):
+        jax.block_until_ready(late.state(2.0))
     # a nominal state that no input can produce (ẋ1 ≠ x2)
     with pytest.raises(ValueError, match="not a trajectory of the plant"):
         NominalTrajectory.from_state(

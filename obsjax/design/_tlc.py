@@ -396,6 +396,12 @@ class NominalTrajectory(eqx.Module):
 def _inverse_state_impl(nom, t):
     """Newton's method for Φ(t, x) = Y(t) from the guess (fixed number of iterations)."""
     Y, _ = nom._Y(t)
+    Y = eqx.error_if(
+        Y,
+        ~jnp.all(jnp.isfinite(Y)),
+        "dynamic_inversion: the nominal output η̄(t) or one of its derivatives η̄', η̄'', … is not finite "
+        "at this t (check `y_ref`).",
+    )
     x = jnp.asarray(nom.guess(t), dtype=Y.dtype)
 
     def body(_, x):
@@ -524,6 +530,13 @@ def dynamic_inversion(
             f"NominalTrajectory.from_state."
         )
     nom = NominalTrajectory(model, y_ref, None, guess_fn, tuple(r), int(iterations), float(tol))
+    Yc, topc = nom._Y(tc)
+    if not (np.all(np.isfinite(np.asarray(Yc))) and np.all(np.isfinite(np.asarray(topc)))):
+        raise ValueError(
+            f"dynamic_inversion: `y_ref` or one of its first {max(r)} time derivatives is not finite at "
+            f"t_check = {t_check}: η̄, η̄', … = {np.asarray(Yc).tolist()}, top derivatives "
+            f"{np.asarray(topc).tolist()}."
+        )
     # the decoupling matrix must be invertible at t_check (the staircase's relative residuals: each row
     # against its own norm, so the units of the outputs do not matter)
     _, g = _affine_parts(model)
