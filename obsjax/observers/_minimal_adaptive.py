@@ -77,8 +77,11 @@ class MinimalAdaptiveObserver(AbstractObserver):
     (:meth:`lyapunov`), V̇ = −λ ε_1² + ε_1 η: V is non-increasing whenever x̂(0) = x(0).  (ε_1, θ) is the
     second class of (4.21) with A = −λ and B = −Γ^{1/2} v, so the parameters converge uniformly when v is
     sufficiently rich (:func:`obsjax.analysis.morgan_narendra`): n distinct frequencies in u when all 2n
-    parameters are unknown.  With the same filters (D = R, λ = λ_0) and consistent initial states, this law
-    and :class:`obsjax.NonMinimalAdaptiveObserver` produce the same parameter estimates.
+    parameters are unknown.  With the same filters (D = R, λ = λ_0), matching initial estimates
+    (:meth:`NonMinimalAdaptiveObserver.matching_point`) and a plant at rest, x(0) = x̂(0) = 0, this law and
+    :class:`obsjax.NonMinimalAdaptiveObserver` produce the same parameter estimates.  From another
+    x(0) = x̂(0) they differ: the non-minimal observer's filters start at zero, which is the plant's
+    filtered state only when x(0) = 0 (its initial-condition terms decay with the filters' modes).
 
     **Arguments:**
 
