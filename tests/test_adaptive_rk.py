@@ -256,6 +256,7 @@ def test_jump_in_the_vector_field_against_the_closed_form():
     ],
     ids=["Tsit5 (FSAL)", "Heun (not FSAL)"],
 )
+@pytest.mark.extended
 def test_moving_reset_and_jump_times_against_closed_forms(solver, rtol, tol):
     # The steps do not move with a reset or jump time; its derivative is the jump condition at
     # arrival (y⁺ + δτ (∂R/∂t + ∂R/∂y f⁻ − f⁺)).  Two closed forms, both modes, three members:
@@ -295,6 +296,7 @@ def test_moving_reset_and_jump_times_against_closed_forms(solver, rtol, tol):
         np.testing.assert_allclose(rev, exact.sum(axis=1), rtol=0, atol=tol)
 
 
+@pytest.mark.extended
 def test_reset_time_gradient_where_a_mid_segment_reset_leaves_the_domain():
     # ẏ = √y, y(0) = 1, reset y ← y − 3 at τ: y(τ⁻) = (1 + τ/2)², y(3) = (g + (3 − τ)/2)² with
     # g = √((1 + τ/2)² − 3), so at τ = 2 (g = 1, g' = 1) y(3) = 2.25 and dy(3)/dτ = 2 · 1.5 · (1 − 1/2) = 1.5.
@@ -317,6 +319,7 @@ def test_reset_time_gradient_where_a_mid_segment_reset_leaves_the_domain():
     np.testing.assert_allclose(fwd, [1.5], rtol=1e-7)
 
 
+@pytest.mark.extended
 def test_rejected_steps_outside_the_domain_carry_no_gradient():
     # ẏ = −λ(t) y with λ = k before s = 1 and 50 k after (a switch the solver is not told of), the field
     # written so that it is defined for y > 0 only (NaN below), and a reset y ← 2 y at 1.5 written the
@@ -501,6 +504,7 @@ def _mixed_batch(block_size):
     )
 
 
+@pytest.mark.extended
 def test_blocks_give_the_solution_of_one_loop():
     # 7 members in blocks of 3 (three blocks, two padding members) and of 1, against one loop: the
     # members are independent, so the solution, the step counts and the status agree member by

@@ -62,6 +62,7 @@ def test_transition_matrix_example_scipy_and_open_loop_instability():
     assert abs(np.linalg.norm(Phi @ [5.0, -5.0]) - CHEN_YEN_OPEN_LOOP_NORM_10) < 5e-3
 
 
+@pytest.mark.extended
 def test_gramians_lti_closed_form():
     A = np.array([[0.0, 1.0], [-2.0, -0.3]])
     C = np.array([[1.0, 0.0]])
@@ -85,6 +86,7 @@ def test_gramians_lti_closed_form():
     np.testing.assert_allclose(We, refe, rtol=1e-8, atol=1e-12)
 
 
+@pytest.mark.extended
 def test_regressor_gramian_appendix_identity():
     # W_o^z(k) = Φᵀ(kT, kT-T) W_o^end(k) Φ(kT, kT-T) (Appendix), and = W_o(k) of (4) as printed.
     T, k = 1.1, 3
@@ -225,6 +227,7 @@ def test_short_pulses_in_a_callable_regressor_are_integrated_at_their_declared_j
 @pytest.mark.parametrize(
     "s", [pytest.param(1e-6, marks=pytest.mark.extended), pytest.param(1e-3, marks=pytest.mark.extended), 1e4]
 )
+@pytest.mark.extended
 def test_persistent_excitation_does_not_depend_on_units(s):
     """w = s [sin t, cos t]: η1 = η2 = π s².  The verdict compared η1 with tol·max(1, η2), an absolute
     floor (False for s ≤ 1e-5 although η1/η2 = 1), and the gramian's atol was absolute (η1 1.1 % off at
@@ -492,6 +495,7 @@ def test_error_transition_that_overflows_within_a_period_names_the_cause():
     np.testing.assert_allclose(We, exact, rtol=1e-9)
 
 
+@pytest.mark.extended
 def test_transition_matrix_derivatives_at_equal_times():
     """At t = τ, Φ = I with ∂Φ/∂t = A(τ) and ∂Φ/∂τ = −A(τ) (d/dt expm(A (t − τ))); the guard of the tie
     returned a constant I there, so a loss over a time grid that contains τ lost those terms (d/dτ 0.94

@@ -60,6 +60,7 @@ def test_a_second_simulate_with_new_values_is_not_traced_again(traces, kw):
     assert not np.allclose(a.error, b.error)
 
 
+@pytest.mark.extended
 def test_another_save_grid_or_period_is_another_program(traces):
     obsjax.simulate(CY, _ls(), jnp.ones(2), jnp.zeros(2), TS)
     got = obsjax.simulate(CY, _ls(), jnp.ones(2), jnp.zeros(2), TS + 0.05)  # the resets fall elsewhere
@@ -70,6 +71,7 @@ def test_another_save_grid_or_period_is_another_program(traces):
     assert float(jnp.max(jnp.abs(got.error - other.error))) > 1e-6  # not the program of T = 0.25
 
 
+@pytest.mark.extended
 @pytest.mark.parametrize("lockstep", [False, True], ids=["masked", "lockstep"])
 def test_a_second_batch_with_new_values_is_not_traced_again(traces, lockstep):
     x0s = jnp.array([[1.0, 2.0], [0.5, -1.0]])
@@ -92,6 +94,7 @@ def _ise_of_gamma(gamma):
     return obsjax.losses.ise(tr)
 
 
+@pytest.mark.extended
 def test_an_eager_gradient_is_compiled_once_and_equals_central_differences(traces):
     """jax.grad without jit differentiates the compiled program: a second gradient at another gain runs the
     programs JAX derived for the first (8.0 s per call on the Chen & Yen example with 40 resets before,
@@ -112,6 +115,7 @@ def test_an_eager_gradient_is_compiled_once_and_equals_central_differences(trace
 @pytest.mark.parametrize(
     "how", ["simulate"] + [pytest.param(h, marks=pytest.mark.extended) for h in ("lockstep", "masked")]
 )
+@pytest.mark.extended
 def test_a_gradient_through_a_plant_function_that_closes_over_the_parameter(how):
     """The parameter reaches the solve only through a closure (an LTV plant's A(t) built inside the loss).
     JAX refused this gradient, eagerly and under jit ("differentiation of a custom_vjp function with respect
@@ -145,6 +149,7 @@ _LUEN = obsjax.Luenberger(obsjax.LTI(_A0, C=_C0), L=jnp.array([[3.0], [2.0]]))
 _TS4 = jnp.linspace(0.0, 2.0, 5)
 
 
+@pytest.mark.extended
 def test_a_global_that_holds_a_tracer_is_not_served_a_program_of_another_tracer():
     """A plant function reads a global that the loss sets to the parameter, twice per loss with other
     values.  Both solves had one key (a traced value was left out of the content digest), so the second

@@ -607,6 +607,7 @@ def test_window_span_is_checked_in_the_time_unit_of_the_window():
     np.testing.assert_allclose(obs.estimate_window(ts, y, u, rule="trapezoid"), ref, rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.extended
 def test_kernels_are_covariant_under_a_change_of_state_units():
     """Each row of (G1, G2) is its own minimum-norm problem, so with x' = D x the kernels are D G1, D G2
     exactly.  The Hamiltonians were exponentiated in the user's units: with D spanning 1e-2 … 1e3 the

@@ -128,6 +128,7 @@ def test_estimate_window_grid_checks_hold_under_jit():
         jax.block_until_ready(est_tr(*data(swapped)))
 
 
+@pytest.mark.extended
 def test_beta_zero_gives_the_gramian_kernel():
     """γ = 0: G1(t) = M⁻¹ Φ(t, t1)ᵀ C(t)ᵀ with the window gramian M (SciPy transition matrix, Simpson)."""
     ts = np.linspace(T0, T1, 401)
@@ -304,6 +305,7 @@ def test_delay_loop_is_second_order_and_equals_sample_and_propagate_on_consisten
     assert 3.5 < errs[0] / errs[1] < 4.5
 
 
+@pytest.mark.extended
 def test_delay_loop_is_deadbeat_after_T():
     """x̂0 ≠ x0 (the data jump at t0): for t ≥ T the window holds plant data only, x̂ = x and the state
     follows ẋ = (A + BP) x (Lemma 4, (42))."""

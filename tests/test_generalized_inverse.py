@@ -382,6 +382,7 @@ def test_unstable_F_is_refused_by_both_observers():
         obsjax.GeneralizedInverseReduced(reduced_plant(), jnp.diag(jnp.array([-5.0, 0.0])), lambda t: jnp.eye(2))
 
 
+@pytest.mark.extended
 def test_a_T_singular_inside_the_simulated_span_is_refused_without_a_horizon():
     """With ``horizon=None`` only t = 0 was checked: a T(t) whose determinant changes sign near t = 0.79
     (a design of the slides' procedure on a 4-state, 2-output plant) simulated over [0, 3] gave status 0

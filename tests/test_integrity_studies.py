@@ -146,6 +146,7 @@ def _settings_module(scale):
     return cfg
 
 
+@pytest.mark.extended
 def test_settings_module_attributes_read_by_a_sampler_enter_the_fingerprint(tmp_path):
     # a module was hashed by its name only: a changed setting reused the old study's chunks without a word
     cfg = _settings_module(1.0)
@@ -305,6 +306,7 @@ def loss_global_scale(traj):
         pytest.param("ltv", marks=pytest.mark.extended),
     ],
 )
+@pytest.mark.extended
 def test_simulate_traces_again_after_a_changed_global(how):
     """The same input function (or LTV plant function), a global it reads changed between two calls:
     simulate and simulate_batch must give the trajectory of the new value -- that of a new function
@@ -347,6 +349,7 @@ def test_simulate_traces_again_after_a_changed_global(how):
     np.testing.assert_allclose(np.asarray(second), np.asarray(fresh), rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.extended
 def test_tune_traces_again_after_a_changed_global():
     """tune's kernel is keyed on its functions' content: a loss and an input that read a changed global
     give the loss of the new value (the first step's J), not the kernel compiled before."""

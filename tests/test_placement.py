@@ -200,6 +200,7 @@ def test_scaled_A(c):
         np.testing.assert_allclose(Lc, (c / d) * L0, rtol=1e-8, atol=1e-12 * abs(c / d) * np.abs(L0).max())
 
 
+@pytest.mark.extended
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_gain_follows_a_change_of_state_and_output_units(seed):
     """x → S x, y → Λ y (S, Λ diagonal, units up to 10^±6 apart): the pair (S A S⁻¹, Λ C S⁻¹) is placed,
