@@ -29,6 +29,7 @@ from .._checks import as_float_array, concrete_value, scalar_value, static_value
 from .._config import require_x64
 from ..analysis._lti import gram_relative_residuals, observability_staircase
 from ..systems._plants import LTI
+from ._adaptive_common import state_dimension
 from ._base import AbstractObserver
 from ._validation import require_finite, traced_finite
 
@@ -1086,10 +1087,7 @@ def delay_closed_loop(observer, P, x0, xhat0, t1, *, steps_per_window=200, phi_x
     Tw = concrete_value(observer.T)
     if Tw is None:
         raise ValueError("`observer.T` must be concrete (the grid is built before tracing).")
-    Ns = None if isinstance(steps_per_window, bool) else scalar_value(steps_per_window)
-    if Ns is None or np.ndim(Ns) != 0 or not float(Ns).is_integer() or float(Ns) < 2:
-        raise ValueError(f"`steps_per_window` must be an integer >= 2, got {steps_per_window!r}.")
-    N = int(Ns)
+    N = state_dimension(steps_per_window, "steps_per_window", minimum=2)
     t1v = None if isinstance(t1, bool) else scalar_value(t1)
     if t1v is None or np.ndim(t1v) != 0 or not np.isfinite(t1v) or not float(t1v) > 0:
         raise ValueError(
