@@ -86,6 +86,40 @@ def test_a_second_process_reads_what_the_first_wrote(tmp_path):
     )  # the executable read back computes the same numbers
 
 
+# The two eager solves that JAX may write (no host callback in their programs): fixed-step `simulate` and
+# the masked batch.  The adaptive `simulate` solves with diffrax, whose checks of the save times are host
+# callbacks, so it is compiled in every process (README, "Compilation cache").
+_SOLVES = r"""
+import json, os, sys
+import jax, jax.numpy as jnp, numpy as np
+import obsjax
+
+events = []
+jax.monitoring.register_event_listener(lambda ev, **kw: events.append(ev))
+obsjax.enable_compilation_cache(sys.argv[1], min_compile_time_secs=0.0)
+plant = obsjax.LTI([[0., 1.], [-2., -3.]], [[0.], [1.]], [[1., 0.]])
+obs = obsjax.Luenberger(plant, L=np.array([[5.], [3.]]))
+ts = jnp.linspace(0., 1., 5)
+u = lambda t: jnp.ones(1)
+fixed = obsjax.simulate(plant, obs, jnp.ones(2), jnp.zeros(2), ts, u=u, adaptive=False, dt0=0.01)
+masked = obsjax.simulate_batch(plant, obs, jnp.ones((3, 2)), jnp.zeros((3, 2)), ts, u=u, lockstep=False)
+print(json.dumps({"hits": events.count("/jax/compilation_cache/cache_hits"),
+                  "programs": sorted(f for f in os.listdir(sys.argv[1]) if "program_fn" in f),
+                  "values": [np.asarray(fixed.xhat).tolist(), np.asarray(masked.xhat).tolist()]}))
+"""
+
+
+@pytest.mark.extended
+def test_fixed_step_and_masked_solves_are_read_back_by_a_second_process(tmp_path):
+    d = str(tmp_path / "cache")
+    first = json.loads(_python(_SOLVES, d))
+    assert len(first["programs"]) >= 2, first["programs"]  # both solves' programs were written
+    second = json.loads(_python(_SOLVES, d))
+    assert second["programs"] == first["programs"]  # nothing compiled anew for them
+    assert second["hits"] >= 2, second["hits"]
+    assert second["values"] == first["values"]
+
+
 def test_opt_out(tmp_path, monkeypatch):
     d = tmp_path / "never"
     monkeypatch.setenv(_cache.OPT_OUT, "1")
