@@ -9,7 +9,8 @@ Workloads:
 - ``obsjax demo`` (the command line turns the cache on itself);
 - the first ``tune`` step of the README example (``steps=1``: compilation plus one gradient step; fixed steps
   as in the README, and the same problem with adaptive steps and 16 scenarios, the masked kernel);
-- the first chunk of a Monte-Carlo study (the README's study with ``n = chunk_size = 2500``).
+- the first chunk of a Monte-Carlo study (the README's study with ``n = chunk_size = 2500``);
+- the first adaptive ``simulate`` of the Chen & Yen example (40 reset segments).
 
 The library workloads call ``obsjax.enable_compilation_cache()`` when the cache is on.  Each
 process's wall time and CPU time (user + system, all threads) are recorded; the workload's own
@@ -19,7 +20,7 @@ section is timed inside the process (after imports).  The cache directory is a f
 With the trace cache (``obsjax.enable_trace_cache()``, on in the command) the library workloads run
 twice more, cold and warm, and the demo once more with it turned off on the warm cache.
 
-Usage: ``python benchmarks/h_first_call.py [--only demo,tune,tune-adaptive,mc] [--demo-n 10000]``.
+Usage: ``python benchmarks/h_first_call.py [--only demo,tune,tune-adaptive,mc,simulate] [--demo-n 10000]``.
 """
 
 from __future__ import annotations
@@ -87,6 +88,17 @@ print("RESULT", json.dumps({"section": time.perf_counter() - t0, "import": t0 - 
 """
 
 
+# The first adaptive `simulate` of the same example (40 reset segments on [0, 10]): one eager call, the
+# library's own compiled program (before, diffrax's checks of the save times made it a program JAX
+# never writes to the cache).
+_SIMULATE = _PREAMBLE + r"""
+t0 = time.perf_counter()
+tr = obsjax.simulate(plant, obs, jnp.array([1.0, -1.0]), jnp.array([5.0, -5.0]), jnp.linspace(0., 10., 41))
+jax.block_until_ready(tr.error)
+print("RESULT", json.dumps({"section": time.perf_counter() - t0, "import": t0 - t_start}))
+"""
+
+
 def _run(cmd, env, cwd):
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -114,7 +126,7 @@ def _cache_size(d):
     return len(entries), sum(os.path.getsize(f) for f in files) / 2**20
 
 
-def main(only=("demo", "tune", "tune-adaptive", "mc"), demo_n=10_000):
+def main(only=("demo", "tune", "tune-adaptive", "mc", "simulate"), demo_n=10_000):
     load = C.Load()
     work = tempfile.mkdtemp(prefix="obsjax-h-")
     base = {
@@ -141,6 +153,7 @@ def main(only=("demo", "tune", "tune-adaptive", "mc"), demo_n=10_000):
         "tune": [sys.executable, "-c", _TUNE],
         "tune-adaptive": [sys.executable, "-c", _TUNE_ADAPTIVE],
         "mc": [sys.executable, "-c", _MC],
+        "simulate": [sys.executable, "-c", _SIMULATE],
     }
     rows = []
     try:
@@ -197,6 +210,7 @@ _MODES = {
         "off", "off, default XLA options", "cold", "warm", "cold + traces", "warm + traces",
     ),
     "mc": ("off", "off, default XLA options", "cold", "warm", "cold + traces", "warm + traces"),
+    "simulate": ("off", "cold", "warm"),
 }  # fmt: skip
 _TARGETS = {
     ("demo", "cold"): 30.0,
@@ -213,15 +227,18 @@ _WHAT = {
     "tune": "first `tune` step of the README example, fixed steps (section: the `tune(..., steps=1)` call)",
     "tune-adaptive": "first `tune` step, the README's earlier example: adaptive steps, 16 scenarios, noise dt 0.02 (section: as above)",
     "mc": "first Monte-Carlo chunk, 2500 trajectories (section: the `monte_carlo` call)",
+    "simulate": "first adaptive `simulate` of the example (40 resets; section: the `simulate` call)",
 }
 
 
 _NOTES = """
 What the cache can and cannot save: JAX writes a compiled program to the cache only if it carries
-no host callback. `eqx.error_if` (the `throw=True` checks of `simulate`, and the checks inside
-diffrax) is a host callback, so jitted `simulate` calls are compiled in every process; `tune`'s
-kernel and the Monte-Carlo kernels are traced with the checks as NaN (no callbacks: a check that
-fires rejects the tuning step, or fails the trajectory) and are cached. Tracing and lowering are
+no host callback (`eqx.error_if`'s checks are). The `throw=True` checks of `simulate` run outside
+its compiled program, and obsjax's solves trace diffrax without its two checks of the save times
+(which they satisfy by construction), so the eager `simulate` and `simulate_batch` programs are cached
+unless an observer checks a gain inside its vector field; `tune`'s kernel and the Monte-Carlo kernels
+are traced with the checks as NaN (no callbacks: a check that fires rejects the tuning step, or fails
+the trajectory) and are cached. Tracing and lowering are
 not saved by the compilation cache; with `obsjax.enable_trace_cache()` (which the `obsjax` command
 turns on) the traced programs of `tune`'s and `monte_carlo`'s kernels are saved too (`jax.export`),
 and a warm process reads them instead of tracing (rows "+ traces"; the demo's "traces off" rows run
@@ -282,7 +299,7 @@ def _report(rows, demo_n):
 
 if __name__ == "__main__":
     p = argparse.ArgumentParser()
-    p.add_argument("--only", default="demo,tune,tune-adaptive,mc")
+    p.add_argument("--only", default="demo,tune,tune-adaptive,mc,simulate")
     p.add_argument("--demo-n", type=int, default=10_000)
     a = p.parse_args()
     sys.exit(main(tuple(a.only.split(",")), a.demo_n))

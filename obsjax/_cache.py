@@ -14,11 +14,10 @@ worker thread, see :data:`obsjax._config.BAD_CPU_JAXLIB`, and the memory mapping
 programs accumulate in a long process, see the README's "Long processes": both dealt with.)
 
 What is not cached: JAX writes no entry for a program that carries host callbacks
-(``jax.debug.print``, progress bars, and ``eqx.error_if``'s checks: those ``throw=True`` adds, and those
-diffrax's ``diffeqsolve`` adds for its save times whatever ``throw`` is, so an adaptive ``simulate`` and the
-lock-step ``simulate_batch`` compile in every process; fixed-step ``simulate``, the masked batch
-``simulate_batch(..., lockstep=False)`` and the kernels of ``tune`` and ``monte_carlo``, traced with the
-checks as NaN, are cached), nor
+(``jax.debug.print``, progress bars, and ``eqx.error_if``'s checks traced into the program: an observer's
+checks inside its vector field; diffrax's two checks of the save times are left out of obsjax's solves, see
+:func:`obsjax._checks.without_diffrax_save_time_checks`, and the ``throw=True`` checks run outside the
+program), nor
 for one that compiled in less than ``min_compile_time_secs`` (0.2 s by default; the ``obsjax`` command
 uses 0, so its second run compiles nothing).  Tracing and lowering run in every
 process; only XLA's compilation is saved here (:mod:`obsjax._trace_cache` saves the traced programs of

@@ -202,3 +202,54 @@ def runtime_checks_as_nan():
             if _AS_NAN["depth"] == 0:
                 E.EQX_ON_ERROR, E.branched_error_if_impl_jit = _AS_NAN["saved"]
                 _AS_NAN["saved"] = None
+
+
+#: diffrax's runtime checks of ``SaveAt.ts`` (``diffeqsolve``), which the solves of ``obsjax._integrate``
+#: satisfy by construction: their save times are the validated save times (nondecreasing; decreasing traced
+#: times are refused by obsjax's own check), clipped onto each segment's [start, end]
+DIFFRAX_SAVE_TIME_CHECKS = frozenset(
+    {"saveat.ts must be increasing or decreasing.", "saveat.ts must lie between t0 and t1."}
+)
+_SKIP = threading.local()
+_SKIP_STATE = {"installed": None}
+
+
+def _skipping_dispatch(original):
+    def dispatch(x, pred, index, msgs, *, on_error):
+        if getattr(_SKIP, "depth", 0) and set(msgs) <= DIFFRAX_SAVE_TIME_CHECKS:
+            return x
+        return original(x, pred, index, msgs, on_error=on_error)
+
+    return dispatch
+
+
+@contextlib.contextmanager
+def without_diffrax_save_time_checks():
+    """Trace ``diffrax.diffeqsolve`` without its two checks of ``SaveAt.ts`` (:data:`DIFFRAX_SAVE_TIME_CHECKS`),
+    in this thread only.
+
+    diffrax traces them as ``eqx.error_if`` checks, host callbacks whatever ``throw`` is, and JAX writes no
+    program that carries a host callback to its persistent compilation cache: an adaptive ``simulate`` compiled
+    in every process, cache or not.  The solves of ``obsjax._integrate`` pass save times that satisfy both
+    checks by construction, so inside this context those two checks (identified by their messages) are left
+    out; every other check, obsjax's own included, is traced as before.  equinox looks its check function up in
+    ``equinox._errors`` at each check: a dispatcher is put there once (first use; it passes every call on to
+    the function it replaced unless this thread is inside the context and the check is one of the two).  If
+    equinox's internals differ, or :func:`runtime_checks_as_nan` (whose checks carry no callback anyway) holds
+    that slot, this does nothing.
+    """
+    try:
+        import equinox._errors as E
+
+        current = E.branched_error_if_impl_jit
+    except (ImportError, AttributeError):
+        yield
+        return
+    with _AS_NAN_LOCK:
+        if _AS_NAN["depth"] == 0 and current is not _SKIP_STATE["installed"]:
+            _SKIP_STATE["installed"] = E.branched_error_if_impl_jit = _skipping_dispatch(current)
+    _SKIP.depth = getattr(_SKIP, "depth", 0) + 1
+    try:
+        yield
+    finally:
+        _SKIP.depth -= 1

@@ -86,9 +86,10 @@ def test_a_second_process_reads_what_the_first_wrote(tmp_path):
     )  # the executable read back computes the same numbers
 
 
-# The two eager solves that JAX may write (no host callback in their programs): fixed-step `simulate` and
-# the masked batch.  The adaptive `simulate` solves with diffrax, whose checks of the save times are host
-# callbacks, so it is compiled in every process (README, "Compilation cache").
+# The eager solves are written and read back: adaptive and fixed-step `simulate`, the lock-step and the
+# masked batch.  Two of them solve with diffrax, whose checks of the save times are host callbacks (JAX
+# writes no program that has one): they compiled in every process before obsjax's solves left those
+# two checks out.
 _SOLVES = r"""
 import json, os, sys
 import jax, jax.numpy as jnp, numpy as np
@@ -103,20 +104,22 @@ ts = jnp.linspace(0., 1., 5)
 u = lambda t: jnp.ones(1)
 fixed = obsjax.simulate(plant, obs, jnp.ones(2), jnp.zeros(2), ts, u=u, adaptive=False, dt0=0.01)
 masked = obsjax.simulate_batch(plant, obs, jnp.ones((3, 2)), jnp.zeros((3, 2)), ts, u=u, lockstep=False)
+adaptive = obsjax.simulate(plant, obs, jnp.ones(2), jnp.zeros(2), ts, u=u)
+lockstep = obsjax.simulate_batch(plant, obs, jnp.ones((3, 2)), jnp.zeros((3, 2)), ts, u=u)
 print(json.dumps({"hits": events.count("/jax/compilation_cache/cache_hits"),
                   "programs": sorted(f for f in os.listdir(sys.argv[1]) if "program_fn" in f),
-                  "values": [np.asarray(fixed.xhat).tolist(), np.asarray(masked.xhat).tolist()]}))
+                  "values": [np.asarray(r.xhat).tolist() for r in (fixed, masked, adaptive, lockstep)]}))
 """
 
 
 @pytest.mark.extended
-def test_fixed_step_and_masked_solves_are_read_back_by_a_second_process(tmp_path):
+def test_every_eager_solve_is_read_back_by_a_second_process(tmp_path):
     d = str(tmp_path / "cache")
     first = json.loads(_python(_SOLVES, d))
-    assert len(first["programs"]) >= 2, first["programs"]  # both solves' programs were written
+    assert len(first["programs"]) == 4, first["programs"]  # the four solves' programs were written
     second = json.loads(_python(_SOLVES, d))
     assert second["programs"] == first["programs"]  # nothing compiled anew for them
-    assert second["hits"] >= 2, second["hits"]
+    assert second["hits"] >= 4, second["hits"]
     assert second["values"] == first["values"]
 
 
@@ -254,3 +257,34 @@ def test_import_leaves_scipy_unloaded():
     """SciPy (0.4 s of every process's start) is imported where a function needs it, not by ``import obsjax``."""
     line = _python("import sys, obsjax; print(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))")
     assert line == "[]"
+
+
+def test_only_diffrax_save_time_checks_are_left_out_and_only_inside_the_context():
+    """obsjax's solves trace diffrax without its two checks of SaveAt.ts (host callbacks, which keep a program
+    out of the cache); every other check, and the same two in other threads or outside, still raise."""
+    import threading
+
+    import equinox as eqx
+
+    from obsjax._checks import DIFFRAX_SAVE_TIME_CHECKS, without_diffrax_save_time_checks
+
+    msg = sorted(DIFFRAX_SAVE_TIME_CHECKS)[0]
+    x = jax.numpy.asarray(-1.0)
+    elsewhere = []
+    with without_diffrax_save_time_checks():
+        assert float(jax.jit(lambda v: eqx.error_if(v, v < 0, msg))(x)) == -1.0
+        with pytest.raises(Exception, match="another check"):
+            jax.jit(lambda v: eqx.error_if(v, v < 0, "another check"))(x)
+
+        def other_thread():
+            try:
+                jax.jit(lambda v: eqx.error_if(v, v < 0, msg))(x)
+            except Exception as e:  # noqa: BLE001 - the check's error, whatever equinox wraps it in
+                elsewhere.append(str(e))
+
+        t = threading.Thread(target=other_thread)
+        t.start()
+        t.join()
+    assert elsewhere and msg in elsewhere[0]  # another thread keeps the check
+    with pytest.raises(Exception, match="saveat"):
+        jax.jit(lambda v: eqx.error_if(v, v < 0, msg))(x)  # and so does this thread, outside

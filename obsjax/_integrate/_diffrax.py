@@ -17,7 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import concrete_value
+from .._checks import concrete_value, without_diffrax_save_time_checks
 from ..systems._noise import WhiteNoise
 from . import _segments, _system
 from ._schedule import Schedule
@@ -196,11 +196,12 @@ def integrate(args: _system.Args, state0, ts, sched: Schedule, opt: Options):
 
     def solve(s0, s1, state, save_ts):
         c = ctrl if opt.white_noise is None else SaveTimeStepSize(jax.lax.stop_gradient(save_ts))
-        sol = diffrax.diffeqsolve(
-            terms, solver, s0, s1, opt.dt0, state, args=args,
-            saveat=diffrax.SaveAt(ts=save_ts, t1=True), stepsize_controller=c,
-            max_steps=max_steps, throw=False, **adjoint,
-        )
+        with without_diffrax_save_time_checks():  # save_ts lie in [s0, s1], nondecreasing (``_segments``)
+            sol = diffrax.diffeqsolve(
+                terms, solver, s0, s1, opt.dt0, state, args=args,
+                saveat=diffrax.SaveAt(ts=save_ts, t1=True), stepsize_controller=c,
+                max_steps=max_steps, throw=False, **adjoint,
+            )
         saved = tmap(lambda a: a[:-1], sol.ys)
         return saved, code_of(sol.result), tmap(lambda a: a[-1], sol.ys)
 

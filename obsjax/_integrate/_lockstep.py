@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import without_diffrax_save_time_checks
 from . import _diffrax, _segments, _system
 from ._schedule import Schedule
 from ._status import COLLAPSE_ULPS, SOLVER_FAILED, SUCCESS, finite_gradient, frozen, is_finite, ulp
@@ -195,12 +196,13 @@ class _Solve:
     def __call__(self, s0, s1, carry, save_ts):
         state, evicted = carry
         opt = self.opt
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(self.drift), opt.solver, s0, s1, opt.dt0, state, args=(self.args_b, evicted),
-            saveat=diffrax.SaveAt(ts=save_ts, t1=True, controller_state=True),
-            stepsize_controller=self.ctrl, max_steps=opt.max_steps, throw=False,
-            **({} if opt.adjoint is None else {"adjoint": opt.adjoint}),
-        )
+        with without_diffrax_save_time_checks():  # save_ts lie in [s0, s1], nondecreasing (``_segments``)
+            sol = diffrax.diffeqsolve(
+                diffrax.ODETerm(self.drift), opt.solver, s0, s1, opt.dt0, state, args=(self.args_b, evicted),
+                saveat=diffrax.SaveAt(ts=save_ts, t1=True, controller_state=True),
+                stepsize_controller=self.ctrl, max_steps=opt.max_steps, throw=False,
+                **({} if opt.adjoint is None else {"adjoint": opt.adjoint}),
+            )
         ok = sol.result == diffrax.RESULTS.successful
         code = jnp.where(ok, SUCCESS, SOLVER_FAILED).astype(jnp.int32)
         end = tmap(lambda a: a[-1], sol.ys)
