@@ -652,25 +652,26 @@ def test_study_kernels_carry_no_host_callbacks():
 
     plant = obsjax.chen_yen_example()
     obs = obsjax.LeastSquaresReset(plant, 20.0, 0.1, 0.25)
-    ts = np.linspace(0.0, 1.0, 5)
+    # traced save times: obsjax checks them (increasing, finite) with eqx.error_if at run time
+    ts = jnp.linspace(0.0, 1.0, 5)
 
-    def f(x0):
-        return obsjax.simulate(plant, obs, x0, jnp.zeros(2), ts, throw=False).error_norm
+    def f(x0, ts):
+        return obsjax.simulate(plant, obs, x0, jnp.zeros(2), ts, throw=False, max_segments=4).error_norm
 
-    plain = str(jax.make_jaxpr(f)(jnp.ones(2)))
-    assert "callback" in plain  # diffrax checks SaveAt.ts of each reset segment at run time
+    plain = str(jax.make_jaxpr(f)(jnp.ones(2), ts))
+    assert "callback" in plain
     with runtime_checks_as_nan():
-        inside = str(jax.make_jaxpr(lambda x: f(x))(jnp.ones(2)))  # a new function: no jit-cached trace
+        inside = str(jax.make_jaxpr(lambda x, t: f(x, t))(jnp.ones(2), ts))  # a new function: no jit-cached trace
         batch = str(
-            jax.make_jaxpr(lambda x: obsjax.simulate_batch(plant, obs, x, x, ts, throw=False).error)(
-                jnp.ones((3, 2))
-            )
+            jax.make_jaxpr(
+                lambda x, t: obsjax.simulate_batch(plant, obs, x, x, t, throw=False, max_segments=4).error
+            )(jnp.ones((3, 2)), ts)
         )
         fired = jax.jit(lambda x: eqx.error_if(x, x > 0, "fires"))(jnp.ones(()))
     assert "callback" not in inside
     assert "callback" not in batch
     # no trace made inside a study is reused outside it
-    assert "callback" in str(jax.make_jaxpr(lambda x: f(x))(jnp.ones(2)))
+    assert "callback" in str(jax.make_jaxpr(lambda x, t: f(x, t))(jnp.ones(2), ts))
     assert np.isnan(fired)
     with pytest.raises(Exception, match="fires"):  # outside a study, checks raise again
         jax.block_until_ready(jax.jit(lambda x: eqx.error_if(x, x > 0, "fires"))(jnp.ones(())))
