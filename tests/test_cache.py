@@ -87,9 +87,10 @@ def test_a_second_process_reads_what_the_first_wrote(tmp_path):
 
 
 # The eager solves are written and read back: adaptive and fixed-step `simulate`, the lock-step and the
-# masked batch.  Two of them solve with diffrax, whose checks of the save times are host callbacks (JAX
-# writes no program that has one): they compiled in every process before obsjax's solves left those
-# two checks out.
+# masked batch, and `estimate` on recorded data.  Three of them solve with diffrax, whose checks of the
+# save times are host callbacks (JAX writes no program that has one): they compiled in every process
+# before obsjax's solves left those two checks out (and `estimate` traced its `throw` checks into its
+# program).
 _SOLVES = r"""
 import json, os, sys
 import jax, jax.numpy as jnp, numpy as np
@@ -106,9 +107,11 @@ fixed = obsjax.simulate(plant, obs, jnp.ones(2), jnp.zeros(2), ts, u=u, adaptive
 masked = obsjax.simulate_batch(plant, obs, jnp.ones((3, 2)), jnp.zeros((3, 2)), ts, u=u, lockstep=False)
 adaptive = obsjax.simulate(plant, obs, jnp.ones(2), jnp.zeros(2), ts, u=u)
 lockstep = obsjax.simulate_batch(plant, obs, jnp.ones((3, 2)), jnp.zeros((3, 2)), ts, u=u)
+data = obsjax.Measurements(ts, adaptive.y, jnp.ones((5, 1)), hold="linear")
+recorded = obsjax.estimate(obs, data, jnp.zeros(2))
 print(json.dumps({"hits": events.count("/jax/compilation_cache/cache_hits"),
-                  "programs": sorted(f for f in os.listdir(sys.argv[1]) if "program_fn" in f),
-                  "values": [np.asarray(r.xhat).tolist() for r in (fixed, masked, adaptive, lockstep)]}))
+                  "programs": sorted(f for f in os.listdir(sys.argv[1]) if "program_fn" in f or "jit__run" in f),
+                  "values": [np.asarray(r.xhat).tolist() for r in (fixed, masked, adaptive, lockstep, recorded)]}))
 """
 
 
@@ -116,10 +119,10 @@ print(json.dumps({"hits": events.count("/jax/compilation_cache/cache_hits"),
 def test_every_eager_solve_is_read_back_by_a_second_process(tmp_path):
     d = str(tmp_path / "cache")
     first = json.loads(_python(_SOLVES, d))
-    assert len(first["programs"]) == 4, first["programs"]  # the four solves' programs were written
+    assert len(first["programs"]) == 5, first["programs"]  # the five solves' programs were written
     second = json.loads(_python(_SOLVES, d))
     assert second["programs"] == first["programs"]  # nothing compiled anew for them
-    assert second["hits"] >= 4, second["hits"]
+    assert second["hits"] >= 5, second["hits"]
     assert second["values"] == first["values"]
 
 

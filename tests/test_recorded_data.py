@@ -315,6 +315,30 @@ def test_traced_bad_times_fail_under_jit():
         jax.block_until_ready(g(np.where(np.arange(5)[:, None] == 2, np.nan, y)))
 
 
+def test_sample_times_replaced_after_construction_are_refused_eagerly_and_under_jit():
+    """The driver's schedule no longer checks the samples inside its compiled program (a host callback
+    there kept the program out of the persistent cache): estimate checks them before it, so times swapped
+    in with ``eqx.tree_at`` past the constructor's checks are still refused, eagerly and under jit, and the
+    checks of `throw` still fire under jit."""
+    ts, y, u = _ok()
+    data = obsjax.Measurements(ts, y, u)
+    for bad in (ts[[0, 2, 1, 3, 4]], np.where(np.arange(5) == 3, np.nan, ts)):
+        swapped = eqx.tree_at(lambda d: d.ts, data, jnp.asarray(bad))
+        with pytest.raises(ValueError, match=r"`data.ts` must hold finite, non-decreasing sample times"):
+            obsjax.estimate(OBS, swapped, XH0)
+        f = jax.jit(lambda t: obsjax.estimate(OBS, eqx.tree_at(lambda d: d.ts, data, t), XH0).xhat)
+        with pytest.raises(Exception, match=r"`data.ts` must hold finite, non-decreasing sample times"):
+            jax.block_until_ready(f(jnp.asarray(bad)))
+    ok = jax.jit(lambda t: obsjax.estimate(OBS, eqx.tree_at(lambda d: d.ts, data, t), XH0).xhat)(jnp.asarray(ts))
+    np.testing.assert_allclose(np.asarray(ok), np.asarray(obsjax.estimate(OBS, data, XH0).xhat), rtol=1e-12, atol=1e-14)
+    # throw=True under jit: a NaN initial estimate makes the estimate non-finite, and reading it raises
+    nan0 = jnp.full(2, jnp.nan)
+    g = jax.jit(lambda x: obsjax.estimate(OBS, data, x).xhat)
+    with pytest.raises(Exception, match="obsjax.estimate: the estimate diverged"):
+        jax.block_until_ready(g(nan0))
+    assert int(jnp.max(jax.jit(lambda x: obsjax.estimate(OBS, data, x, throw=False).status)(nan0))) != 0
+
+
 def test_samples_closer_than_the_schedule_tolerance_are_refused():
     """Two samples 1e-10 apart (a merged sensor stream) are one instant for estimate's update schedule: one
     update was lost and a saved row came back as zeros with status 0.  Refused, eagerly and under jit; a

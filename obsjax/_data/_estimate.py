@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import concrete_value, real_array
+from .._checks import concrete_value, real_array, without_diffrax_save_time_checks
 from .._config import require_x64
 from .._integrate import _diffrax, _schedule, _segments
 from .._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, code_of, is_finite
@@ -224,9 +224,28 @@ def _estimate_one(observer, data, xhat0, *, ts, solver, rtol, atol, dt0, adaptiv
     window = 1 if at_samples else _window(observer, data, save_ts, ts_np, n_reset)
     # the observer's content (functions with the globals they read) keys the compiled driver, which would
     # otherwise find the program traced before by the identity of the observer's functions
-    static = (solver, bool(adaptive), max_steps, adjoint, n_reset, window, at_samples, bool(throw),
-              content_key(observer))  # fmt: skip
-    return _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static)
+    data = _checked_samples(data)
+    static = (solver, bool(adaptive), max_steps, adjoint, n_reset, window, at_samples, content_key(observer))
+    # the checks of `throw` are attached outside the compiled driver (as in simulate): a program with a
+    # host callback is not written to the persistent compilation cache, and throw=True/False share one
+    return _raise_if(_run(observer, data, xhat0, save_ts, rtol, atol, dt0, static), throw)
+
+
+def _checked_samples(data: Measurements) -> Measurements:
+    """The sample times, the breakpoints of the driver's schedule, must be finite and non-decreasing.  A
+    Measurements checks them when it is made; they are checked again here, eagerly (NumPy) when concrete
+    and with ``eqx.error_if`` outside the compiled driver when traced, so that the driver carries no host
+    callback (a program with one is not written to the persistent compilation cache) and a Measurements
+    whose times were replaced after construction (``eqx.tree_at``) is still refused."""
+    msg = "obsjax.estimate: `data.ts` must hold finite, non-decreasing sample times"
+    v = concrete_value(data.ts)
+    if v is not None:
+        v = np.asarray(v, dtype=np.float64)
+        if not np.all(np.isfinite(v)) or np.any(np.diff(v) < 0):
+            raise ValueError(f"{msg}, got {v.tolist() if v.size <= 8 else v}.")
+        return data
+    ts = eqx.error_if(data.ts, jnp.any(jnp.diff(data.ts) < 0) | jnp.any(~jnp.isfinite(data.ts)), f"{msg}.")
+    return eqx.tree_at(lambda d: d.ts, data, ts)
 
 
 def _window(observer, data, save_ts, ts_np, n_reset):
@@ -240,12 +259,13 @@ def _window(observer, data, save_ts, ts_np, n_reset):
 @eqx.filter_jit
 def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
     """The driver: breakpoints at every sample (and reset), one solve per segment, the outputs."""
-    solver, adaptive, max_steps, adjoint, n_reset, window, at_samples, throw, content = static
+    solver, adaptive, max_steps, adjoint, n_reset, window, at_samples, content = static
     opt = _diffrax.Options(solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive, max_steps=max_steps,
                            adjoint=adjoint)
     # every sample is an event breakpoint; the observer's resets are merged in; the save window is known
     # from the structure (one save time per segment at the samples), also when the samples are traced
-    sched = _schedule.build(save_ts, None, observer.reset_period, n_reset, None, lambda t0, t1: data.ts)
+    sched = _schedule.build(save_ts, None, observer.reset_period, n_reset, None, lambda t0, t1: data.ts,
+                            events_checked=True)  # the samples: checked by _checked_samples
     sched = dataclasses.replace(sched, window=window)
     hold = _Hold.of(data)
     t0 = save_ts[0]
@@ -268,8 +288,7 @@ def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
         _solver_fn(observer, hold, opt, sched, data.m, content), _act_fn(observer, data, sched), (z0, k0, z0), save_ts,
         sched, jax.eval_shape(lambda: (z0, z0, k0)), drift=drift,
     )
-    est = _assemble(observer, data, hold, save_ts, saved, code, at_samples)
-    return _raise_if(est, throw)
+    return _assemble(observer, data, hold, save_ts, saved, code, at_samples)
 
 
 def _vector_field(t, z, args):
@@ -290,10 +309,12 @@ def _solver_fn(observer, hold, opt, sched, m, content):
 
     def solve(s0, s1, carry, save_ts):
         z, k, zm = carry
-        sol = diffrax.diffeqsolve(
-            term, solver, s0, s1, opt.dt0, z, args=(observer, hold, k, m, content), saveat=diffrax.SaveAt(ts=save_ts, t1=True),
-            stepsize_controller=ctrl, max_steps=opt.max_steps, throw=False, **adjoint,
-        )
+        with without_diffrax_save_time_checks():  # save_ts lie in [s0, s1], nondecreasing (``_segments``)
+            sol = diffrax.diffeqsolve(
+                term, solver, s0, s1, opt.dt0, z, args=(observer, hold, k, m, content),
+                saveat=diffrax.SaveAt(ts=save_ts, t1=True), stepsize_controller=ctrl, max_steps=opt.max_steps,
+                throw=False, **adjoint,
+            )
         zs = tmap(lambda a: a[:-1], sol.ys)
         at_start = save_ts == jax.lax.stop_gradient(s0)
         prior = tmap(lambda a, b: jnp.where(at_start.reshape((-1,) + (1,) * (a.ndim - 1)), b[None], a), zs, zm)

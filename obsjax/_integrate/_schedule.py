@@ -141,8 +141,9 @@ class Schedule:
         return int(self.times.shape[0])
 
 
-def _events(event_times, t0, t1, ts_np):
-    """The observer's event times: (a 1-D float array, its concrete value or None), or None."""
+def _events(event_times, t0, t1, ts_np, checked=False):
+    """The observer's event times: (a 1-D float array, its concrete value or None), or None.  `checked`:
+    traced times the caller has already checked (finite, non-decreasing) outside the compiled program."""
     if ts_np is not None:
         raw = event_times(float(ts_np[0]), float(ts_np[-1]))
     else:
@@ -159,7 +160,7 @@ def _events(event_times, t0, t1, ts_np):
             raise ValueError("`observer.event_times(t0, t1)` must return finite times.")
         if np.any(np.diff(v) < 0):
             raise ValueError("`observer.event_times(t0, t1)` must return non-decreasing times.")
-    elif ev.shape[0] >= 1:
+    elif ev.shape[0] >= 1 and not checked:
         ev = eqx.error_if(
             ev, jnp.any(jnp.diff(ev) < 0) | jnp.any(~jnp.isfinite(ev)),
             "`observer.event_times(t0, t1)` must return finite, non-decreasing times.",
@@ -175,8 +176,11 @@ class _Part:
     values: np.ndarray | None  # the times, when known before tracing (then every entry is active)
 
 
-def build(ts, ts_np, T, n_reset, jumps, event_times) -> Schedule:
-    """Merge resets (n_reset − 1 of them), plant jumps and observer events into a :class:`Schedule`."""
+def build(ts, ts_np, T, n_reset, jumps, event_times, events_checked=False) -> Schedule:
+    """Merge resets (n_reset − 1 of them), plant jumps and observer events into a :class:`Schedule`.
+
+    `events_checked`: the event times, when traced, were checked (finite, non-decreasing) by the caller
+    outside the compiled program (``estimate``'s sample times), so no run-time check is traced here."""
     tol = horizon_tolerance(ts_np) if ts_np is not None else None
     tol_rt = tol if tol is not None else tolerance_of(ts[0], ts[-1])
     if T is not None and (ts_np is None or static_value(T) is None):
@@ -192,7 +196,7 @@ def build(ts, ts_np, T, n_reset, jumps, event_times) -> Schedule:
     parts = [
         _resets(ts, ts_np, T, n_reset, tol, tol_rt),
         _jumps(ts, ts_np, jumps, tol, tol_rt),
-        _event_part(ts, ts_np, event_times, tol, tol_rt),
+        _event_part(ts, ts_np, event_times, tol, tol_rt, events_checked),
     ]
     return _merge(ts, ts_np, tol, tol_rt, [p for p in parts if p is not None])
 
@@ -230,9 +234,9 @@ def _jumps(ts, ts_np, jumps, tol, tol_rt):
     return _Part("jump", jnp.clip(j, t0, t1), (j > t0 + tol_rt) & (j < t1 - tol_rt), None)
 
 
-def _event_part(ts, ts_np, event_times, tol, tol_rt):
+def _event_part(ts, ts_np, event_times, tol, tol_rt, checked=False):
     t0, t1 = ts[0], ts[-1]
-    got = _events(event_times, t0, t1, ts_np)
+    got = _events(event_times, t0, t1, ts_np, checked)
     if got is None or not got[0].shape[0]:
         return None
     ev, evv = got
