@@ -16,8 +16,8 @@ programs accumulate in a long process, see the README's "Long processes": both d
 What is not cached: JAX writes no entry for a program that carries host callbacks
 (``jax.debug.print``, progress bars, and ``eqx.error_if``'s checks traced into the program: an observer's
 checks inside its vector field; diffrax's two checks of the save times are left out of obsjax's solves, see
-:func:`obsjax._checks.without_diffrax_save_time_checks`, and the ``throw=True`` checks run outside the
-program), nor
+:func:`obsjax._checks.without_diffrax_save_time_checks`, and the ``throw=True`` checks, and ``estimate``'s
+check of traced sample times, run outside the program), nor
 for one that compiled in less than ``min_compile_time_secs`` (0.2 s by default; the ``obsjax`` command
 uses 0, so its second run compiles nothing).  Tracing and lowering run in every
 process; only XLA's compilation is saved here (:mod:`obsjax._trace_cache` saves the traced programs of
