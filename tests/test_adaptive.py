@@ -734,7 +734,7 @@ def test_kreisselmeier_order_must_be_a_positive_integer(n):
         obsjax.Kreisselmeier(n, [-1.0, -2.0], np.ones(4))
 
 
-@pytest.mark.parametrize(
+_SISO_OBSERVERS = pytest.mark.parametrize(
     "make",
     [
         lambda: obsjax.MinimalAdaptiveObserver(2, filter_poles=[-1.0], lam=1.0, Gamma=20.0),
@@ -744,6 +744,9 @@ def test_kreisselmeier_order_must_be_a_positive_integer(n):
     ],
     ids=["minimal", "non-minimal", "Kreisselmeier", "Luders-Narendra"],
 )
+
+
+@_SISO_OBSERVERS
 def test_siso_adaptive_observers_refuse_plants_with_several_inputs_or_outputs(make):
     """The plant forms (4.12), (5.1), (6.1) are single-input single-output.  A plant with two inputs was
     accepted and its second input silently dropped: status 0 and (â, b̂) = (−0.67, 0.82), (1.46, 0.02)
@@ -756,7 +759,15 @@ def test_siso_adaptive_observers_refuse_plants_with_several_inputs_or_outputs(ma
     for plant, sig, u in ((two_in, "`u`", jnp.ones(2)), (two_out, "`y`", jnp.ones(1))):
         with pytest.raises(ValueError, match=f"single-input single-output.*{sig}"):
             obsjax.simulate(plant, make(), jnp.ones(2), jnp.zeros(2), ts, u=lambda t, u=u: u)
-    one = obsjax.LTI(A, b, np.eye(1, 2))
+
+
+@_SISO_OBSERVERS
+@pytest.mark.extended
+def test_siso_adaptive_observers_accept_the_single_input_single_output_plant(make):
+    """The counterpart of the refusal above: the same plant with one input and one output runs."""
+    A = np.asarray(obsjax.kreisselmeier_form(np.array([2.0, 2.0]), np.array([1.0, 1.0])).A)
+    one = obsjax.LTI(A, np.array([[1.0], [1.0]]), np.eye(1, 2))
+    ts = jnp.linspace(0.0, 1.0, 3)
     tr = obsjax.simulate(one, make(), jnp.ones(2), jnp.zeros(2), ts, u=lambda t: jnp.ones(1))
     assert int(tr.status) == 0
 

@@ -411,6 +411,7 @@ def test_per_member_horizons():
 # ------------------------------------------------------------------------------------------- status
 
 
+@pytest.mark.extended
 def test_status_per_member():
     # member 0 fine; member 1 stiff (runs out of steps); member 2 starts non-finite; member 3 blows
     # up (ẏ = y²)

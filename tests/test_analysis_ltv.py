@@ -120,6 +120,7 @@ def test_constants_lemma_and_definitions():
     assert np.all(c.alpha1 > 1e-3)  # uniformly observable with T = 0.93 (> the switching period)
 
 
+@pytest.mark.extended
 def test_switching_plant_needs_long_windows():
     # Each mode alone is unobservable (rank 2): a window inside one mode sees nothing of one direction.
     assert (
@@ -143,6 +144,7 @@ def test_is_persistently_exciting_closed_form():
     assert not flat and abs(flat.eta1) < 1e-12 and abs(flat.eta2 - 1.0) < 1e-9
 
 
+@pytest.mark.extended
 def test_persistent_excitation_verdict_does_not_depend_on_the_components_units():
     """w = D [sin t, cos t, sin 2t + 0.3, cos 3t]: excitation is the same for every diagonal D, but the raw
     ratio η1/η2 is 1e-12 for D spanning 1e±3 and the verdict was "not exciting".  Now decided on the
@@ -451,6 +453,7 @@ def _stiff_exact(lam, b, T):
         return float(m1), float(ew[0]), float(ew[-1]), np.array(W.tolist(), dtype=float)
 
 
+@pytest.mark.extended
 def test_constants_of_a_fast_stable_mode_are_not_floored_by_the_tolerance():
     """m1 = σ_min Φ(t_k + T, t_k) and α2 = λ_max(W_o^end) with a mode e^{λT} far below the solver's atol.
     Integrated forwards, the small singular value sat at the absolute tolerance: m1 = 2.8e-14 for the exact

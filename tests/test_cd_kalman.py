@@ -78,6 +78,7 @@ def test_continuous_discrete_equals_discrete_kalman_of_the_exact_discretisation(
     np.testing.assert_allclose(np.asarray(est.innovation), np.asarray(data.y) - prior @ C.T, atol=1e-8)
 
 
+@pytest.mark.extended
 def test_missing_measurements_skip_the_update_and_keep_the_input():
     """missing="skip" dropped a sample with a missing output together with its recorded input: the
     zero-order hold then applied the previous input over the gap (0.82 off the filter that skips the
@@ -179,6 +180,7 @@ def test_tune_on_data_improves_a_held_out_experiment(runs):
     assert after < 0.8 * before, (before, after)
 
 
+@pytest.mark.extended
 def test_tune_on_data_checks_its_arguments(runs):
     kf = obsjax.ContinuousDiscreteKalman(MODEL, QW, RV, P0)
     with pytest.raises(ValueError, match=r"`datasets` must be an obsjax.Measurements or a non-empty list"):

@@ -587,6 +587,7 @@ def test_window_span():
         )
 
 
+@pytest.mark.extended
 def test_window_span_is_checked_in_the_time_unit_of_the_window():
     """The span check allowed an absolute 1e-9: a window of 1e-6 (the plant in seconds, its dynamics in
     microseconds) accepted a grid 0.05 % too long.  It is now 1e-9 of T plus the rounding of the times,

@@ -321,6 +321,7 @@ def test_delay_loop_is_deadbeat_after_T():
     assert np.abs(xh[0] - np.asarray(XHA)).max() < 1e-4  # x̂(t0) from the history alone is x̂0
 
 
+@pytest.mark.extended
 def test_delay_loop_satisfies_the_differentiated_form_39():
     """u̇ = −P∫Ġ1(T+s)Cx(t+s) − P∫Ġ2 u + P G1(T)C x(t) − P G1(0) C x(t−T) + P G2(T)u(t) − P G2(0)u(t−T)."""
     r = delay_run(False, 200)

@@ -224,6 +224,7 @@ def test_overflowing_error_with_a_finite_state_is_nonfinite():
         obsjax.simulate(PLANT, OBS, X0, xh0, TS)
 
 
+@pytest.mark.extended
 def test_error_norm_of_tiny_errors_does_not_underflow():
     """‖x̃‖ of an error of 1e-200 was 0 (the squares underflow); the norm is scaled by the largest entry,
     against NumPy's norm of the rescaled error, and its derivative still matches central differences."""

@@ -320,6 +320,7 @@ def test_error_traced_negative_T_under_jit():
     g(1.0)
 
 
+@pytest.mark.extended
 def test_observer_built_inside_jit_with_a_literal_period_counts_its_segments():
     """Inside ``jax.jit`` every ``jnp`` operation is traced, a literal T included; the observer keeps a
     constant T concrete, so ``simulate`` counts the reset segments itself (no ``max_segments``), with γ

@@ -252,6 +252,7 @@ def test_bad_inputs():
         obsjax.GeneralizedInverseODE(plant, F3, lambda t: jnp.ones((1, 3)))
 
 
+@pytest.mark.extended
 def test_gradient_wrt_G_and_F_matches_finite_differences():
     """d/dG and d/dF (entry above the diagonal, a free entry of step 1) of Σ‖x̂ − x‖² through simulate."""
     plant = obsjax.LTV(A3, C3, B3)

@@ -418,6 +418,7 @@ def _unregister_duration_listener(listener):
     unregister(listener)
 
 
+@pytest.mark.extended
 def test_max_segments_lets_studies_of_two_periods_share_one_program():
     """``simulate_kwargs["max_segments"]`` at least ceil(span/T) of either period: the second period's study
     traces and compiles nothing, and equals a study that holds exactly its own count of segments."""
@@ -713,6 +714,7 @@ def test_nan_checks_are_counted_across_threads():
         jax.block_until_ready(check(2.0))
 
 
+@pytest.mark.extended
 def test_an_input_signal_with_arrays_is_a_simulate_kwarg(tmp_path):
     """u = multisine(...) (an eqx.Module holding arrays) was refused as unhashable, so the input signal of
     the README could not drive a study.  Its arrays now travel as kernel arguments: each trajectory equals

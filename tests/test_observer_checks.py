@@ -331,6 +331,7 @@ def test_observers_on_y_equals_cx_refuse_feedthrough(who):
     obsjax.FunctionalObserver(obsjax.LTI(A, [[0.0], [0.0], [1.0]], [[1.0, 0.0, 0.0]]), np.array([0.0, 1.0, 0.0]), [-4.0, -5.0])
 
 
+@pytest.mark.extended
 def test_reduced_order_does_not_depend_on_the_units_of_the_sensors():
     """Two independent sensors in units 1e10 apart: the rank test of C was unscaled and refused them
     ("rank 1"), though Luenberger placed the same pair.  Now the estimate of x is the same in any units

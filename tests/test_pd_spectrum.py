@@ -289,6 +289,7 @@ def _near_pair(delta):
     return A, C
 
 
+@pytest.mark.extended
 def test_canonical_form_refuses_pairs_it_cannot_compute_accurately():
     """The form inverts T⁻¹, conditioned like 1/margin²: α was off by 5e-3 at margin 3e-8 and by 234 % at
     1.5e-9 (the gain of pd_observer_gain by a factor of 80), accepted by the rank threshold 1e-9.  The

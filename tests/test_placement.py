@@ -301,6 +301,7 @@ def test_multiplicity_above_m_gets_jordan_chains_with_a_warning():
     assert np.linalg.matrix_rank(A - L @ C + np.eye(6), tol=1e-7) == 4  # two chains at -1
 
 
+@pytest.mark.extended
 def test_rosenbrock_forces_jordan_chains_when_indices_are_unequal():
     """Indices (5, 1): {a, a, b, b, c, c} cannot be diagonalisable (degrees (3, 3) do not majorise
     (5, 1)); two of the double poles get chains of length 2."""

@@ -227,6 +227,7 @@ def test_white_noise_steady_state_covariance_matches_lyapunov():
     np.testing.assert_allclose(np.diag(emp), np.diag(P), rtol=0.15)
 
 
+@pytest.mark.extended
 def test_white_noise_statistics_do_not_depend_on_where_the_save_times_fall():
     """Under white noise a save time between two Euler–Maruyama steps returned the straight line between
     them, whose variance is below the path's (0.90 of it at mid-step here): the statistics at the save
@@ -252,6 +253,7 @@ def test_white_noise_statistics_do_not_depend_on_where_the_save_times_fall():
     assert np.all(np.abs(ratio - 1) < 3 * se), ratio  # before: 0.90 at every save time (−4.5 s.e.)
 
 
+@pytest.mark.extended
 def test_a_traced_negative_noise_intensity_is_refused_under_jit():
     """The eager call refused WhiteNoise(−0.5) and BandLimitedNoise(−0.5); under jit both gave status 0."""
     obs = obsjax.Luenberger.from_poles(PLANT, [-3.0, -3.0])

@@ -74,6 +74,7 @@ def q_independent(t):
     return jnp.linalg.inv(P)[-1]
 
 
+@pytest.mark.extended
 def test_closed_loop_canonical_form_is_the_assigned_companion_mimo():
     """(A + BK) in x = M z_c: block-diagonal companions with last rows −α(t) of the synthesis formula."""
     assert obsjax.design.ltv_controllability_indices(A4, B4, [0.0, 1.0, 2.0]) == (2, 2)
@@ -247,6 +248,7 @@ def test_dynamic_inversion_reproduces_the_plant_and_the_output():
         np.testing.assert_allclose(r_2, 0.0, atol=1e-6)
 
 
+@pytest.mark.extended
 def test_dynamic_inversion_refusals():
     nonaffine = obsjax.Nonlinear(
         lambda t, x, u: jnp.array([x[1], u[0] ** 3]), lambda t, x, u: x[:1], 2, 1, 1

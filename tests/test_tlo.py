@@ -134,6 +134,7 @@ def test_canonical_form_matches_definition_11(n):
     np.testing.assert_allclose(np.diag(cf.R), 1.0, atol=1e-10)
 
 
+@pytest.mark.extended
 def test_strong_observability_failure_names_the_time():
     A = lambda t: jnp.array([[0.0, 1.0], [0.0, 0.0]])
     C = lambda t: jnp.array([[t - 1.0, 0.0]])
@@ -283,6 +284,7 @@ def _high_gain_study(plant, model, rho, x0, solver):
     return np.array(ss), np.array(pk)
 
 
+@pytest.mark.extended
 def test_high_gain_van_der_pol_steady_state_falls_peak_grows():
     h = lambda t, x, u: x[:1]
     plant, model = obsjax.Nonlinear(vdp(0.5), h, 2, 1), obsjax.Nonlinear(vdp(0.0), h, 2, 1)

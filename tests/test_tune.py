@@ -447,6 +447,7 @@ def test_an_invalid_initial_point_raises():
         _tune_k(-2.0, LOSS_09, steps=3)
 
 
+@pytest.mark.extended
 def test_a_flat_loss_stops_as_a_stationary_point():
     """x̂(0) = x(0): the error is zero for every gain, J ≡ 0 and ∇J = 0.  tune reported
     stop_reason="rejections", converged=False, with nothing rejected; it is a stationary point."""
