@@ -746,13 +746,18 @@ _SISO_OBSERVERS = pytest.mark.parametrize(
 )
 
 
+def _siso_pair():
+    """(A, b) of the second-order plant that the SISO tests below give one or two inputs or outputs."""
+    A = np.asarray(obsjax.kreisselmeier_form(np.array([2.0, 2.0]), np.array([1.0, 1.0])).A)
+    return A, np.array([[1.0], [1.0]])
+
+
 @_SISO_OBSERVERS
 def test_siso_adaptive_observers_refuse_plants_with_several_inputs_or_outputs(make):
     """The plant forms (4.12), (5.1), (6.1) are single-input single-output.  A plant with two inputs was
     accepted and its second input silently dropped: status 0 and (â, b̂) = (−0.67, 0.82), (1.46, 0.02)
     for (2, 2), (1, 1) (the minimal observer); now a ValueError naming the signal."""
-    A = np.asarray(obsjax.kreisselmeier_form(np.array([2.0, 2.0]), np.array([1.0, 1.0])).A)
-    b = np.array([[1.0], [1.0]])
+    A, b = _siso_pair()
     ts = jnp.linspace(0.0, 1.0, 3)
     two_in = obsjax.LTI(A, np.c_[b, [0.5, -1.0]], np.eye(1, 2))
     two_out = obsjax.LTI(A, b, np.array([[0.0, 1.0], [1.0, 0.0]]))
@@ -765,8 +770,8 @@ def test_siso_adaptive_observers_refuse_plants_with_several_inputs_or_outputs(ma
 @pytest.mark.extended
 def test_siso_adaptive_observers_accept_the_single_input_single_output_plant(make):
     """The counterpart of the refusal above: the same plant with one input and one output runs."""
-    A = np.asarray(obsjax.kreisselmeier_form(np.array([2.0, 2.0]), np.array([1.0, 1.0])).A)
-    one = obsjax.LTI(A, np.array([[1.0], [1.0]]), np.eye(1, 2))
+    A, b = _siso_pair()
+    one = obsjax.LTI(A, b, np.eye(1, 2))
     ts = jnp.linspace(0.0, 1.0, 3)
     tr = obsjax.simulate(one, make(), jnp.ones(2), jnp.zeros(2), ts, u=lambda t: jnp.ones(1))
     assert int(tr.status) == 0

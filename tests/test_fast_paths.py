@@ -190,9 +190,7 @@ def _switch_run(T, ts, max_segments=None, dt0=0.025):
 
 
 @pytest.mark.extended
-@pytest.mark.parametrize(
-    "T", [0.25, 0.23, 0.31, 1.7, 5.9]
-)
+@pytest.mark.parametrize("T", [0.25, 0.23, 0.31, 1.7, 5.9])
 def test_traced_reset_period_takes_the_concrete_fixed_step_grid(T, monkeypatch):
     """Under jit with T traced (tune's case) the fixed steps run on the grid of a concrete T: the same
     trajectory to rounding (resets on save times, between them, one reset, band-limited noise)."""
