@@ -210,7 +210,7 @@ _MODES = {
         "off", "off, default XLA options", "cold", "warm", "cold + traces", "warm + traces",
     ),
     "mc": ("off", "off, default XLA options", "cold", "warm", "cold + traces", "warm + traces"),
-    "simulate": ("off", "cold", "warm"),
+    "simulate": ("off", "off, default XLA options", "cold", "warm"),
 }  # fmt: skip
 _TARGETS = {
     ("demo", "cold"): 30.0,

@@ -12,9 +12,10 @@ import numpy as np
 
 from .._checks import concrete_value, real_array, without_diffrax_save_time_checks
 from .._config import require_x64
-from .._integrate import _diffrax, _schedule, _segments
+from .._integrate import _compiled, _diffrax, _schedule, _segments
 from .._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, code_of, is_finite
 from .._integrate._validate import check_options, check_span, concrete_times, plain_int
+from .._trace_cache import fast_compile_options
 from ..montecarlo._fingerprint import content_key
 from ..observers._base import AbstractObserver
 from ._measurements import Measurements, hermite_coefficients
@@ -256,8 +257,24 @@ def _window(observer, data, save_ts, ts_np, n_reset):
     return sched.window
 
 
-@eqx.filter_jit
-def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
+_drivers: dict = {}
+
+
+def _run(*args):
+    """:func:`_driver` as one compiled program, compiled with XLA:CPU's elemental emitters where available
+    (:func:`obsjax._trace_cache.fast_compile_options`, as for ``simulate``) when it is a top-level program:
+    inside an outer ``jit`` or ``vmap`` it is traced into the outer program (JAX takes compile options on a
+    top-level ``jit`` only)."""
+    top = all(_compiled._eager_or_eager_ad(x) for x in jax.tree_util.tree_leaves(args))
+    opts = fast_compile_options() if top else {}
+    key = tuple(sorted(opts.items()))
+    run = _drivers.get(key)
+    if run is None:
+        run = _drivers[key] = eqx.filter_jit(_driver, compiler_options=opts) if opts else eqx.filter_jit(_driver)
+    return run(*args)
+
+
+def _driver(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
     """The driver: breakpoints at every sample (and reset), one solve per segment, the outputs."""
     solver, adaptive, max_steps, adjoint, n_reset, window, at_samples, content = static
     opt = _diffrax.Options(solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive, max_steps=max_steps,

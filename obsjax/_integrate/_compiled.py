@@ -36,6 +36,8 @@ import jax
 import numpy as np
 from jax._src.interpreters import ad as _ad
 
+from .._trace_cache import fast_compile_options
+
 #: compiled programs kept (least recently used dropped first)
 MAX_ENTRIES = 64
 
@@ -148,7 +150,10 @@ def call(fn, *args):
             full = [next(it) if d else s for s, d in zip(static, dynamic)]
             return fn(*_from_tree(jax.tree_util.tree_unflatten(treedef, full)))
 
-        program = jax.jit(program_fn)
+        # XLA:CPU's elemental emitters (FAST_COMPILE_OPTIONS, as for tune's and monte_carlo's kernels): a
+        # solve lowers to hundreds of small fusions, which they generate faster than the fusion emitters
+        opts = fast_compile_options()
+        program = jax.jit(program_fn, compiler_options=opts) if opts else jax.jit(program_fn)
         with _lock:
             _table[key] = program
             while len(_table) > MAX_ENTRIES:
