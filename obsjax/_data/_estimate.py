@@ -229,7 +229,7 @@ def _estimate_one(observer, data, xhat0, *, ts, solver, rtol, atol, dt0, adaptiv
     static = (solver, bool(adaptive), max_steps, adjoint, n_reset, window, at_samples, content_key(observer))
     # the checks of `throw` are attached outside the compiled driver (as in simulate): a program with a
     # host callback is not written to the persistent compilation cache, and throw=True/False share one
-    return _raise_if(_run(observer, data, xhat0, save_ts, rtol, atol, dt0, static), throw)
+    return _raise_if(_run_compiled(observer, data, xhat0, save_ts, rtol, atol, dt0, static), throw)
 
 
 def _checked_samples(data: Measurements) -> Measurements:
@@ -260,8 +260,8 @@ def _window(observer, data, save_ts, ts_np, n_reset):
 _drivers: dict = {}
 
 
-def _run(*args):
-    """:func:`_driver` as one compiled program, compiled with XLA:CPU's elemental emitters where available
+def _run_compiled(*args):
+    """:func:`_run` as one compiled program, compiled with XLA:CPU's elemental emitters where available
     (:func:`obsjax._trace_cache.fast_compile_options`, as for ``simulate``) when it is a top-level program:
     inside an outer ``jit`` or ``vmap`` it is traced into the outer program (JAX takes compile options on a
     top-level ``jit`` only)."""
@@ -270,12 +270,13 @@ def _run(*args):
     key = tuple(sorted(opts.items()))
     run = _drivers.get(key)
     if run is None:
-        run = _drivers[key] = eqx.filter_jit(_driver, compiler_options=opts) if opts else eqx.filter_jit(_driver)
+        run = _drivers[key] = eqx.filter_jit(_run, compiler_options=opts) if opts else eqx.filter_jit(_run)
     return run(*args)
 
 
-def _driver(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
-    """The driver: breakpoints at every sample (and reset), one solve per segment, the outputs."""
+def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
+    """The driver: breakpoints at every sample (and reset), one solve per segment, the outputs (its compiled
+    program is named after it in the compilation cache, ``jit__run-...``)."""
     solver, adaptive, max_steps, adjoint, n_reset, window, at_samples, content = static
     opt = _diffrax.Options(solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive, max_steps=max_steps,
                            adjoint=adjoint)
