@@ -64,6 +64,15 @@ def test_inside_an_outer_jit_the_outer_program_takes_no_options_of_theirs(option
 
 
 @pytest.mark.parametrize("name", list(_CALLS))
+def test_an_eager_gradient_compiles_without_options(options, name):
+    """Under eager ``jax.grad`` JAX traces the program again inside its differentiation, where options on a
+    jit are refused as nested: the program is compiled without them."""
+    options(BOGUS)
+    g = jax.grad(lambda x0: jnp.sum(_CALLS[name](x0) ** 2))(X0)
+    assert g.shape == (2,) and np.all(np.isfinite(np.asarray(g)))
+
+
+@pytest.mark.parametrize("name", list(_CALLS))
 def test_the_library_options_give_the_numbers_of_xla_defaults(options, name):
     fast = _trace_cache.fast_compile_options()
     if not fast:

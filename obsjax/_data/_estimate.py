@@ -12,7 +12,7 @@ import numpy as np
 
 from .._checks import concrete_value, real_array, without_diffrax_save_time_checks
 from .._config import require_x64
-from .._integrate import _compiled, _diffrax, _schedule, _segments
+from .._integrate import _diffrax, _schedule, _segments
 from .._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, code_of, is_finite
 from .._integrate._validate import check_options, check_span, concrete_times, plain_int
 from .._trace_cache import fast_compile_options
@@ -262,11 +262,11 @@ _drivers: dict = {}
 
 def _run_compiled(*args):
     """:func:`_run` as one compiled program, compiled with XLA:CPU's elemental emitters where available
-    (:func:`obsjax._trace_cache.fast_compile_options`, as for ``simulate``) when it is a top-level program:
-    inside an outer ``jit`` or ``vmap`` it is traced into the outer program (JAX takes compile options on a
-    top-level ``jit`` only)."""
-    top = all(_compiled._eager_or_eager_ad(x) for x in jax.tree_util.tree_leaves(args))
-    opts = fast_compile_options() if top else {}
+    (:func:`obsjax._trace_cache.fast_compile_options`, as for ``simulate``) when it is called with concrete
+    arrays: inside an outer ``jit`` or ``vmap``, or under eager differentiation, it is traced inside JAX's
+    transformations, where compile options on a ``jit`` are refused as nested."""
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+    opts = fast_compile_options() if concrete else {}
     key = tuple(sorted(opts.items()))
     run = _drivers.get(key)
     if run is None:
