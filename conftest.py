@@ -8,8 +8,8 @@ when a later module compiles the same program.  (It was opt-in while two CI runs
 inside cache writes; the causes were the memory mappings that compiled programs accumulate and jaxlib
 0.10.2's YNNPACK fusions, both dealt with, see obsjax/_config.py.)
 
-What keeps the run short (with the library's own compile options for simulate and estimate, the default
-tier on 2 cores with an empty cache went from 6:50 to 5:23 on 2026-12-07): every
+What keeps the run short (the default tier on 2 cores with an empty cache went from 6:50 to 5:17-6:23 in
+CI's conditions on 2026-12-07): every
 program is compiled with XLA:CPU's elemental emitters (``XLA_FLAGS``, below), the process that only hands
 tests to pytest-xdist's workers imports neither JAX nor obsjax, and a worker keeps its compiled programs
 from one module to the next until it holds many memory mappings or much memory.
@@ -21,9 +21,9 @@ import re
 
 import pytest
 
-#: XLA:CPU's elemental emitters for every program the test run compiles (the library compiles its own solver
-#: programs with them already, obsjax._trace_cache.FAST_COMPILE_OPTIONS): most of the run is compilation of
-#: small programs, which they generate faster.  ``OBSJAX_DEFAULT_XLA_OPTIONS=1`` runs with XLA's defaults.
+#: XLA:CPU's elemental emitters for every program the test run compiles (the library compiles tune's and
+#: monte_carlo's kernels with them, obsjax._trace_cache.FAST_COMPILE_OPTIONS): most of the run is
+#: compilation, which they do faster.  ``OBSJAX_DEFAULT_XLA_OPTIONS=1`` runs with XLA's defaults.
 _FAST_XLA_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 

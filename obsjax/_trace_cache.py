@@ -201,8 +201,7 @@ def _aval(x):
     return (tuple(np.shape(x)), str(np.result_type(x) if a is None else a.dtype), weak)
 
 
-#: XLA:CPU options for the solver kernels of ``tune``, ``monte_carlo`` and the demo's paper runs, and for the
-#: compiled programs of eager ``simulate``, ``simulate_batch`` and ``estimate``: the
+#: XLA:CPU options for the solver kernels of ``tune``, ``monte_carlo`` and the demo's paper runs: the
 #: elemental IR emitters instead of the MLIR fusion emitters.  A differentiated or batched solve lowers to a
 #: few hundred small fusions, and the fusion emitters take longer over each: on jaxlib 0.10.1 the demo's
 #: tune kernel (jacfwd of 8 scenarios, Tsit5) compiled in 4.2 s instead of 6.5 s, its Monte-Carlo kernel

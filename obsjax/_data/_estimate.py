@@ -15,7 +15,6 @@ from .._config import require_x64
 from .._integrate import _diffrax, _schedule, _segments
 from .._integrate._status import NONFINITE, SOLVER_FAILED, SUCCESS, code_of, is_finite
 from .._integrate._validate import check_options, check_span, concrete_times, plain_int
-from .._trace_cache import fast_compile_options
 from ..montecarlo._fingerprint import content_key
 from ..observers._base import AbstractObserver
 from ._measurements import Measurements, hermite_coefficients
@@ -229,7 +228,7 @@ def _estimate_one(observer, data, xhat0, *, ts, solver, rtol, atol, dt0, adaptiv
     static = (solver, bool(adaptive), max_steps, adjoint, n_reset, window, at_samples, content_key(observer))
     # the checks of `throw` are attached outside the compiled driver (as in simulate): a program with a
     # host callback is not written to the persistent compilation cache, and throw=True/False share one
-    return _raise_if(_run_compiled(observer, data, xhat0, save_ts, rtol, atol, dt0, static), throw)
+    return _raise_if(_run(observer, data, xhat0, save_ts, rtol, atol, dt0, static), throw)
 
 
 def _checked_samples(data: Measurements) -> Measurements:
@@ -257,26 +256,9 @@ def _window(observer, data, save_ts, ts_np, n_reset):
     return sched.window
 
 
-_drivers: dict = {}
-
-
-def _run_compiled(*args):
-    """:func:`_run` as one compiled program, compiled with XLA:CPU's elemental emitters where available
-    (:func:`obsjax._trace_cache.fast_compile_options`, as for ``simulate``) when it is called with concrete
-    arrays: inside an outer ``jit`` or ``vmap``, or under eager differentiation, it is traced inside JAX's
-    transformations, where compile options on a ``jit`` are refused as nested."""
-    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
-    opts = fast_compile_options() if concrete else {}
-    key = tuple(sorted(opts.items()))
-    run = _drivers.get(key)
-    if run is None:
-        run = _drivers[key] = eqx.filter_jit(_run, compiler_options=opts) if opts else eqx.filter_jit(_run)
-    return run(*args)
-
-
+@eqx.filter_jit
 def _run(observer, data, xhat0, save_ts, rtol, atol, dt0, static):
-    """The driver: breakpoints at every sample (and reset), one solve per segment, the outputs (its compiled
-    program is named after it in the compilation cache, ``jit__run-...``)."""
+    """The driver: breakpoints at every sample (and reset), one solve per segment, the outputs."""
     solver, adaptive, max_steps, adjoint, n_reset, window, at_samples, content = static
     opt = _diffrax.Options(solver=solver, rtol=rtol, atol=atol, dt0=dt0, adaptive=adaptive, max_steps=max_steps,
                            adjoint=adjoint)

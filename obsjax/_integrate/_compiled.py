@@ -36,8 +36,6 @@ import jax
 import numpy as np
 from jax._src.interpreters import ad as _ad
 
-from .._trace_cache import fast_compile_options
-
 #: compiled programs kept (least recently used dropped first)
 MAX_ENTRIES = 64
 
@@ -133,12 +131,8 @@ def call(fn, *args):
         # so checks on them fold away and a study's kernel carries no host callback)
         return fn(*args)
     dynamic = tuple(isinstance(v, jax.Array) for v in leaves)
-    # compile options only on a program called with concrete arrays: under eager differentiation JAX traces
-    # the program again inside its own transformations, where options on a jit are refused as nested
-    concrete = not any(isinstance(v, jax.core.Tracer) for v in leaves)
     try:
-        statics = tuple(None if d else _static_key(v) for v, d in zip(leaves, dynamic))
-        key = (fn, treedef, dynamic, concrete, statics)
+        key = (fn, treedef, dynamic, tuple(None if d else _static_key(v) for v, d in zip(leaves, dynamic)))
         hash(key)
     except (_Uncacheable, TypeError):
         return fn(*args)
@@ -154,10 +148,7 @@ def call(fn, *args):
             full = [next(it) if d else s for s, d in zip(static, dynamic)]
             return fn(*_from_tree(jax.tree_util.tree_unflatten(treedef, full)))
 
-        # XLA:CPU's elemental emitters (FAST_COMPILE_OPTIONS, as for tune's and monte_carlo's kernels): a
-        # solve lowers to hundreds of small fusions, which they generate faster than the fusion emitters
-        opts = fast_compile_options() if concrete else {}
-        program = jax.jit(program_fn, compiler_options=opts) if opts else jax.jit(program_fn)
+        program = jax.jit(program_fn)
         with _lock:
             _table[key] = program
             while len(_table) > MAX_ENTRIES:
