@@ -133,6 +133,10 @@ def main(only=("demo", "tune", "tune-adaptive", "mc", "simulate"), demo_n=10_000
         k: v
         for k, v in os.environ.items()
         if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT"))
+        # a user's installation keeps the modules' bytecode (pip compiles it, or the first import of an
+        # editable install writes it): without this, a shell that sets PYTHONDONTWRITEBYTECODE would
+        # make every process compile obsjax's sources again
+        and k != "PYTHONDONTWRITEBYTECODE"
     }
     base["PYTHONPATH"] = C.ROOT + (
         os.pathsep + base["PYTHONPATH"] if base.get("PYTHONPATH") else ""
@@ -140,10 +144,10 @@ def main(only=("demo", "tune", "tune-adaptive", "mc", "simulate"), demo_n=10_000
     base["JAX_PLATFORMS"] = base.get("JAX_PLATFORMS", "cpu")
     base["MPLBACKEND"] = "Agg"
     workloads = {
-        "demo": [
+        "demo": [  # as the `obsjax` command runs it (its entry point, obsjax.cli:main)
             sys.executable,
-            "-m",
-            "obsjax.cli",
+            "-c",
+            "import sys; from obsjax.cli import main; sys.exit(main())",
             "demo",
             "--out",
             os.path.join(work, "demo"),
@@ -265,7 +269,9 @@ def _report(rows, demo_n):
         "of `obsjax.enable_compilation_cache()`; *traces off*: `OBSJAX_NO_TRACE_CACHE=1`; "
         "*default XLA options*: `OBSJAX_DEFAULT_XLA_OPTIONS=1`, the kernels compiled with XLA's default "
         "CPU emitters (every other row: the elemental emitters, `xla_cpu_use_fusion_emitters=False`). "
-        f"The demo runs with `-n {demo_n}`."
+        f"The demo runs with `-n {demo_n}`, through the `obsjax` command's entry point "
+        "(`obsjax.cli:main`). The processes keep Python's bytecode files, as an installation does "
+        "(`PYTHONDONTWRITEBYTECODE` is dropped from their environment)."
     )
     header = (
         "| workload | cache | process wall | process CPU | section wall | cache entries | target |"

@@ -113,6 +113,30 @@ def test_convergence_time_closed_form():
         assert np.isinf(res_abs.convergence_time[2])  # ln 20 / 0.5 = 6 > 4
 
 
+def test_ise_on_an_uneven_grid_and_the_caller_array_untouched():
+    """ISE: the trapezoid of ‖x̃‖² on the save grid, uneven spacing included (scipy.integrate.trapezoid, and
+    for a linear ‖x̃‖² the exact integral); every row successful (summarise then copies nothing but
+    the rows it keeps) and one failed row give the same statistics of the others; the caller's array
+    is left as it was."""
+    from scipy.integrate import trapezoid
+
+    ts = np.array([0.0, 0.1, 0.35, 0.4, 1.0, 2.5, 2.6])
+    norms = np.vstack([np.sqrt(1.0 + 2.0 * ts), np.exp(-ts), 3.0 * np.exp(-2.0 * ts)])
+    before = norms.copy()
+    res = summarise(ts, norms, np.zeros(3, dtype=int), conv_tol=0.05)
+    np.testing.assert_array_equal(norms, before)
+    np.testing.assert_allclose(res.ise, trapezoid(norms**2, ts, axis=1), rtol=1e-14)
+    assert res.ise[0] == pytest.approx(2.6 + 2.6**2, rel=1e-14)  # ∫ (1 + 2t) dt on [0, 2.6]
+    with_failure = summarise(
+        ts, np.vstack([norms, np.full(ts.shape, np.nan)]), np.array([0, 0, 0, 1]), conv_tol=0.05
+    )
+    np.testing.assert_array_equal(with_failure.ise[:3], res.ise)
+    np.testing.assert_array_equal(with_failure.convergence_time[:3], res.convergence_time)
+    np.testing.assert_array_equal(with_failure.bands, res.bands)
+    np.testing.assert_array_equal(with_failure.error_norm_mean, res.error_norm_mean)
+    assert np.isnan(with_failure.ise[3]) and np.isnan(with_failure.convergence_time[3])
+
+
 def test_convergence_time_is_the_last_crossing():
     """A norm that dips below the threshold and rises again converges at its last crossing; one
     never above the threshold converges at 0; a row still above at the end never converges."""

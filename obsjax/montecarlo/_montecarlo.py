@@ -442,9 +442,17 @@ def _convergence_time(ts, norms, tol, relative):
 
 
 def _trapz_sq(ts, norms):
+    """∫ ‖x̃‖² dt per row by the trapezoidal rule, Σ_k w_k ‖x̃(t_k)‖² with w_k = (t_{k+1} − t_{k−1})/2
+    (half steps at the ends): one pass over the (N, T) norms, no temporary of their size (a study's
+    norms are tens of MB, and the first touch of every new page of such a temporary costs more than
+    the arithmetic)."""
+    ts = np.asarray(ts, dtype=float)
+    dt = np.diff(ts)
+    w = np.zeros(ts.shape[0])
+    w[:-1] += 0.5 * dt
+    w[1:] += 0.5 * dt
     with np.errstate(over="ignore", invalid="ignore"):
-        sq = norms**2
-        return np.sum(0.5 * (sq[:, 1:] + sq[:, :-1]) * np.diff(ts), axis=1)
+        return np.einsum("ij,ij,j->i", norms, norms, w)
 
 
 def _process_rows(ts, error_norm, status, conv_tol, conv_relative):
@@ -460,7 +468,10 @@ def _process_rows(ts, error_norm, status, conv_tol, conv_relative):
     norms[~ok] = np.nan
     ct = np.full(status.shape, np.nan)
     ise = np.full(status.shape, np.nan)
-    if ok.any():
+    if ok.size and ok.all():  # the usual case: no copy of the (N, T) norms
+        ct = _convergence_time(ts, norms, conv_tol, conv_relative)
+        ise = ise_all
+    elif ok.any():
         ct[ok] = _convergence_time(ts, norms[ok], conv_tol, conv_relative)
         ise[ok] = ise_all[ok]
     return norms, status, ct, ise
@@ -542,7 +553,7 @@ def _summarise_inputs(ts, error_norm, status, quantiles, conv_tol, n):
         raise ValueError(
             f"`error_norm` must hold real norms ‖x̃(t)‖ ≥ 0, got an array of dtype {norms.dtype}."
         )
-    norms = norms.astype(float)
+    norms = norms.astype(float, copy=False)  # _process_rows copies it before writing
     st = np.asarray(status)
     if st.dtype.kind == "f":
         bad = ~np.isfinite(st) | (st != np.round(st))
@@ -623,11 +634,12 @@ def summarise(
     )
     norms, status, ct, ise = _process_rows(ts, norms, status, conv_tol, conv_relative)
     ok = status == 0
-    mean = np.mean(norms[ok], axis=0) if ok.any() else np.full(ts.shape[0], np.nan)
+    good = norms if ok.all() else norms[ok]
+    mean = np.mean(good, axis=0) if ok.any() else np.full(ts.shape[0], np.nan)
     return MonteCarloResult(
         ts=ts,
         quantiles=quantiles,
-        bands=_quantiles(norms[ok], quantiles),
+        bands=_quantiles(good, quantiles),
         error_norm_mean=mean,
         conv_tol=float(conv_tol),
         conv_relative=bool(conv_relative),
