@@ -455,6 +455,12 @@ def _trapz_sq(ts, norms):
         return np.einsum("ij,ij,j->i", norms, norms, w)
 
 
+def _rows_of(ok):
+    """An index of the rows where `ok`: all of them as a slice (a view, no copy of the study's (N, T)
+    arrays), else the mask."""
+    return slice(None) if ok.all() else ok
+
+
 def _process_rows(ts, error_norm, status, conv_tol, conv_relative):
     """Per-trajectory rows as a result holds them: (norms with failed rows NaN, status with
     overflowing rows re-labelled 2, convergence time, ISE), NaN for failures (and for rows not yet
@@ -468,12 +474,10 @@ def _process_rows(ts, error_norm, status, conv_tol, conv_relative):
     norms[~ok] = np.nan
     ct = np.full(status.shape, np.nan)
     ise = np.full(status.shape, np.nan)
-    if ok.size and ok.all():  # the usual case: no copy of the (N, T) norms
-        ct = _convergence_time(ts, norms, conv_tol, conv_relative)
-        ise = ise_all
-    elif ok.any():
-        ct[ok] = _convergence_time(ts, norms[ok], conv_tol, conv_relative)
-        ise[ok] = ise_all[ok]
+    if ok.any():
+        rows = _rows_of(ok)
+        ct[rows] = _convergence_time(ts, norms[rows], conv_tol, conv_relative)
+        ise[rows] = ise_all[rows]
     return norms, status, ct, ise
 
 
@@ -634,7 +638,7 @@ def summarise(
     )
     norms, status, ct, ise = _process_rows(ts, norms, status, conv_tol, conv_relative)
     ok = status == 0
-    good = norms if ok.all() else norms[ok]
+    good = norms[_rows_of(ok)]
     mean = np.mean(good, axis=0) if ok.any() else np.full(ts.shape[0], np.nan)
     return MonteCarloResult(
         ts=ts,
