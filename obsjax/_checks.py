@@ -16,13 +16,49 @@ except ImportError:  # pragma: no cover
     _concrete_or_error = jax.core.concrete_or_error
 
 
+def host_array(x):
+    """``x`` as a NumPy array when it is a host value (a Python number, a NumPy array or scalar, a list of
+    numbers), else ``None`` (a JAX array, a tracer, anything NumPy reads only as an object)."""
+    if isinstance(x, (jax.Array, jax.core.Tracer)):
+        return None
+    try:
+        h = np.asarray(x)
+    except Exception:  # noqa: BLE001  (e.g. a list holding tracers)
+        return None
+    return h if h.dtype.kind in "biufc" else None
+
+
+def device_array(x, dtype=None) -> jax.Array:
+    """``jnp.asarray(x, dtype)``, with host values converted by NumPy first.
+
+    On jax 0.10 ``jnp.asarray`` of a host value (a Python number or list, a NumPy array) and a change of
+    dtype compile a small program, once per shape and dtype in each process: tens of milliseconds each on
+    a CPU, a sizeable share of a script's first call.  Here host values are converted by NumPy and moved
+    by ``jax.device_put``, which compiles nothing.  JAX arrays and tracers take ``jnp.asarray`` itself.
+    The result is strongly typed (a Python float gives float64 under x64, not a weakly typed float)."""
+    h = host_array(x)
+    if h is None:
+        return jnp.asarray(x, dtype=dtype)
+    return jax.device_put(h if dtype is None else h.astype(dtype, copy=False))
+
+
 def as_float_array(x, name: str) -> jax.Array:
     """Convert to a floating JAX array, naming ``name`` on failure.
 
     Integers and narrower floats (float16, float32) become the default float (float64 under x64, which
     importing obsjax turns on), so a float32 input never meets a float64 state inside a solve; complex input is
-    returned as is (callers that need real values use :func:`real_array`); booleans are refused.
+    returned as is (callers that need real values use :func:`real_array`); booleans are refused.  Host values
+    (Python numbers, lists, NumPy arrays) are converted by NumPy (:func:`device_array`).
     """
+    h = host_array(x)
+    if h is not None:
+        if h.dtype == np.bool_:
+            x = h  # refused below, with the message
+        else:
+            default = np.dtype(jnp.result_type(float))
+            if h.dtype.kind in "biu" or (h.dtype.kind == "f" and h.dtype.itemsize < default.itemsize):
+                h = h.astype(default)
+            return jax.device_put(h)
     try:
         arr = jnp.asarray(x)
     except Exception as e:  # noqa: BLE001

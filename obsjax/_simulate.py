@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _integrate
+from ._checks import concrete_value
 from ._config import require_x64
 from ._integrate import _compiled, _validate
 from ._integrate._schedule import MAX_RESET_SEGMENTS, num_segments
@@ -60,10 +61,17 @@ class Trajectory(eqx.Module):
         Scaled by the largest component before squaring, so errors of 1e-200 (or 1e200) neither underflow
         to 0 nor overflow to inf; the scale is held out of the derivative, which is exact for a norm
         (‖e‖ = s‖e/s‖ for any s > 0)."""
-        e = self.error
-        s = jax.lax.stop_gradient(jnp.max(jnp.abs(e), axis=-1, keepdims=True))
-        s = jnp.where((s > 0) & jnp.isfinite(s), s, 1.0)
-        return s[..., 0] * jnp.linalg.norm(e / s, axis=-1)
+        return _error_norm(self.error)
+
+
+@jax.jit
+def _error_norm(e):
+    """‖e‖ over the last axis, scaled (see :attr:`Trajectory.error_norm`): one compiled program, where the
+    property read eagerly ran eight operations, each compiling its own program on its first call in a
+    process (inlined under an outer ``jit``, differentiated and vmapped as its operations are)."""
+    s = jax.lax.stop_gradient(jnp.max(jnp.abs(e), axis=-1, keepdims=True))
+    s = jnp.where((s > 0) & jnp.isfinite(s), s, 1.0)
+    return s[..., 0] * jnp.linalg.norm(e / s, axis=-1)
 
 
 def simulate(
@@ -193,7 +201,9 @@ def simulate(
     dt0 = _validate.check_options(rtol, atol, dt0, adaptive, max_steps, noise)
     observer = observer.prepare()
     observer = _validate.check_span(observer, ts_np)
-    _validate.check_dimensions(plant, observer, x0, xhat0, ts[0], u, controller, noise)
+    # (t0 for shapes only: NumPy's where the times are concrete, as indexing `ts` eagerly compiles a program)
+    t0_shape = ts[0] if ts_np is None else ts_np[0]
+    _validate.check_dimensions(plant, observer, x0, xhat0, t0_shape, u, controller, noise)
     plan = _validate.plan(
         plant, observer, ts, ts_np, noise=noise, key=key, solver=solver, rtol=rtol, atol=atol, dt0=dt0,
         adaptive=adaptive, max_steps=max_steps, max_segments=max_segments, adjoint=adjoint,
@@ -235,6 +245,11 @@ def _raise_if(traj: Trajectory, throw: bool, who: str, status) -> Trajectory:
     """With `throw`, every array of the trajectory (x, x̂, y, x̃, z) carries the check of its status, so a
     computation that reads any of them (under ``jit`` too) raises on a failed trajectory."""
     if not throw:
+        return traj
+    code = concrete_value(status)
+    if code is not None and not np.any((code == SOLVER_FAILED) | (code == NONFINITE)):
+        # a concrete status with no failure (an eager call): neither check can fire, and run eagerly each
+        # would compile its programs
         return traj
     fields = (traj.x, traj.xhat, traj.y, traj.error, traj.z)
     fields = eqx.error_if(

@@ -256,7 +256,6 @@ def demo(
         raise ValueError(f"`outdir` {outdir!r} is a file, not a directory.")
     t_all = time.perf_counter()
     import jax
-    import jax.numpy as jnp
     import jax.random as jr
     import matplotlib
 
@@ -287,7 +286,7 @@ def demo(
     print(
         "Chen & Yen example, γ = 20, p0 = 0.1, x̂(0) = [5, -5]  (‖x̃(t)‖; SciPy reference in brackets)"
     )
-    from ._checks import runtime_checks_as_nan
+    from ._checks import device_array, runtime_checks_as_nan
     from ._trace_cache import filter_jit
 
     paper_kernel = filter_jit(_paper_error_norm, fast_compile=True)  # traced program saved across processes
@@ -343,7 +342,7 @@ def demo(
     ts_tune = np.linspace(0.0, 6.1, 26)
     noise = obsjax.noise.BandLimitedNoise(DEMO_NOISE_SIGMA, dt=DEMO_NOISE_DT)
     x0s = jax.vmap(demo_x0)(jr.split(k_tune_x0, batch))
-    xhat0s = jnp.zeros((batch, 2))
+    xhat0s = device_array(np.zeros((batch, 2)))
     plants = noisy_batch(plant, noise, k_tune_noise, batch, ts_tune[0], ts_tune[-1])
     fixed = {"adaptive": False, "dt0": DEMO_DT0}
     tuned = obsjax.tune(
@@ -368,7 +367,7 @@ def demo(
     print(
         f"\nTuned on [0, 6.1] over {batch} initial conditions with noise σ = {DEMO_NOISE_SIGMA} "
         f"({tuned.steps_taken} evaluations, {'converged' if tuned.converged else tuned.stop_reason}, "
-        f"{t_tune:.1f} s): γ·p0 {20 * 0.1:.3g} -> {float(best.gamma * best.p0):.3g}, T 0.25 -> {float(best.T):.3g}, "
+        f"{t_tune:.1f} s): γ·p0 {20 * 0.1:.3g} -> {float(best.gamma) * float(best.p0):.3g}, T 0.25 -> {float(best.T):.3g}, "
         f"mean ISE {hist['loss'][0]:.4g} -> {hist['loss'][hist['best_step']]:.4g}"
     )
     fig, ax = plt.subplots(1, 3, figsize=(12, 3.6))
@@ -410,7 +409,7 @@ def demo(
     results = {}
     for label, obs in (
         ("paper (γ·p0 = 2, T = 0.25)", paper),
-        (f"tuned (γ·p0 = {float(best.gamma * best.p0):.3g}, T = {float(best.T):.3g})", best),
+        (f"tuned (γ·p0 = {float(best.gamma) * float(best.p0):.3g}, T = {float(best.T):.3g})", best),
     ):
         results[label] = obsjax.monte_carlo(
             plant,

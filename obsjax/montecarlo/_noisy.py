@@ -9,12 +9,15 @@ studies and tuning runs."""
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
+from .._checks import concrete_value, device_array
 from ..systems._noise import BandLimitedNoise, SampledNoise, realise_band_limited
 from ..systems._plants import AbstractSystem
 
@@ -77,6 +80,27 @@ def with_noise(plant, noise, key, t0, t1) -> NoisyOutput:
     return NoisyOutput(plant, realise_band_limited(noise, key, float(t0), float(t1), plant.m))
 
 
+@eqx.filter_jit
+def _standard_normals(key, batch, k, m):
+    """``jr.normal(jr.split(key, batch)[b], (k, m))`` for b = 0 … batch − 1, stacked: one compiled
+    program (drawn one by one, each eager JAX operation compiled a program of its own)."""
+    return jax.vmap(lambda kk: jr.normal(kk, (k, m)))(jr.split(key, batch))
+
+
+def _draw_paths(noise, key, batch, t0, t1, m) -> SampledNoise:
+    """The paths ``realise_band_limited(noise, jr.split(key, batch)[b], t0, t1, m)``, stacked, bit for
+    bit: the same standard normals, times σ on the host where σ is concrete (one rounding, as JAX's)."""
+    k = int(math.ceil((float(t1) - float(t0)) / noise.dt)) + 2
+    z = _standard_normals(key, batch, k, m)
+    sigma = concrete_value(noise.sigma)
+    if sigma is None:
+        values = jnp.broadcast_to(noise.sigma, (m,)) * z
+    else:
+        values = device_array(np.broadcast_to(sigma, (m,)) * np.asarray(z))
+    t0s = device_array(np.full((batch,), float(t0)))
+    return SampledNoise(t0s, noise.dt, values)
+
+
 def noisy_batch(plant, noise, key, batch, t0, t1):
     """A batch of ``batch`` noisy plants (leading axis on every array leaf) for ``tune(plant_batched=True)``.
 
@@ -90,9 +114,7 @@ def noisy_batch(plant, noise, key, batch, t0, t1):
     a, b = float(t0), float(t1)
     if not (np.isfinite(a) and np.isfinite(b) and a < b):
         raise ValueError(f"`t0`, `t1` must be finite with t0 < t1, got t0 = {a}, t1 = {b}.")
-    keys = jr.split(key, int(batch))
-    paths = [realise_band_limited(noise, k, float(t0), float(t1), plant.m) for k in keys]
-    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *paths)
+    stacked = _draw_paths(noise, key, int(batch), a, b, plant.m)
     out = NoisyOutput(plant, stacked)
     arrays = jax.tree_util.tree_map(
         lambda a: jnp.broadcast_to(a, (batch,) + jnp.shape(a)), out.plant_arrays

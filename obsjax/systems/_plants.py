@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import matrix, real_array, require_finite
+from .._checks import device_array, matrix, real_array, require_finite
 
 
 def _jump_ts(jump_ts):
@@ -119,7 +119,7 @@ class LTI(AbstractSystem):
         if m < 1:
             raise ValueError(f"`C` must have at least one output row (m ≥ 1), got shape {tuple(C.shape)}.")
         if B is None:
-            B = jnp.zeros((n, 0), dtype=A.dtype)
+            B = device_array(np.zeros((n, 0), dtype=A.dtype))
         else:
             B = _real_finite(B, "B")
             if B.ndim == 1:
@@ -129,7 +129,7 @@ class LTI(AbstractSystem):
                 )
             B = matrix(B, "B", (n, None))
         p = B.shape[1]
-        D = jnp.zeros((m, p), dtype=A.dtype) if D is None else matrix(_real_finite(D, "D"), "D", (m, p))
+        D = device_array(np.zeros((m, p), dtype=A.dtype)) if D is None else matrix(_real_finite(D, "D"), "D", (m, p))
         self.A, self.B, self.C, self.D = A, B, C, D
         self.jump_ts = _jump_ts(jump_ts)
 
@@ -173,7 +173,7 @@ class LTI(AbstractSystem):
 def _shape_of(fn, name, t0=0.0):
     """Shape of ``fn(t0)``, checking that its value is a real, finite matrix."""
     try:
-        out = jnp.asarray(fn(jnp.asarray(t0, dtype=jnp.result_type(float))))
+        out = jnp.asarray(fn(device_array(t0, dtype=jnp.result_type(float))))
     except Exception as e:  # noqa: BLE001
         raise ValueError(f"`{name}` must be a callable of t returning a matrix; calling it failed: {e}")
     if out.ndim != 2:

@@ -16,7 +16,7 @@ import numpy as np
 import optax
 
 from .. import _trace_cache
-from .._checks import as_float_array, runtime_checks_as_nan, scalar_value
+from .._checks import as_float_array, device_array, runtime_checks_as_nan, scalar_value
 from .._config import require_x64
 from .._integrate import _diffrax, _masked, _schedule, _validate
 from .._simulate import SUCCESS, _check_ts, num_segments, simulate
@@ -374,7 +374,7 @@ def _check_data(plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_k
             f"{tuple(x0s.shape)}."
         )
     for name, arr in (("x0s", x0s), ("xhat0s", xhat0s)):
-        if not bool(jnp.all(jnp.isfinite(arr))):
+        if not np.all(np.isfinite(np.asarray(arr))):
             raise ValueError(f"`{name}` must be finite, got NaN or inf entries.")
     ts_np = np.asarray(_check_ts(ts), dtype=float)  # finite and strictly increasing
     _validate.check_noise(noise)
@@ -427,11 +427,26 @@ def _selected_leaves(observer, where):
             )
     _check_distinct(observer, where, selection)
     # strongly typed copies: a weakly typed leaf (jnp.asarray(1.0)) would retrace after the first
-    # update
-    leaves0 = tuple(
-        jnp.asarray(leaf, dtype=jnp.asarray(leaf).dtype) for leaf in _as_tuple(selection)
-    )
+    # update (through NumPy: a dtype conversion by JAX compiles a program)
+    leaves0 = tuple(_strong(leaf) for leaf in _as_tuple(selection))
     return leaves0, not isinstance(selection, (tuple, list))
+
+
+def _unused_keys(batch):
+    """Keys of the shape and dtype of ``jr.split(key, batch)`` for a tune without noise, where the
+    kernel reads none (zeros made by NumPy: drawing them would compile JAX's key programs)."""
+    shape = jax.eval_shape(lambda: jr.split(jr.PRNGKey(0), batch))
+    try:
+        return device_array(np.zeros(shape.shape, shape.dtype))
+    except TypeError:  # a typed key dtype (jax_enable_custom_prng): NumPy has no such dtype
+        return jr.split(jr.PRNGKey(0), batch)
+
+
+def _strong(leaf):
+    """A strongly typed copy of a concrete leaf, by way of NumPy (`jnp.asarray` of a traced one)."""
+    if isinstance(leaf, jax.core.Tracer):
+        return jnp.asarray(leaf, dtype=jnp.asarray(leaf).dtype)
+    return device_array(np.array(leaf))
 
 
 class _Position:
@@ -480,8 +495,10 @@ def _log_parametrisation(leaves0):
             )
         if not np.all(np.isfinite(v)):
             raise ValueError(f"tuned leaf {i} must be finite, got {v.tolist()}.")
-        signs.append(jnp.sign(leaf))
-        thetas.append(jnp.log(jnp.abs(leaf)))
+        # (host arithmetic: θ0 and the signs are concrete, and each JAX operation run eagerly compiles
+        # a program on its first call in a process)
+        signs.append(device_array(np.sign(v)))
+        thetas.append(device_array(np.log(np.abs(v))))
     return tuple(signs), tuple(thetas)
 
 
@@ -514,7 +531,7 @@ def _period_depends_on(build, theta, T0) -> bool:
     """Does the reset period change when the tuned leaves change?"""
     if T0 is None:
         return False
-    bumped = jax.tree_util.tree_map(lambda t: t + 1e-3 * (jnp.abs(t) + 1.0), theta)
+    bumped = tuple(device_array(t + 1e-3 * (np.abs(t) + 1.0)) for t in map(np.asarray, theta))
     try:
         T1 = build(bumped).reset_period
     except Exception:  # noqa: BLE001
@@ -730,7 +747,7 @@ def tune(
         plant, x0s, xhat0s, ts, noise, key, u, plant_batched, simulate_kwargs
     )
     batch = x0s.shape[0]
-    weights = jnp.asarray(risk_weights(risk, batch))
+    weights = device_array(risk_weights(risk, batch))
     leaves0, single = _selected_leaves(observer, where)
     mode = _resolve_mode(mode, leaves0, simulate_kwargs, batch)
     kernel = batch_kernel(
@@ -738,13 +755,15 @@ def tune(
         simulate_kwargs=simulate_kwargs,
     )  # fmt: skip
     optimizer = optax.adam(1e-2) if optimizer is None else optimizer
-    keys = jr.split(jr.PRNGKey(0) if key is None else key, batch)
+    keys = _unused_keys(batch) if key is None else jr.split(key, batch)
 
     if positive:
         signs, theta0 = _log_parametrisation(leaves0)
 
-        def to_leaves(theta):
-            return tuple(s * jnp.exp(t) for s, t in zip(signs, theta))
+        def to_leaves(theta):  # on the host: θ is concrete here (the kernel has its own)
+            return tuple(
+                device_array(np.asarray(s) * np.exp(np.asarray(t))) for s, t in zip(signs, theta)
+            )
     else:
         signs, theta0 = None, leaves0
 
@@ -808,7 +827,7 @@ def tune(
             first_call[0] = False
         if not math.isfinite(val):
             return None, val, None, "the loss is not finite (a trajectory failed or diverged)"
-        if not all(bool(jnp.all(jnp.isfinite(g))) for g in grads):
+        if not all(np.all(np.isfinite(np.asarray(g))) for g in grads):
             # the kernel's checks are NaN here: a check that fired only in the derivative (a gain
             # without a derivative at this point, e.g. a robust placement whose minimiser is not
             # isolated) leaves the loss finite and the gradient NaN
@@ -890,8 +909,11 @@ def _descend(
     while len(hist_loss) < steps and stop_reason == "steps":
         updates, new_state = update(grads, opt_state, theta)
         while len(hist_loss) < steps:
-            cand = jax.tree_util.tree_map(lambda t, d, s=scale: t + s * d, theta, updates)
-            if all(bool(jnp.all(c == t)) for c, t in zip(cand, theta)):
+            # on the host (a few scalars; eager JAX operations would each compile a program)
+            cand = tuple(
+                device_array(np.asarray(t) + scale * np.asarray(d)) for t, d in zip(theta, updates)
+            )
+            if all(np.array_equal(np.asarray(c), np.asarray(t)) for c, t in zip(cand, theta)):
                 if scale == 1.0:  # the optimizer's own step is zero: a stationary point
                     stop_reason = "stationary"
                     warnings.warn(

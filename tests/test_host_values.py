@@ -1,0 +1,134 @@
+"""Host values (Python numbers, lists, NumPy arrays) reach the device without a compiled program.
+
+On jax 0.10 ``jnp.asarray`` of a host value, and a dtype conversion of an array, compile a small program
+once per shape and dtype in each process (tens of milliseconds each on a CPU); the validation of every
+input, ``tune``'s bookkeeping and ``noisy_batch`` used to pay them on a script's first call.  The counts
+below come from ``jax.monitoring``'s lowering events, the conversions are checked against ``jnp.asarray``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import obsjax
+from obsjax._checks import as_float_array, device_array, host_array
+
+LOWERING = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+
+
+@contextlib.contextmanager
+def count_lowerings():
+    """Counts the programs JAX lowers (one event per program, compiled or read from a cache)."""
+    seen = []
+
+    def listener(event, duration, **kwargs):
+        if event == LOWERING:
+            seen.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield seen
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def test_the_counter_sees_a_compiled_program():
+    with count_lowerings() as seen:
+        jax.jit(lambda x: x * 3.0 + 1.0)(np.zeros((3, 7, 6))).block_until_ready()
+    assert len(seen) >= 1
+
+
+def test_host_values_reach_the_device_without_a_compiled_program():
+    # shapes no other test uses, so that nothing is cached in this process
+    with count_lowerings() as seen:
+        a = as_float_array(np.zeros((3, 7, 5)), "a")
+        b = as_float_array(list(range(11)), "b")
+        c = as_float_array(17, "c")
+        d = as_float_array(np.arange(13, dtype=np.float32), "d")
+        e = device_array(np.ones((5, 19)), dtype=np.float32)
+        f = device_array(0.125)
+        jax.block_until_ready((a, b, c, d, e, f))
+    assert seen == []
+    assert [x.dtype for x in (a, b, c, d, e, f)] == [jnp.float64] * 4 + [jnp.float32, jnp.float64]
+    np.testing.assert_array_equal(b, np.arange(11.0))
+    assert float(c) == 17.0 and float(f) == 0.125
+
+
+@pytest.mark.parametrize(
+    "x",
+    [2, 2.5, [1, 2], np.float32(1.5), np.arange(3, dtype=np.int16), np.zeros(2, np.float16),
+     jnp.asarray(3.0), jnp.asarray(3), jnp.asarray([1.0, 2.0], dtype=jnp.float32)],
+)  # fmt: skip
+def test_as_float_array_equals_jax_conversion(x):
+    out = as_float_array(x, "x")
+    expected = jnp.asarray(x).astype(jnp.float64)
+    assert out.dtype == jnp.float64 and out.shape == expected.shape
+    np.testing.assert_array_equal(out, expected)
+    if host_array(x) is not None:  # host values come out strongly typed
+        assert not jax.typeof(out).weak_type
+
+
+def test_as_float_array_keeps_complex_and_refuses_booleans_and_text():
+    z = as_float_array(1 + 2j, "z")
+    assert z.dtype == jnp.complex128 and complex(z) == 1 + 2j
+    with pytest.raises(ValueError, match="`flag` must hold numbers, got booleans"):
+        as_float_array(True, "flag")
+    with pytest.raises(ValueError, match="`flags` must hold numbers, got booleans"):
+        as_float_array([True, False], "flags")
+    with pytest.raises(ValueError, match="`name` must be array-like"):
+        as_float_array("abc", "name")
+
+
+def test_host_array_leaves_jax_values_alone():
+    assert host_array(jnp.ones(2)) is None
+    assert host_array("abc") is None
+    assert host_array(object()) is None
+
+    def f(x):
+        assert host_array(x) is None  # a tracer
+        return as_float_array(x, "x") * 2.0
+
+    np.testing.assert_array_equal(jax.jit(f)(np.arange(3)), [0.0, 2.0, 4.0])
+    # a Python constant inside a trace is converted as outside
+    np.testing.assert_array_equal(jax.jit(lambda x: x + as_float_array(2, "two"))(1.0), 3.0)
+
+
+def test_tune_bookkeeping_on_the_host_gives_the_kernels_gains():
+    """tune's θ = log|leaf| and leaf = sign·exp(θ) are computed on the host: the returned observer and
+    the history hold sign·exp(θ) to rounding, the signs of the initial gains are kept."""
+    plant = obsjax.chen_yen_example()
+    obs = obsjax.LeastSquaresReset(plant, gamma=20.0, p0=0.1, T=0.25)
+    x0s = np.array([[1.0, -0.5], [0.3, 0.8]])
+    res = obsjax.tune(
+        obs, plant, where=lambda o: (o.gamma, o.T), loss=obsjax.losses.ise, x0s=x0s,
+        xhat0s=np.zeros((2, 2)), ts=np.linspace(0.0, 2.03, 8), steps=3,
+        simulate_kwargs={"adaptive": False, "dt0": 0.01},
+    )  # fmt: skip
+    gam, T = res.history["params"]
+    np.testing.assert_allclose([gam[0], T[0]], [20.0, 0.25], rtol=4e-16)  # exp(log x) = x to rounding
+    assert np.all(np.diff(gam) != 0.0)  # the optimizer moved γ at every accepted step
+    best = res.history["best_step"]
+    assert float(res.observer.gamma) == gam[best] and float(res.observer.T) == T[best]
+    assert res.observer.gamma.dtype == jnp.float64 and not jax.typeof(res.observer.gamma).weak_type
+
+
+def test_noisy_batch_draws_in_one_program_the_eager_paths():
+    """noisy_batch draws all paths in one compiled program: the same values, bit for bit, as the
+    realisations drawn one key at a time."""
+    from obsjax.montecarlo import noisy_batch
+    from obsjax.systems._noise import realise_band_limited
+
+    plant = obsjax.chen_yen_example()
+    noise = obsjax.noise.BandLimitedNoise(0.07, dt=0.05)
+    key = jr.PRNGKey(11)
+    batch = noisy_batch(plant, noise, key, 5, 0.0, 1.3)
+    for b, k in enumerate(jr.split(key, 5)):
+        one = realise_band_limited(noise, k, 0.0, 1.3, plant.m)
+        np.testing.assert_array_equal(batch.path.values[b], one.values)
+        assert float(batch.path.t0[b]) == float(one.t0)
