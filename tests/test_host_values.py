@@ -132,3 +132,48 @@ def test_noisy_batch_draws_in_one_program_the_eager_paths():
         one = realise_band_limited(noise, k, 0.0, 1.3, plant.m)
         np.testing.assert_array_equal(batch.path.values[b], one.values)
         assert float(batch.path.t0[b]) == float(one.t0)
+
+
+def test_pole_decoding_and_vectors_agree_on_host_and_traced_paths():
+    """Concrete poles are decoded and converted by NumPy, traced ones by JAX: the same values."""
+    from obsjax.design import pole_structure
+    from obsjax.design._place import pole_vector
+    from obsjax.design._poles import decode, encode
+
+    poles = np.array([-1.0 + 2.0j, -1.0 - 2.0j, -3.0, -0.5 + 0.25j, -0.5 - 0.25j])
+    st = pole_structure(poles)
+    x = encode(poles, st)
+    re_h, im_h = decode(x, st)
+    re_t, im_t = jax.jit(lambda v: decode(v, st))(x)
+    np.testing.assert_array_equal(re_h, re_t)
+    np.testing.assert_array_equal(im_h, im_t)
+    np.testing.assert_array_equal(np.sort_complex(np.asarray(re_h) + 1j * np.asarray(im_h)), np.sort_complex(poles))
+    assert re_h.dtype == jnp.float64
+    for p, n in (([-1, -2], 2), (-4.0, 1), (poles, 5), (np.float32([-1.5, -2.5]), 2)):
+        h = pole_vector(p, n)
+        t = jax.jit(lambda v, n=n: pole_vector(v, n))(jnp.asarray(p))
+        assert h.dtype == t.dtype and h.shape == (n,)
+        np.testing.assert_array_equal(h, t)
+    with pytest.raises(ValueError, match="must hold exactly n = 3 observer poles, got 2"):
+        pole_vector([-1.0, -2.0], 3)
+    with pytest.raises(ValueError, match="must be numbers, got booleans"):
+        pole_vector([True, False], 2)
+
+
+def test_placement_of_a_concrete_pair_compiles_no_eager_checks():
+    """Luenberger.from_poles on concrete matrices decides its checks in NumPy: what it lowers is its
+    placement kernel, not one program per check and conversion."""
+    plant = obsjax.LTI(A=[[-2.0, 1.0, 0.0], [0.0, -1.0, 1.0], [0.3, 0.0, -4.0]], B=[[0.0], [0.0], [1.0]],
+                       C=[[1.0, 0.0, 0.0]])  # fmt: skip
+    with count_lowerings() as seen:
+        obs = obsjax.Luenberger.from_poles(plant, [-5.5, -6.5, -7.5])
+        jax.block_until_ready(obs.gain)
+    # the placement kernel and the Layout's count of null directions (a Python int); 21 in a fresh
+    # process before, when each check and conversion compiled its own program
+    assert len(seen) <= 2
+    eig = np.linalg.eigvals(np.asarray(plant.A) - np.asarray(obs.gain) @ np.asarray(plant.C))
+    np.testing.assert_allclose(np.sort(eig.real), [-7.5, -6.5, -5.5], rtol=1e-9)
+    with pytest.raises(ValueError, match="place the poles|not finite|observable"):
+        obsjax.Luenberger.from_poles(
+            obsjax.LTI(A=[[1.0, 0.0], [0.0, 2.0]], B=[[1.0], [1.0]], C=[[1.0, 0.0]]), [-1.0, -2.0]
+        )

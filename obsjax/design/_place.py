@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, concrete_value, require_finite, static_value
+from .._checks import as_float_array, concrete_value, device_array, host_array, require_finite, static_value
 from .._config import require_x64
 from ..analysis._lti import _pair, balancing, observability_staircase, require_observable
 from ._poles import (
@@ -53,6 +53,11 @@ def design_pair(A, C, who: str):
 
 def pole_vector(poles, n: int, who: str = "place") -> jax.Array:
     """The poles as a vector of length n (float64 or complex128)."""
+    h = host_array(poles)
+    if h is not None and h.dtype != np.bool_ and h.ndim <= 1 and h.size == n:
+        # host poles (the usual case): converted by NumPy, no program compiled
+        h = h.reshape(n)
+        return device_array(h.astype(np.complex128 if np.iscomplexobj(h) else np.float64))
     try:
         p = jnp.asarray(poles)
     except Exception as e:  # noqa: BLE001
@@ -128,7 +133,7 @@ def make_pattern(structure: PoleStructure, blocks) -> Pattern:
     for b in blocks:
         if b.length > 1:
             rdef[rc == b.cluster] = True
-    return Pattern(*(jnp.asarray(a) for a in (pc, ref, real, up, partner, rc, rdef)))
+    return Pattern(*(device_array(a) for a in (pc, ref, real, up, partner, rc, rdef)))
 
 
 def _pattern_flags(pr, pi, pat: Pattern):
@@ -222,7 +227,7 @@ def _scalings(A, C):
     Av, Cv = static_value(A), static_value(C)
     if Av is not None and Cv is not None:
         d, e = balancing(np.asarray(Av, dtype=float), np.asarray(Cv, dtype=float))
-        return jnp.asarray(d), jnp.asarray(e)
+        return device_array(d), device_array(e)
     return balancing(A, C)
 
 
@@ -336,10 +341,15 @@ def _finish(L, err, kappa, rtol: float, who: str, finite=None):
     :func:`_sanitize_poles`) give a NaN gain instead of the run-time error: the simulation's status
     says NONFINITE for that member of a batch (a NaN pole is a bad input of one trajectory, not a
     design on which the whole batch must stop), and ``simulate(throw=True)`` raises on it."""
-    ok = jnp.all(jnp.isfinite(L)) & (err <= rtol)
-    if finite is not None:
-        L, ok = jnp.where(finite, L, jnp.nan), ok | ~finite
-    e, k, okv = concrete_value(err), concrete_value(kappa), concrete_value(ok)
+    Lv, e, k = concrete_value(L), concrete_value(err), concrete_value(kappa)
+    if finite is None and Lv is not None and e is not None:
+        # concrete: decided in NumPy (the same test; run eagerly, JAX compiles a program per operation)
+        okv = np.all(np.isfinite(Lv)) & (e <= rtol)
+    else:
+        ok = jnp.all(jnp.isfinite(L)) & (err <= rtol)
+        if finite is not None:
+            L, ok = jnp.where(finite, L, jnp.nan), ok | ~finite
+        okv = concrete_value(ok)
     if okv is not None:
         if not bool(okv) and not np.all(np.isfinite(np.asarray(concrete_value(L)))):
             raise ValueError(
@@ -396,7 +406,9 @@ def place_real(
     if Av is not None and Cv is not None and blocks is None and indices is None:
         st = require_observable(Av, Cv, tol, who, independent_outputs=True)
         kron = st.kronecker
-    else:
+    elif not (
+        Av is not None and Cv is not None and np.all(np.isfinite(Av)) and np.all(np.isfinite(Cv))
+    ):  # (concrete and finite: nothing to check, and the checks run eagerly would each compile)
         A = eqx.error_if(A, ~jnp.all(jnp.isfinite(A)), f"{who}: `A` must be finite.")
         C = eqx.error_if(C, ~jnp.all(jnp.isfinite(C)), f"{who}: `C` must be finite.")
     finite = None

@@ -178,6 +178,21 @@ def decode(x, structure: PoleStructure):
     """(Re, Im) arrays (jax, real) of the poles from their real encoding (see :func:`encode`)."""
     import jax.numpy as jnp
 
+    from .._checks import device_array, static_value
+
+    v = static_value(x)
+    if v is not None and not np.iscomplexobj(v):
+        # constant poles: decoded by NumPy (the same assignments; run eagerly, each JAX operation would
+        # compile a program on its first call)
+        v = np.asarray(v, dtype=np.float64).reshape(-1)
+        re, im = v.copy(), np.zeros_like(v)
+        for kind, up, dn in structure.clusters:
+            if kind == 2:
+                up, dn = np.asarray(up), np.asarray(dn)
+                re[dn] = v[up]
+                im[up] = v[dn]
+                im[dn] = -v[dn]
+        return device_array(re), device_array(im)
     x = jnp.asarray(x)
     re, im = x, jnp.zeros_like(x)
     for kind, up, dn in structure.clusters:

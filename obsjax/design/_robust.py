@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import device_array
 from ._poles import Block
 
 _MAXITER = 60
@@ -130,19 +131,20 @@ def make_layout(blocks: tuple[Block, ...], n_poles: int) -> tuple[Layout, int]:
             nnull += k * (k + 1) // 2 if kind == 1 else k * k + k
         else:
             nnull += kind * k
+    # (NumPy arrays moved by device_put: jnp.asarray compiles a program per shape on its first call)
     lay = Layout(
-        jnp.asarray(avg),
-        jnp.asarray(flag),
-        jnp.asarray(partner),
-        jnp.asarray(nxt),
-        jnp.asarray(has_next),
-        jnp.asarray(fixed),
-        jnp.asarray(block),
-        jnp.asarray(group),
-        jnp.asarray(gw),
+        device_array(avg),
+        device_array(flag),
+        device_array(partner),
+        device_array(nxt),
+        device_array(has_next),
+        device_array(fixed),
+        device_array(block),
+        device_array(group),
+        device_array(gw),
         jnp.asarray(nnull),
-        jnp.asarray(prv),
-        jnp.asarray(has_prev),
+        device_array(prv),
+        device_array(has_prev),
     )
     return lay, max(b.length for b in blocks)
 

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import concrete_value, matrix, require_finite, vector
+from .._checks import concrete_value, device_array, matrix, require_finite, vector
 from ..analysis._lti import balancing, require_observable
 from ..design._place import (
     as_design_matrix,
@@ -53,7 +53,7 @@ def _poles_leaf(poles, n: int, structure, who: str):
         return p, default_structure(n) if structure is None else structure
     if np.iscomplexobj(v) or structure is None:
         found = pole_structure(v)
-        return jnp.asarray(encode(v, found)), found
+        return device_array(encode(v, found)), found
     if not isinstance(structure, PoleStructure) or structure.n != n:
         raise ValueError(f"{who}: `structure` must be a PoleStructure of {n} poles.")
     if not np.all(np.isfinite(v)):
