@@ -177,3 +177,31 @@ def test_placement_of_a_concrete_pair_compiles_no_eager_checks():
         obsjax.Luenberger.from_poles(
             obsjax.LTI(A=[[1.0, 0.0], [0.0, 2.0]], B=[[1.0], [1.0]], C=[[1.0, 0.0]]), [-1.0, -2.0]
         )
+
+
+def test_schedule_from_constants_equals_the_traced_schedule():
+    """With constant save times, period and jumps the schedule is built by NumPy (no program compiled);
+    traced, by JAX: the same breakpoints, kinds and save windows."""
+    from obsjax._integrate import _schedule
+
+    ts_np = np.linspace(0.0, 3.0, 31)
+    ts = jnp.asarray(ts_np)
+    jumps = (0.55, 1.75, 2.5)  # 2.5 = 10 T: a jump and a reset at one instant (the jump first)
+    with count_lowerings() as seen:
+        s = _schedule.build(ts, ts_np, 0.25, 16, jumps, lambda a, b: None)
+    assert seen == []
+
+    def traced(ts_, T):
+        t = _schedule.build(ts_, None, T, 16, jumps, lambda a, b: None)
+        return t.times, t.reset, t.event, t.jump, t.first_save
+
+    times, reset, event, jump, first = jax.jit(traced)(ts, jnp.asarray(0.25))
+    act = np.asarray(reset | event | jump)
+    np.testing.assert_array_equal(np.asarray(times)[act], s.times)
+    for a, b in ((reset, s.reset), (event, s.event), (jump, s.jump)):
+        np.testing.assert_array_equal(np.asarray(a)[act], b)
+    assert s.times.shape == (14,) and int(np.sum(s.jump)) == 3 and int(np.sum(s.reset)) == 11
+    np.testing.assert_array_equal(s.concrete[0], s.times)
+    # the first save time of each segment: one past the breakpoint's save index, as the traced search
+    np.testing.assert_array_equal(np.asarray(first)[np.r_[True, act, True]], s.first_save)
+    assert s.first_save.dtype == jnp.int32 and float(s.t0) == 0.0 and float(s.t1) == 3.0

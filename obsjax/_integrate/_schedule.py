@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import concrete_value, static_value
+from .._checks import concrete_value, device_array, static_value
 
 MAX_RESET_SEGMENTS = 100_000
 
@@ -204,17 +204,19 @@ def build(ts, ts_np, T, n_reset, jumps, event_times, events_checked=False) -> Sc
 def _resets(ts, ts_np, T, n_reset, tol, tol_rt):
     if T is None or n_reset <= 1:
         return None
-    t0, t1 = ts[0], ts[-1]
     k = np.arange(1, n_reset)
-    r = t0 + jnp.asarray(k, ts.dtype) * jnp.asarray(T, dtype=ts.dtype)
     Tv = static_value(T)  # a T being differentiated (even eagerly) keeps its traced instants
     if ts_np is not None and Tv is not None:
-        # concrete instants (NumPy, so also inside jit): drop those on or after t1
+        # concrete instants (NumPy, so also inside jit): drop those on or after t1.  ts and T are then
+        # constants, and t0 + k·T in NumPy is the same product and sum as in JAX (run eagerly, each JAX
+        # operation would compile a program on its first call)
         rv = ts_np[0] + k * float(np.asarray(Tv).reshape(()))
         keep = rv < ts_np[-1] - tol
         if not np.any(keep):
             return None
-        return _Part("reset", r[np.flatnonzero(keep)], jnp.ones(int(keep.sum()), bool), rv[keep])
+        return _Part("reset", device_array(rv[keep]), device_array(np.ones(int(keep.sum()), bool)), rv[keep])
+    t0, t1 = ts[0], ts[-1]
+    r = t0 + jnp.asarray(k, ts.dtype) * jnp.asarray(T, dtype=ts.dtype)
     # A reset on or after t1 (a bound larger than needed) is clipped to t1 and not applied; the tie resolves
     # to the fixed t1, so the end of the horizon carries no T-derivative.
     return _Part("reset", jnp.where(r < t1, r, t1), r < t1 - tol_rt, None)
@@ -228,14 +230,14 @@ def _jumps(ts, ts_np, jumps, tol, tol_rt):
         jv = jv[(jv > ts_np[0] + tol) & (jv < ts_np[-1] - tol)]
         if not jv.size:
             return None
-        return _Part("jump", jnp.asarray(jv, ts.dtype), jnp.ones(jv.shape, bool), jv)
+        return _Part("jump", device_array(jv), device_array(np.ones(jv.shape, bool)), jv)
     j = jnp.asarray(jv, ts.dtype)
     t0, t1 = ts[0], ts[-1]
     return _Part("jump", jnp.clip(j, t0, t1), (j > t0 + tol_rt) & (j < t1 - tol_rt), None)
 
 
 def _event_part(ts, ts_np, event_times, tol, tol_rt, checked=False):
-    t0, t1 = ts[0], ts[-1]
+    t0, t1 = (ts[0], ts[-1]) if ts_np is None else (None, None)  # (_events reads them when traced only)
     got = _events(event_times, t0, t1, ts_np, checked)
     if got is None or not got[0].shape[0]:
         return None
@@ -245,7 +247,9 @@ def _event_part(ts, ts_np, event_times, tol, tol_rt, checked=False):
         if not np.any(keep):
             return None
         vals = np.clip(evv[keep], ts_np[0], ts_np[-1])
-        return _Part("event", jnp.clip(ev[np.flatnonzero(keep)], t0, t1), jnp.ones(vals.shape, bool), vals)
+        return _Part("event", device_array(vals), device_array(np.ones(vals.shape, bool)), vals)
+    if t0 is None:
+        t0, t1 = ts[0], ts[-1]
     return _Part("event", jnp.clip(ev, t0, t1), (ev >= t0 - tol_rt) & (ev <= t1 + tol_rt), None)
 
 
@@ -277,25 +281,25 @@ def _refuse_saves_just_before(ts_np, vals, is_reset, is_event, tol):
 
 
 def _merge(ts, ts_np, tol, tol_rt, parts) -> Schedule:
-    t0, t1 = ts[0], ts[-1]
+    # (with constant save times, every array that is a constant too is made by NumPy and moved by
+    # device_put: run eagerly, each JAX operation compiles a program on its first call in a process)
+    if ts_np is None:
+        t0, t1 = ts[0], ts[-1]
+    else:
+        t0, t1 = device_array(ts_np[0]), device_array(ts_np[-1])
     N = ts.shape[0]
     has_reset = any(p.kind == "reset" for p in parts)
     has_event = any(p.kind == "event" for p in parts)
     if not parts:
-        no = jnp.zeros((0,), bool)
+        no = device_array(np.zeros((0,), bool))
         concrete = None if ts_np is None else (np.zeros(0), *(np.zeros(0, bool),) * 3)
-        first = jnp.asarray([0, N], jnp.int32)
-        return Schedule(t0, t1, jnp.zeros((0,), ts.dtype), no, no, no, first, N, False, False, concrete)
-    times = jnp.concatenate([p.times for p in parts])
+        first = device_array(np.asarray([0, N], np.int32))
+        return Schedule(t0, t1, device_array(np.zeros((0,), ts.dtype)), no, no, no, first, N, False, False, concrete)
     # Breakpoints at one instant are ordered plant jumps first, then the rest in the order resets, events:
     # the segment before the instant then ends one float before it (the jump's rule), whatever else happens
     # there.  Were a reset first, the segment before would end exactly at the jump and its last stage would
     # see the vector field after it.
     is_jump_part = np.concatenate([np.full(p.times.shape, p.kind == "jump") for p in parts])
-    flags = [
-        jnp.concatenate([p.active if p.kind == kind else jnp.zeros(p.active.shape, bool) for p in parts])
-        for kind in ("reset", "event", "jump")
-    ]
     if ts_np is not None and all(p.values is not None for p in parts):
         vals = np.concatenate([p.values for p in parts])
         order = np.lexsort((~is_jump_part, vals))  # stable; at a tie, a plant jump first (see below)
@@ -307,16 +311,19 @@ def _merge(ts, ts_np, tol, tol_rt, parts) -> Schedule:
         _refuse_saves_just_before(ts_np, vals, np_flags[0], np_flags[1], tol)
         first = np.concatenate([[0], np.searchsorted(ts_np, vals - tol, side="left"), [N]])
         window = max(1, int(np.max(np.diff(first))))
-        first_save = jnp.asarray(first, jnp.int32)
-        concrete = (vals, *np_flags)
-        order = jnp.asarray(order)
-    else:
-        order = jnp.lexsort((jnp.arange(times.shape[0]), ~jnp.asarray(is_jump_part), jax.lax.stop_gradient(times)))
-        starts = jax.lax.stop_gradient(times[order])
-        inner = jnp.searchsorted(ts, starts - tol_rt, side="left").astype(jnp.int32)
-        first_save = jnp.concatenate([jnp.zeros(1, jnp.int32), inner, jnp.full(1, N, jnp.int32)])
-        window, concrete = N, None
+        # every breakpoint known: the times are the values and all of them act (see _Part)
+        return Schedule(
+            t0, t1, device_array(vals), *(device_array(f) for f in np_flags),
+            device_array(first.astype(np.int32)), window, has_reset, has_event, (vals, *np_flags),
+        )  # fmt: skip
+    times = jnp.concatenate([p.times for p in parts])
+    flags = [
+        jnp.concatenate([p.active if p.kind == kind else jnp.zeros(p.active.shape, bool) for p in parts])
+        for kind in ("reset", "event", "jump")
+    ]
+    order = jnp.lexsort((jnp.arange(times.shape[0]), ~jnp.asarray(is_jump_part), jax.lax.stop_gradient(times)))
+    starts = jax.lax.stop_gradient(times[order])
+    inner = jnp.searchsorted(ts, starts - tol_rt, side="left").astype(jnp.int32)
+    first_save = jnp.concatenate([jnp.zeros(1, jnp.int32), inner, jnp.full(1, N, jnp.int32)])
     reset, event, jump = (f[order] for f in flags)
-    return Schedule(
-        t0, t1, times[order], reset, event, jump, first_save, window, has_reset, has_event, concrete
-    )
+    return Schedule(t0, t1, times[order], reset, event, jump, first_save, N, has_reset, has_event, None)
