@@ -28,6 +28,7 @@ BENCHMARKS = {
     "j": "j_forward_gradient.py",
     "k": "k_plant_uncertainty.py",
     "l": "l_eager_calls.py",
+    "n": "n_eager_programs.py",
     "s": "s_streaming_study.py",
 }
 

@@ -480,6 +480,8 @@ BENCHMARKS = {
     "throughput, a monte_carlo study with a param_sampler, a tune step with plant_batched=True",
     "l": "later eager calls of simulate and simulate_batch and eager jax.grad (resets, observer updates, "
     "batches) against the first call, with and without the table of compiled programs, each in fresh processes",
+    "n": "the programs JAX lowers on a script's first run (README's two examples, the demo's second run): "
+    "small ones (eager operations, checks, conversions) against the solver kernels, count and time",
     "m": "monte_carlo in 2 jax.distributed processes on localhost against 1 process: agreement, resume "
     "from process 0's checkpoint, timings",
     "s": "a 1e7-trajectory monte_carlo(keep='summary') study in a fresh process: peak resident memory "
