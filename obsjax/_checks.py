@@ -35,11 +35,20 @@ def device_array(x, dtype=None) -> jax.Array:
     dtype compile a small program, once per shape and dtype in each process: tens of milliseconds each on
     a CPU, a sizeable share of a script's first call.  Here host values are converted by NumPy and moved
     by ``jax.device_put``, which compiles nothing.  JAX arrays and tracers take ``jnp.asarray`` itself.
-    The result is strongly typed (a Python float gives float64 under x64, not a weakly typed float)."""
+    The result is strongly typed (a Python float gives float64 under x64, not a weakly typed float).
+
+    The host value is copied first, as ``jnp.asarray`` copies: on the CPU ``jax.device_put`` may keep the
+    NumPy buffer itself (no copy), and the caller's array, changed afterwards, would change the JAX array
+    (a plant built in a loop that edits one matrix in place got the last matrix three times)."""
     h = host_array(x)
     if h is None:
         return jnp.asarray(x, dtype=dtype)
-    return jax.device_put(h if dtype is None else h.astype(dtype, copy=False))
+    return _to_device(h, dtype)
+
+
+def _to_device(h: np.ndarray, dtype=None) -> jax.Array:
+    """A fresh copy of the host array `h` (in `dtype`) on the default device (see :func:`device_array`)."""
+    return jax.device_put(np.array(h, dtype=dtype, copy=True))
 
 
 def as_float_array(x, name: str) -> jax.Array:
@@ -56,9 +65,8 @@ def as_float_array(x, name: str) -> jax.Array:
             x = h  # refused below, with the message
         else:
             default = np.dtype(jnp.result_type(float))
-            if h.dtype.kind in "biu" or (h.dtype.kind == "f" and h.dtype.itemsize < default.itemsize):
-                h = h.astype(default)
-            return jax.device_put(h)
+            widen = h.dtype.kind in "biu" or (h.dtype.kind == "f" and h.dtype.itemsize < default.itemsize)
+            return _to_device(h, default if widen else None)  # a copy (see device_array)
     try:
         arr = jnp.asarray(x)
     except Exception as e:  # noqa: BLE001

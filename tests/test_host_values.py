@@ -205,3 +205,64 @@ def test_schedule_from_constants_equals_the_traced_schedule():
     # the first save time of each segment: one past the breakpoint's save index, as the traced search
     np.testing.assert_array_equal(np.asarray(first)[np.r_[True, act, True]], s.first_save)
     assert s.first_save.dtype == jnp.int32 and float(s.t0) == 0.0 and float(s.t1) == 3.0
+
+
+def test_host_arrays_are_copied_not_shared():
+    """jax.device_put may keep a NumPy buffer itself on the CPU: the caller's array, edited afterwards,
+    must not change what obsjax holds (as with jnp.asarray, which copies)."""
+    buf = np.zeros(64 + 8)  # a 64-byte aligned matrix: the buffer device_put would share
+    off = (-buf.ctypes.data % 64) // 8
+    A = buf[off : off + 4].reshape(2, 2)
+    A[0, 0] = -1.0
+    plants, arrays = [], []
+    for a01 in (1.0, 2.0, 3.0):
+        A[0, 1] = a01
+        plants.append(obsjax.LTI(A, None, [[1.0, 0.0]]))
+        arrays.append((as_float_array(A, "A"), device_array(A), device_array(A[:, 1])))
+    assert [float(p.A[0, 1]) for p in plants] == [1.0, 2.0, 3.0]
+    assert [float(a[0][0, 1]) for a in arrays] == [1.0, 2.0, 3.0]
+    assert [float(a[1][0, 1]) for a in arrays] == [1.0, 2.0, 3.0]
+    assert [float(a[2][0]) for a in arrays] == [1.0, 2.0, 3.0]
+    x0 = buf[off : off + 2]
+    x0[:] = [0.5, -0.25]
+    traj_x0 = as_float_array(x0, "x0")
+    x0[:] = 7.0
+    np.testing.assert_array_equal(traj_x0, [0.5, -0.25])
+
+
+def test_noisy_batch_under_jit_vmap_and_its_derivative_in_sigma():
+    """With a traced key (jit, vmap) or a σ being differentiated (even eagerly) noisy_batch draws by JAX:
+    the same paths, and d/dσ of a loss of them is kept (a NumPy product would drop it)."""
+    from obsjax.montecarlo import noisy_batch
+
+    plant = obsjax.chen_yen_example()
+    noise = obsjax.noise.BandLimitedNoise(0.2, dt=0.05)
+    eager = noisy_batch(plant, noise, jr.PRNGKey(3), 4, 0.0, 1.0).path.values
+    jitted = jax.jit(lambda k: noisy_batch(plant, noise, k, 4, 0.0, 1.0).path.values)(jr.PRNGKey(3))
+    np.testing.assert_allclose(jitted, eager, rtol=1e-15, atol=1e-16)
+    both = jax.vmap(lambda k: noisy_batch(plant, noise, k, 4, 0.0, 1.0).path.values)(
+        jnp.stack([jr.PRNGKey(3), jr.PRNGKey(4)])
+    )
+    np.testing.assert_allclose(both[0], eager, rtol=1e-15, atol=1e-16)
+
+    def loss(s):
+        nz = obsjax.noise.BandLimitedNoise(s, dt=0.05)
+        return jnp.sum(noisy_batch(plant, nz, jr.PRNGKey(0), 4, 0.0, 1.0).path.values ** 2)
+
+    g, gj = jax.grad(loss)(0.3), jax.jit(jax.grad(loss))(0.3)
+    # the loss is σ² Σ z², so d/dσ = 2 loss(σ)/σ
+    np.testing.assert_allclose(g, 2.0 * loss(0.3) / 0.3, rtol=1e-12)
+    np.testing.assert_allclose(gj, g, rtol=1e-12)
+
+
+def test_tune_leaves_are_the_kernels_exp():
+    """tune's observer and history hold sign·exp(θ) by XLA's exp, the kernel's, bit for bit (NumPy's exp
+    differs from it by an ulp in about one value of seven)."""
+    from obsjax.tuning._tune import _signed_exp
+
+    th = np.random.default_rng(0).normal(size=5000) * 5.0
+    signs = np.where(np.arange(5000) % 3 == 0, -1.0, 1.0)
+    got = np.asarray(_signed_exp((jnp.asarray(signs),), (jnp.asarray(th),))[0])
+    kernel = np.asarray(jax.jit(lambda s, t: s * jnp.exp(t))(jnp.asarray(signs), jnp.asarray(th)))
+    np.testing.assert_array_equal(got, kernel)
+    np.testing.assert_array_equal(got, np.asarray(jnp.asarray(signs) * jnp.exp(jnp.asarray(th))))

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from .._checks import concrete_value, device_array
+from .._checks import device_array, static_value
 from ..systems._noise import BandLimitedNoise, SampledNoise, realise_band_limited
 from ..systems._plants import AbstractSystem
 
@@ -89,11 +89,13 @@ def _standard_normals(key, batch, k, m):
 
 def _draw_paths(noise, key, batch, t0, t1, m) -> SampledNoise:
     """The paths ``realise_band_limited(noise, jr.split(key, batch)[b], t0, t1, m)``, stacked, bit for
-    bit: the same standard normals, times σ on the host where σ is concrete (one rounding, as JAX's)."""
+    bit: the same standard normals, times σ on the host where σ and the draws are constants (one
+    rounding, as JAX's); by JAX where either is traced (a traced key under ``jit``/``vmap``, σ being
+    differentiated, even eagerly: its derivative is kept)."""
     k = int(math.ceil((float(t1) - float(t0)) / noise.dt)) + 2
     z = _standard_normals(key, batch, k, m)
-    sigma = concrete_value(noise.sigma)
-    if sigma is None:
+    sigma = static_value(noise.sigma)
+    if sigma is None or isinstance(z, jax.core.Tracer):
         values = jnp.broadcast_to(noise.sigma, (m,)) * z
     else:
         values = device_array(np.broadcast_to(sigma, (m,)) * np.asarray(z))

@@ -432,6 +432,14 @@ def _selected_leaves(observer, where):
     return leaves0, not isinstance(selection, (tuple, list))
 
 
+@jax.jit
+def _signed_exp(signs, theta):
+    """leaf = sign · exp(θ), by XLA's exp as inside the kernel (one compiled program; NumPy's exp
+    differs from it by an ulp in one value of seven, and the observer tune returns would not be the one
+    it evaluated)."""
+    return tuple(s * jnp.exp(t) for s, t in zip(signs, theta))
+
+
 def _unused_keys(batch):
     """Keys of the shape and dtype of ``jr.split(key, batch)`` for a tune without noise, where the
     kernel reads none (zeros made by NumPy: drawing them would compile JAX's key programs)."""
@@ -760,10 +768,8 @@ def tune(
     if positive:
         signs, theta0 = _log_parametrisation(leaves0)
 
-        def to_leaves(theta):  # on the host: θ is concrete here (the kernel has its own)
-            return tuple(
-                device_array(np.asarray(s) * np.exp(np.asarray(t))) for s, t in zip(signs, theta)
-            )
+        def to_leaves(theta):  # (the kernel has its own)
+            return _signed_exp(signs, tuple(theta))
     else:
         signs, theta0 = None, leaves0
 
