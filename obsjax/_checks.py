@@ -25,7 +25,9 @@ def host_array(x):
         h = np.asarray(x)
     except Exception:  # noqa: BLE001  (e.g. a list holding tracers)
         return None
-    return h if h.dtype.kind in "biufc" else None
+    if h.dtype.kind not in "biufc" or h.dtype.itemsize > (16 if h.dtype.kind == "c" else 8):
+        return None  # (not a JAX dtype, e.g. np.longdouble: left to jnp.asarray and its message)
+    return h
 
 
 def device_array(x, dtype=None) -> jax.Array:

@@ -11,7 +11,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _integrate
-from ._checks import concrete_value
 from ._config import require_x64
 from ._integrate import _compiled, _validate
 from ._integrate._schedule import MAX_RESET_SEGMENTS, num_segments
@@ -245,11 +244,6 @@ def _raise_if(traj: Trajectory, throw: bool, who: str, status) -> Trajectory:
     """With `throw`, every array of the trajectory (x, x̂, y, x̃, z) carries the check of its status, so a
     computation that reads any of them (under ``jit`` too) raises on a failed trajectory."""
     if not throw:
-        return traj
-    code = concrete_value(status)
-    if code is not None and not np.any((code == SOLVER_FAILED) | (code == NONFINITE)):
-        # a concrete status with no failure (an eager call): neither check can fire, and run eagerly each
-        # would compile its programs
         return traj
     fields = (traj.x, traj.xhat, traj.y, traj.error, traj.z)
     fields = eqx.error_if(

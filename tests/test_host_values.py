@@ -83,6 +83,9 @@ def test_as_float_array_keeps_complex_and_refuses_booleans_and_text():
         as_float_array([True, False], "flags")
     with pytest.raises(ValueError, match="`name` must be array-like"):
         as_float_array("abc", "name")
+    if np.dtype(np.longdouble).itemsize > 8:  # extended precision: not a JAX dtype, refused by name
+        with pytest.raises(ValueError, match="`wide` must be array-like"):
+            as_float_array(np.ones(2, np.longdouble), "wide")
 
 
 def test_host_array_leaves_jax_values_alone():

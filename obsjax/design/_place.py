@@ -341,11 +341,14 @@ def _finish(L, err, kappa, rtol: float, who: str, finite=None):
     :func:`_sanitize_poles`) give a NaN gain instead of the run-time error: the simulation's status
     says NONFINITE for that member of a batch (a NaN pole is a bad input of one trajectory, not a
     design on which the whole batch must stop), and ``simulate(throw=True)`` raises on it."""
-    Lv, e, k = concrete_value(L), concrete_value(err), concrete_value(kappa)
-    if finite is None and Lv is not None and e is not None:
-        # concrete: decided in NumPy (the same test; run eagerly, JAX compiles a program per operation)
-        okv = np.all(np.isfinite(Lv)) & (e <= rtol)
+    if finite is None and not any(isinstance(v, jax.core.Tracer) for v in (L, err, kappa)):
+        # concrete: decided in NumPy (the same test; run eagerly, JAX compiles a program per operation).
+        # np.asarray, not concrete_value: reading a result raises a check that fired inside the kernel,
+        # where concrete_value would return None and lose its message.
+        e, k = np.asarray(err), np.asarray(kappa)
+        okv = np.all(np.isfinite(np.asarray(L))) & (e <= rtol)
     else:
+        e, k = concrete_value(err), concrete_value(kappa)
         ok = jnp.all(jnp.isfinite(L)) & (err <= rtol)
         if finite is not None:
             L, ok = jnp.where(finite, L, jnp.nan), ok | ~finite
