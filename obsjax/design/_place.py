@@ -57,7 +57,7 @@ def pole_vector(poles, n: int, who: str = "place") -> jax.Array:
     if h is not None and h.dtype != np.bool_ and h.ndim <= 1 and h.size == n:
         # host poles (the usual case): converted by NumPy, no program compiled
         h = h.reshape(n)
-        return device_array(h.astype(np.complex128 if np.iscomplexobj(h) else np.float64))
+        return device_array(h, dtype=np.complex128 if np.iscomplexobj(h) else np.float64)
     try:
         p = jnp.asarray(poles)
     except Exception as e:  # noqa: BLE001
